@@ -1,0 +1,104 @@
+"""``ultron import-ultranerf`` and ``ultron info``."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from ultron.cli.common import console, user_errors
+
+
+@user_errors
+def import_ultranerf(
+    src: Annotated[
+        Path, typer.Argument(help="Ultra-NeRF folder: images/0.png… or images.npy, and poses.npy.")
+    ],
+    width_mm: Annotated[
+        float, typer.Option("--width-mm", help="Probe width (lateral field of view), mm.")
+    ],
+    depth_mm: Annotated[float, typer.Option("--depth-mm", help="Imaging depth, mm.")],
+    out: Annotated[
+        Path, typer.Option("--out", help="Dataset directory (created, or extended by a new sweep).")
+    ],
+    sweep_name: Annotated[
+        str | None,
+        typer.Option("--sweep-name", help="Name of the new sweep [default: SRC's folder name]."),
+    ] = None,
+    kind: Annotated[
+        str, typer.Option("--kind", help="Sweep kind: row, column, tilted or other.")
+    ] = "other",
+    orthonormalize_tol: Annotated[
+        float,
+        typer.Option(
+            "--orthonormalize-tol",
+            help="Largest rotation-block deviation from orthonormal that is repaired (nearest rotation).",
+        ),
+    ] = 0.05,
+) -> None:
+    """Import an Ultra-NeRF sweep into an ultron-sweeps/1 dataset (repeat to add sweeps)."""
+    from ultron.data.importers import add_sweep_to_dataset, read_ultranerf
+
+    name = sweep_name or _safe_name(src)
+    sweep, probe, report = read_ultranerf(src, width_mm, depth_mm, name, kind, orthonormalize_tol)
+    dataset = add_sweep_to_dataset(out, sweep, probe)
+    console.print(
+        f"imported {report.n_frames} frames of {report.image_shape[0]}×{report.image_shape[1]}"
+        f" as sweep {name!r} ({kind}) into {out} ({len(dataset.sweeps)} sweep(s))"
+    )
+    if report.n_poses_beyond_tolerance:
+        console.print(
+            f"re-orthonormalised the rotation blocks: {report.n_poses_beyond_tolerance} poses"
+            f" deviated by more than the format's 1e-3 (largest {report.max_rotation_deviation:.2e})"
+        )
+
+
+def _safe_name(src: Path) -> str:
+    import re
+
+    name = re.sub(r"[^A-Za-z0-9_.-]", "_", src.resolve().name).lstrip("._-")
+    return name or "sweep"
+
+
+@user_errors
+def info(
+    dataset: Annotated[Path, typer.Argument(help="Dataset directory (ultron-sweeps/1).")],
+) -> None:
+    """Summarise a dataset: sweeps, frames, image size, pixel spacing, labels, extent."""
+    from rich.table import Table
+
+    from ultron.data.dataset import SweepDataset
+    from ultron.data.geometry import field_of_view_bounds_mm
+
+    data = SweepDataset.load(dataset)
+    probe = data.probe
+    table = Table(title=f"{dataset}")
+    for column in ("sweep", "kind", "frames", "labelled frames"):
+        table.add_column(
+            column, justify="right" if column != "sweep" and column != "kind" else "left"
+        )
+    for sweep in data.sweeps:
+        labelled = "—" if sweep.labels is None else str(len(sweep.labelled_frames))
+        table.add_row(sweep.name, sweep.kind, str(sweep.n_frames), labelled)
+    console.print(table)
+    bounds = field_of_view_bounds_mm([s.probe_to_world for s in data.sweeps], probe).tolist()
+    n_labelled = sum(len(s.labelled_frames) for s in data.sweeps)
+    lines = [
+        f"sweeps: {len(data.sweeps)}   frames: {data.n_frames}   labelled frames: {n_labelled}",
+        f"image size: {probe.height_px} rows (depth) × {probe.width_px} columns (scanlines)",
+        f"probe: {probe.width_mm:g} mm wide × {probe.depth_mm:g} mm deep",
+        f"pixel spacing: {probe.lateral_spacing_mm:.4f} mm lateral × {probe.axial_spacing_mm:.4f} mm axial",
+        "bounding box (mm): "
+        + "  ".join(
+            f"{axis} [{lo:.2f}, {hi:.2f}]" for axis, lo, hi in zip("xyz", *bounds, strict=True)
+        ),
+        f"reference: {data.reference.name if data.reference else 'none'}",
+    ]
+    for line in lines:
+        console.print(line, highlight=False)
+
+
+def register(app: typer.Typer) -> None:
+    app.command("import-ultranerf")(import_ultranerf)
+    app.command("info")(info)

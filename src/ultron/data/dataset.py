@@ -1,0 +1,366 @@
+"""The sweep dataset format ``ultron-sweeps/1`` (see METHOD.md §1).
+
+A dataset is a directory::
+
+    dataset.json            {"format": "ultron-sweeps/1", "units": "mm",
+                             "probe": {"width_mm": W_mm, "depth_mm": D_mm},
+                             "sweeps": [{"name": "row", "kind": "row"}, ...],
+                             "reference": "reference.ply" | null}
+    <sweep>/images.npy      uint8 (N, H, W), row 0 at the transducer face, W scanlines
+    <sweep>/poses.npy       float (N, 4, 4) probe-to-world, translation in mm
+    <sweep>/labels.npy      optional uint8 (N, H, W): 1 target, 0 background, 255 not annotated
+    reference.ply|.stl      optional ground-truth surface in world mm
+
+Optional additions of ultron (readers of the plain format may ignore them): a top-level
+``"metadata"`` object, and per sweep an optional ``"true_poses"`` file name
+(``<sweep>/true_poses.npy``) holding the untracked-error poses of simulated data.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import shutil
+from collections.abc import Collection
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ultron import atomic
+from ultron.data.validation import (
+    LABEL_UNANNOTATED,
+    load_npy,
+    validate_images,
+    validate_labels,
+    validate_poses,
+    validate_positive,
+)
+from ultron.errors import UltronInputError, argument_error
+
+FORMAT = "ultron-sweeps/1"
+SWEEP_KINDS = ("row", "column", "tilted", "other")
+_NAME_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
+_REFERENCE_SUFFIXES = (".ply", ".stl", ".obj", ".off")
+
+
+@dataclass(frozen=True)
+class ProbeGeometry:
+    """A linear probe's image geometry.
+
+    ``width_mm`` is the lateral field of view (across the ``width_px`` scanlines) and
+    ``depth_mm`` the imaging depth (over the ``height_px`` samples of each scanline).
+    Pixel (r, c) lies at probe point ((c − W/2)·width_mm/W, r·depth_mm/H, 0).
+    """
+
+    width_mm: float
+    depth_mm: float
+    height_px: int
+    width_px: int
+
+    def __post_init__(self) -> None:
+        validate_positive(self.width_mm, "argument", "width_mm")
+        validate_positive(self.depth_mm, "argument", "depth_mm")
+        for name in ("height_px", "width_px"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 1:
+                raise argument_error(name, f"expected a positive integer, got {value!r}")
+
+    @property
+    def lateral_spacing_mm(self) -> float:
+        """Distance between adjacent scanlines (image columns), mm."""
+        return self.width_mm / self.width_px
+
+    @property
+    def axial_spacing_mm(self) -> float:
+        """Distance between adjacent samples along a scanline (image rows), mm: the step Δ."""
+        return self.depth_mm / self.height_px
+
+    @property
+    def image_shape(self) -> tuple[int, int]:
+        """(H, W) of every frame."""
+        return (self.height_px, self.width_px)
+
+
+@dataclass
+class Sweep:
+    """One tracked sweep: frames, their probe-to-world poses and optional labels."""
+
+    name: str
+    kind: str
+    images: np.ndarray
+    probe_to_world: np.ndarray
+    labels: np.ndarray | None = None
+    true_probe_to_world: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        where = f"sweep {self.name!r}"
+        if not isinstance(self.name, str) or not _NAME_PATTERN.match(self.name):
+            raise argument_error(
+                "name", f"sweep name {self.name!r} must match {_NAME_PATTERN.pattern}"
+            )
+        if self.kind not in SWEEP_KINDS:
+            raise UltronInputError(where, "kind", f"{self.kind!r} is not one of {SWEEP_KINDS}")
+        validate_images(self.images, where, "images")
+        validate_poses(self.probe_to_world, where, "poses")
+        self.probe_to_world = np.asarray(self.probe_to_world, dtype=np.float64)
+        n = self.images.shape[0]
+        _check_count(self.probe_to_world, n, where, "poses")
+        if self.labels is not None:
+            validate_labels(self.labels, where, "labels")
+            _check_count(self.labels, n, where, "labels")
+            if self.labels.shape != self.images.shape:
+                raise UltronInputError(
+                    where,
+                    "labels",
+                    f"shape {self.labels.shape} differs from images {self.images.shape}",
+                )
+        if self.true_probe_to_world is not None:
+            validate_poses(self.true_probe_to_world, where, "true_poses")
+            self.true_probe_to_world = np.asarray(self.true_probe_to_world, dtype=np.float64)
+            _check_count(self.true_probe_to_world, n, where, "true_poses")
+
+    @property
+    def n_frames(self) -> int:
+        return int(self.images.shape[0])
+
+    @property
+    def labelled_frames(self) -> np.ndarray:
+        """Indices of frames with at least one annotated (non-255) pixel."""
+        if self.labels is None:
+            return np.zeros(0, dtype=np.int64)
+        annotated = (self.labels != LABEL_UNANNOTATED).any(axis=(1, 2))
+        return np.flatnonzero(annotated)
+
+
+def _check_count(array: np.ndarray, n: int, where: str | Path, field_name: str) -> None:
+    if array.shape[0] != n:
+        raise UltronInputError(
+            where, field_name, f"has {array.shape[0]} frames but images have {n} (N mismatch)"
+        )
+
+
+@dataclass
+class SweepDataset:
+    """A set of tracked sweeps sharing one probe geometry, with an optional reference surface."""
+
+    probe: ProbeGeometry
+    sweeps: list[Sweep]
+    reference: Path | None = None
+    metadata: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if not self.sweeps:
+            raise argument_error("sweeps", "a dataset needs at least one sweep")
+        names = [s.name for s in self.sweeps]
+        if len(set(names)) != len(names):
+            raise argument_error("sweeps", f"sweep names must be unique, got {names}")
+        for sweep in self.sweeps:
+            if sweep.images.shape[1:] != self.probe.image_shape:
+                raise UltronInputError(
+                    f"sweep {sweep.name!r}",
+                    "images",
+                    f"frame size {sweep.images.shape[1:]} differs from the probe's"
+                    f" {self.probe.image_shape}",
+                )
+
+    # ----------------------------------------------------------------- queries
+    @property
+    def n_frames(self) -> int:
+        return sum(s.n_frames for s in self.sweeps)
+
+    def sweep(self, name: str) -> Sweep:
+        """The sweep called ``name``; raises a clear error listing the available names."""
+        for sweep in self.sweeps:
+            if sweep.name == name:
+                return sweep
+        raise argument_error(
+            "sweep", f"no sweep {name!r}; available: {[s.name for s in self.sweeps]}"
+        )
+
+    def all_poses(self) -> np.ndarray:
+        """Every frame's probe-to-world pose, sweeps concatenated in order, (N_total, 4, 4)."""
+        return np.concatenate([s.probe_to_world for s in self.sweeps], axis=0)
+
+    # ------------------------------------------------------------------- I/O
+    @classmethod
+    def load(cls, path: str | Path) -> SweepDataset:
+        """Read and validate a dataset directory. Raises :class:`UltronInputError` on bad input."""
+        root = Path(path)
+        meta_path = root / "dataset.json"
+        if not meta_path.is_file():
+            raise UltronInputError(meta_path, "dataset.json", "file is missing (not a dataset)")
+        meta = _read_json(meta_path)
+        fmt = meta.get("format")
+        if fmt != FORMAT:
+            raise UltronInputError(
+                meta_path, "format", f"unknown format {fmt!r}, expected {FORMAT!r}"
+            )
+        probe_meta = meta.get("probe")
+        if not isinstance(probe_meta, dict):
+            raise UltronInputError(
+                meta_path, "probe", "expected an object with width_mm and depth_mm"
+            )
+        width_mm = validate_positive(probe_meta.get("width_mm"), meta_path, "probe.width_mm")
+        depth_mm = validate_positive(probe_meta.get("depth_mm"), meta_path, "probe.depth_mm")
+        entries = meta.get("sweeps")
+        if not isinstance(entries, list) or not entries:
+            raise UltronInputError(meta_path, "sweeps", "expected a non-empty list of sweeps")
+
+        sweeps = [_load_sweep(root, meta_path, i, entry) for i, entry in enumerate(entries)]
+        shape = sweeps[0].images.shape[1:]
+        for sweep in sweeps[1:]:
+            if sweep.images.shape[1:] != shape:
+                raise UltronInputError(
+                    root / sweep.name / "images.npy",
+                    "images",
+                    f"frame size {sweep.images.shape[1:]} differs from sweep"
+                    f" {sweeps[0].name!r} ({shape}); one probe geometry per dataset",
+                )
+        probe = ProbeGeometry(width_mm, depth_mm, int(shape[0]), int(shape[1]))
+
+        reference = meta.get("reference")
+        reference_path: Path | None = None
+        if reference is not None:
+            if not isinstance(reference, str) or not reference:
+                raise UltronInputError(
+                    meta_path, "reference", f"expected a file name or null, got {reference!r}"
+                )
+            reference_path = root / reference
+            if not reference_path.is_file():
+                raise UltronInputError(
+                    reference_path, "reference", "reference mesh file is missing"
+                )
+        metadata = meta.get("metadata", {})
+        if not isinstance(metadata, dict):
+            raise UltronInputError(meta_path, "metadata", "expected an object")
+        return cls(probe=probe, sweeps=sweeps, reference=reference_path, metadata=metadata)
+
+    def save(self, path: str | Path, only_sweeps: Collection[str] | None = None) -> None:
+        """Write the dataset to directory ``path``, every file atomically.
+
+        Sweep arrays are written first and ``dataset.json`` last, so an interrupted save leaves
+        any previous ``dataset.json`` (and therefore a loadable dataset) in place.
+        ``only_sweeps`` restricts the arrays written to those sweeps (the others must already be
+        on disk there), as when a sweep is added to an existing dataset.
+        """
+        root = Path(path)
+        if root.exists() and not root.is_dir():
+            raise UltronInputError(root, "out", "exists and is not a directory")
+        root.mkdir(parents=True, exist_ok=True)
+        for sweep in self.sweeps:
+            if only_sweeps is None or sweep.name in only_sweeps:
+                self._save_sweep(root, sweep)
+        reference_name = None
+        if self.reference is not None:
+            reference_name = self._save_reference(root)
+        atomic.write_json(root / "dataset.json", self.to_json(reference_name))
+
+    def to_json(self, reference_name: str | None) -> dict[str, Any]:
+        """The ``dataset.json`` content."""
+        sweeps = []
+        for sweep in self.sweeps:
+            entry: dict[str, Any] = {"name": sweep.name, "kind": sweep.kind}
+            if sweep.true_probe_to_world is not None:
+                entry["true_poses"] = "true_poses.npy"
+            sweeps.append(entry)
+        meta: dict[str, Any] = {
+            "format": FORMAT,
+            "units": "mm",
+            "probe": {"width_mm": self.probe.width_mm, "depth_mm": self.probe.depth_mm},
+            "sweeps": sweeps,
+            "reference": reference_name,
+        }
+        if self.metadata:
+            meta["metadata"] = self.metadata
+        return meta
+
+    @staticmethod
+    def _save_sweep(root: Path, sweep: Sweep) -> None:
+        folder = root / sweep.name
+        atomic.save_npy(folder / "images.npy", sweep.images)
+        atomic.save_npy(folder / "poses.npy", sweep.probe_to_world)
+        if sweep.labels is not None:
+            atomic.save_npy(folder / "labels.npy", sweep.labels)
+        if sweep.true_probe_to_world is not None:
+            atomic.save_npy(folder / "true_poses.npy", sweep.true_probe_to_world)
+
+    def _save_reference(self, root: Path) -> str:
+        assert self.reference is not None
+        source = Path(self.reference)
+        suffix = source.suffix.lower()
+        if suffix not in _REFERENCE_SUFFIXES:
+            raise UltronInputError(source, "reference", f"expected one of {_REFERENCE_SUFFIXES}")
+        name = f"reference{suffix}"
+        target = root / name
+        if not source.is_file():
+            raise UltronInputError(source, "reference", "reference mesh file is missing")
+        if not (target.exists() and target.resolve() == source.resolve()):
+            tmp = target.with_name(f".{name}.tmp")
+            shutil.copyfile(source, tmp)
+            tmp.replace(target)
+        return name
+
+
+def _read_json(path: Path) -> dict[str, Any]:
+    try:
+        meta = json.loads(path.read_text(encoding="utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise UltronInputError(path, "dataset.json", f"not valid JSON ({exc})") from None
+    if not isinstance(meta, dict):
+        raise UltronInputError(path, "dataset.json", "expected a JSON object")
+    return meta
+
+
+def _load_sweep(root: Path, meta_path: Path, index: int, entry: Any) -> Sweep:
+    if not isinstance(entry, dict):
+        raise UltronInputError(
+            meta_path, f"sweeps[{index}]", "expected an object with name and kind"
+        )
+    name = entry.get("name")
+    kind = entry.get("kind", "other")
+    if not isinstance(name, str) or not _NAME_PATTERN.match(name):
+        raise UltronInputError(meta_path, f"sweeps[{index}].name", f"invalid sweep name {name!r}")
+    if kind not in SWEEP_KINDS:
+        raise UltronInputError(
+            meta_path, f"sweeps[{index}].kind", f"{kind!r} is not one of {SWEEP_KINDS}"
+        )
+    folder = root / name
+    if not folder.is_dir():
+        raise UltronInputError(
+            folder, f"sweep {name!r}", "listed in dataset.json but the folder is missing"
+        )
+
+    images_path, poses_path = folder / "images.npy", folder / "poses.npy"
+    images = load_npy(images_path, "images")
+    validate_images(images, images_path)
+    poses = load_npy(poses_path, "poses")
+    validate_poses(poses, poses_path)
+    _check_count(poses, images.shape[0], poses_path, "poses")
+
+    labels = None
+    labels_path = folder / "labels.npy"
+    if labels_path.exists():
+        labels = load_npy(labels_path, "labels")
+        validate_labels(labels, labels_path)
+        _check_count(labels, images.shape[0], labels_path, "labels")
+        if labels.shape != images.shape:
+            raise UltronInputError(
+                labels_path, "labels", f"shape {labels.shape} differs from images {images.shape}"
+            )
+    true_poses = None
+    true_name = entry.get("true_poses")
+    if true_name is not None:
+        true_path = folder / str(true_name)
+        true_poses = load_npy(true_path, "true_poses")
+        validate_poses(true_poses, true_path, "true_poses")
+        _check_count(true_poses, images.shape[0], true_path, "true_poses")
+    return Sweep(
+        name=name,
+        kind=kind,
+        images=images,
+        probe_to_world=poses,
+        labels=labels,
+        true_probe_to_world=true_poses,
+    )

@@ -1,0 +1,208 @@
+"""Vectorised probe geometry in torch: pixels, scanlines and samples in world millimetres.
+
+Frames (METHOD.md §1): probe +x is lateral (along image columns), +y is along the beam (image
+rows, deeper), +z is elevation. Pixel (r, c) of an H × W frame from a probe of width W_mm and
+depth D_mm lies at probe point
+
+    p(r, c) = ((c − W/2)·W_mm/W,  r·D_mm/H,  0)
+
+and at world point ``probe_to_world @ [p, 1]``. The scanline of column c starts at
+((c − W/2)·W_mm/W, 0, 0) and runs along probe +y; it is sampled at the image rows, with the
+physical step Δ = D_mm/H.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from ultron.data.dataset import ProbeGeometry
+from ultron.errors import argument_error
+
+
+def as_pose_tensor(
+    probe_to_world: np.ndarray | torch.Tensor, name: str = "probe_to_world"
+) -> torch.Tensor:
+    """Poses as a float64 tensor of shape (N, 4, 4); a single (4, 4) pose becomes (1, 4, 4)."""
+    poses = torch.as_tensor(
+        np.asarray(probe_to_world) if not torch.is_tensor(probe_to_world) else probe_to_world
+    )
+    if poses.ndim == 2:
+        poses = poses.unsqueeze(0)
+    if poses.ndim != 3 or poses.shape[1:] != (4, 4):
+        raise argument_error(name, f"expected shape (N, 4, 4), got {tuple(poses.shape)}")
+    if not torch.is_floating_point(poses):
+        poses = poses.to(torch.float64)
+    return poses
+
+
+def probe_points_mm(rows: torch.Tensor, cols: torch.Tensor, probe: ProbeGeometry) -> torch.Tensor:
+    """Probe-frame points of pixels (rows, cols) (broadcast together), shape (..., 3), in mm.
+
+    p = ((c − W/2)·W_mm/W, r·D_mm/H, 0). Rows and columns may be fractional.
+    """
+    rows, cols = torch.broadcast_tensors(torch.as_tensor(rows), torch.as_tensor(cols))
+    dtype = rows.dtype if torch.is_floating_point(rows) else torch.get_default_dtype()
+    x = (cols.to(dtype) - probe.width_px / 2) * probe.lateral_spacing_mm
+    y = rows.to(dtype) * probe.axial_spacing_mm
+    return torch.stack([x, y, torch.zeros_like(x)], dim=-1)
+
+
+def apply_pose(probe_to_world: torch.Tensor, points_probe: torch.Tensor) -> torch.Tensor:
+    """Map probe-frame points to world: x_world = R·p + t.
+
+    ``probe_to_world`` is (N, 4, 4); ``points_probe`` is (N, ..., 3) (one set per pose) or
+    (..., 3) (shared by all poses). Returns (N, ..., 3) in the poses' dtype.
+    """
+    poses = as_pose_tensor(probe_to_world)
+    points = torch.as_tensor(points_probe).to(poses.dtype)
+    if points.ndim == 0 or points.shape[-1] != 3:
+        raise argument_error("points_probe", f"expected (..., 3), got {tuple(points.shape)}")
+    n = poses.shape[0]
+    if points.ndim < 2 or points.shape[0] != n:
+        points = points.unsqueeze(0).expand(n, *points.shape)
+    flat = points.reshape(n, -1, 3)
+    world = flat @ poses[:, :3, :3].transpose(1, 2) + poses[:, None, :3, 3]
+    return world.reshape(points.shape)
+
+
+def pixel_to_world(
+    probe_to_world: torch.Tensor, rows: torch.Tensor, cols: torch.Tensor, probe: ProbeGeometry
+) -> torch.Tensor:
+    """World points (N, ..., 3) of pixels (rows, cols) seen from each of the N poses."""
+    return apply_pose(probe_to_world, probe_points_mm(rows, cols, probe))
+
+
+def frame_pixels_world(probe_to_world: torch.Tensor, probe: ProbeGeometry) -> torch.Tensor:
+    """World points of every pixel of every frame, shape (N, H, W, 3)."""
+    rows = torch.arange(probe.height_px, dtype=torch.float64)[:, None]
+    cols = torch.arange(probe.width_px, dtype=torch.float64)[None, :]
+    return pixel_to_world(probe_to_world, rows, cols, probe)
+
+
+def scanline_rays(
+    probe_to_world: torch.Tensor, probe: ProbeGeometry, cols: torch.Tensor | None = None
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Origins and unit directions of scanlines in world mm, each (N, C, 3).
+
+    The scanline of column c starts at probe point ((c − W/2)·W_mm/W, 0, 0) and runs along the
+    probe's +y axis; ``cols`` defaults to all W columns.
+    """
+    poses = as_pose_tensor(probe_to_world)
+    if cols is None:
+        cols = torch.arange(probe.width_px, dtype=poses.dtype)
+    cols = torch.as_tensor(cols).to(poses.dtype)
+    origins = pixel_to_world(poses, torch.zeros_like(cols), cols, probe)
+    direction = poses[:, :3, 1]
+    direction = direction / direction.norm(dim=-1, keepdim=True)
+    directions = direction[:, None, :].expand_as(origins)
+    return origins, directions
+
+
+def sample_depths_mm(
+    n_samples: int, step_mm: float, dtype: torch.dtype = torch.float64
+) -> torch.Tensor:
+    """Depths k·Δ of the samples k = 0..n−1 along a scanline, mm (ordered, increasing)."""
+    if n_samples < 1:
+        raise argument_error("n_samples", f"expected ≥ 1, got {n_samples}")
+    if not step_mm > 0:
+        raise argument_error("step_mm", f"expected a positive step, got {step_mm}")
+    return torch.arange(n_samples, dtype=dtype) * step_mm
+
+
+def scanline_sample_points(
+    origins: torch.Tensor, directions: torch.Tensor, n_samples: int, step_mm: float
+) -> torch.Tensor:
+    """Sample points x_k = o + k·Δ·d along each ray, shape (..., n_samples, 3), ordered by depth."""
+    if origins.shape != directions.shape or origins.shape[-1] != 3:
+        raise argument_error(
+            "origins/directions",
+            f"expected equal (..., 3) shapes, got {tuple(origins.shape)} and {tuple(directions.shape)}",
+        )
+    depths = sample_depths_mm(n_samples, step_mm, origins.dtype)
+    return origins[..., None, :] + depths[:, None] * directions[..., None, :]
+
+
+def field_of_view_bounds_mm(
+    poses: np.ndarray | torch.Tensor | Sequence[np.ndarray], probe: ProbeGeometry
+) -> torch.Tensor:
+    """Axis-aligned bounding box (2, 3) = [min, max] of every pixel centre the probe saw, mm.
+
+    A frame is a planar rectangle, so its four corner pixels bound it exactly.
+    """
+    if isinstance(poses, list | tuple):
+        poses = np.concatenate([np.asarray(p) for p in poses], axis=0)
+    tensor = as_pose_tensor(poses, "poses").to(torch.float64)
+    rows = torch.tensor(
+        [0.0, 0.0, probe.height_px - 1.0, probe.height_px - 1.0], dtype=torch.float64
+    )
+    cols = torch.tensor([0.0, probe.width_px - 1.0, 0.0, probe.width_px - 1.0], dtype=torch.float64)
+    corners = pixel_to_world(tensor, rows, cols, probe).reshape(-1, 3)
+    return torch.stack([corners.min(dim=0).values, corners.max(dim=0).values])
+
+
+@dataclass(frozen=True)
+class UnitCube:
+    """Isotropic world-mm ↔ normalised-cube transform: u = (x − center_mm) / half_extent_mm.
+
+    One scale for all axes (unlike the per-axis min-max of the original code, which distorts
+    voxels and positional-encoding bandwidth). The box of interest maps inside [−1, 1]³.
+    Arithmetic is done in float64: float32 world coordinates mapped to float64 unit coordinates
+    and back are recovered bit-exactly, float64 ones to within a few ulp.
+    """
+
+    center_mm: tuple[float, float, float]
+    half_extent_mm: float
+
+    def __post_init__(self) -> None:
+        if len(self.center_mm) != 3 or not all(np.isfinite(self.center_mm)):
+            raise argument_error("center_mm", f"expected 3 finite numbers, got {self.center_mm}")
+        if not (np.isfinite(self.half_extent_mm) and self.half_extent_mm > 0):
+            raise argument_error(
+                "half_extent_mm", f"expected a positive number, got {self.half_extent_mm}"
+            )
+
+    @classmethod
+    def from_bounds(cls, bounds_mm: torch.Tensor | np.ndarray, margin: float = 0.05) -> UnitCube:
+        """The cube centred on a (2, 3) box whose largest half-side, grown by ``margin``, maps to 1."""
+        box = np.asarray(bounds_mm, dtype=np.float64)
+        if box.shape != (2, 3) or not np.isfinite(box).all() or (box[1] < box[0]).any():
+            raise argument_error(
+                "bounds_mm", f"expected a finite (2, 3) [min, max] box, got {box.tolist()}"
+            )
+        if margin < 0:
+            raise argument_error("margin", f"expected ≥ 0, got {margin}")
+        center = (box[0] + box[1]) / 2
+        half = float((box[1] - box[0]).max() / 2 * (1 + margin))
+        return cls(tuple(float(c) for c in center), max(half, 1e-6))
+
+    def _center(self, like: torch.Tensor) -> torch.Tensor:
+        return torch.tensor(self.center_mm, dtype=torch.float64, device=like.device)
+
+    def to_unit(self, points_mm: torch.Tensor, dtype: torch.dtype | None = None) -> torch.Tensor:
+        """World mm → unit cube; returns ``dtype`` (default: the input's floating dtype)."""
+        points = torch.as_tensor(points_mm)
+        out_dtype = dtype or (points.dtype if torch.is_floating_point(points) else torch.float64)
+        unit = (points.to(torch.float64) - self._center(points)) / self.half_extent_mm
+        return unit.to(out_dtype)
+
+    def to_world(self, points_unit: torch.Tensor, dtype: torch.dtype | None = None) -> torch.Tensor:
+        """Unit cube → world mm; returns ``dtype`` (default: the input's floating dtype)."""
+        points = torch.as_tensor(points_unit)
+        out_dtype = dtype or (points.dtype if torch.is_floating_point(points) else torch.float64)
+        world = points.to(torch.float64) * self.half_extent_mm + self._center(points)
+        return world.to(out_dtype)
+
+    def to_dict(self) -> dict[str, object]:
+        return {"center_mm": list(self.center_mm), "half_extent_mm": self.half_extent_mm}
+
+    @classmethod
+    def from_dict(cls, data: dict[str, object]) -> UnitCube:
+        center = data.get("center_mm")
+        half = data.get("half_extent_mm")
+        if not isinstance(center, list | tuple) or not isinstance(half, int | float):
+            raise argument_error("unit_cube", f"expected center_mm and half_extent_mm, got {data}")
+        return cls(tuple(float(c) for c in center), float(half))

@@ -1,0 +1,222 @@
+"""Importers from other sweep layouts into ``ultron-sweeps/1``.
+
+Ultra-NeRF layout (Wysocki et al., MIDL 2023)::
+
+    SRC/images/0.png, 1.png, ...   8-bit grey frames, row 0 at the transducer face
+      or SRC/images.npy            uint8 (N, H, W)
+    SRC/poses.npy                  float (N, 4, 4) probe-to-world, translation in mm
+
+Ultra-NeRF's geometry is ultron's (METHOD.md §1), so frames and poses are taken unchanged
+except for one repair: published pose files carry rotation blocks that are only approximately
+orthonormal (the shared ``l2`` sample deviates by up to 1e-2, a shear of ≈ 0.6°), while
+``ultron-sweeps/1`` requires 1e-3. Rotation blocks that deviate by at most
+``orthonormalize_tolerance`` are replaced by the nearest rotation (polar decomposition via
+SVD), the translation kept; larger deviations are refused as non-rigid.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ultron.data.dataset import ProbeGeometry, Sweep, SweepDataset
+from ultron.data.validation import (
+    ROTATION_TOLERANCE,
+    load_npy,
+    pose_errors,
+    validate_images,
+    validate_positive,
+)
+from ultron.errors import UltronInputError, argument_error
+
+#: Largest rotation-block deviation the importer repairs (above it a pose is refused).
+DEFAULT_ORTHONORMALIZE_TOLERANCE = 0.05
+
+
+@dataclass(frozen=True)
+class ImportReport:
+    """What an import did: frames read and how much the poses were repaired.
+
+    Every rotation block is projected to the nearest rotation; ``n_poses_beyond_tolerance``
+    counts those that would have failed the format's 1e-3 rigidity check without it.
+    """
+
+    n_frames: int
+    image_shape: tuple[int, int]
+    max_rotation_deviation: float
+    n_poses_beyond_tolerance: int
+
+
+def nearest_rotation(matrices: np.ndarray) -> np.ndarray:
+    """Nearest proper rotation (Frobenius norm) of each (..., 3, 3) matrix: R = U·diag(1,1,det)·Vᵀ."""
+    u, _, vt = np.linalg.svd(matrices)
+    det = np.linalg.det(u @ vt)
+    fix = np.ones(matrices.shape[:-1])
+    fix[..., -1] = det
+    return (u * fix[..., None, :]) @ vt
+
+
+def orthonormalize_poses(
+    poses: np.ndarray, tolerance: float, where: str | Path
+) -> tuple[np.ndarray, np.ndarray]:
+    """Replace each pose's rotation block by its nearest rotation; refuse deviations > ``tolerance``.
+
+    Returns the repaired float64 poses and the per-pose deviation max|R Rᵀ − I| before repair.
+    """
+    poses = np.asarray(poses, dtype=np.float64)
+    if poses.ndim != 3 or poses.shape[1:] != (4, 4):
+        raise UltronInputError(where, "poses", f"expected shape (N, 4, 4), got {poses.shape}")
+    if not np.isfinite(poses).all():
+        bad = int(np.flatnonzero(~np.isfinite(poses).all(axis=(1, 2)))[0])
+        raise UltronInputError(where, "poses", f"pose {bad} contains NaN or inf")
+    ortho, det = pose_errors(poses)
+    bad_mask = (ortho > tolerance) | (det > tolerance)
+    if bad_mask.any():
+        bad = int(np.flatnonzero(bad_mask)[0])
+        raise UltronInputError(
+            where,
+            "poses",
+            f"pose {bad} is not rigid: rotation deviates from orthonormal by {ortho[bad]:.2e}"
+            f" (det error {det[bad]:.2e}), more than the repairable {tolerance:g}",
+        )
+    repaired = poses.copy()
+    repaired[:, :3, :3] = nearest_rotation(poses[:, :3, :3])
+    repaired[:, 3, :] = (0.0, 0.0, 0.0, 1.0)
+    return repaired, ortho
+
+
+def _natural_key(path: Path) -> tuple[int, str]:
+    match = re.fullmatch(r"(\d+)", path.stem)
+    return (int(match.group(1)) if match else -1, path.stem)
+
+
+def read_png_frames(folder: Path) -> np.ndarray:
+    """Read ``0.png, 1.png, …`` (numeric order) as uint8 (N, H, W) grey frames."""
+    from PIL import Image
+
+    files = sorted(folder.glob("*.png"), key=_natural_key)
+    if not files:
+        raise UltronInputError(folder, "images", "no .png frames found")
+    non_numeric = [f.name for f in files if not f.stem.isdigit()]
+    if non_numeric:
+        raise UltronInputError(
+            folder, "images", f"frame names must be 0.png, 1.png, …; found {non_numeric[:3]}"
+        )
+    frames = []
+    for file in files:
+        try:
+            with Image.open(file) as img:
+                array = np.asarray(img)
+                mode = img.mode
+        except OSError as exc:
+            raise UltronInputError(file, "image", f"not a readable PNG ({exc})") from None
+        if array.ndim == 3 and array.shape[2] in (3, 4):
+            rgb = array[..., :3]
+            if not (rgb == rgb[..., :1]).all():
+                raise UltronInputError(
+                    file, "image", f"colour PNG (mode {mode}); expected grey B-mode"
+                )
+            array = rgb[..., 0]
+        if array.dtype != np.uint8 or array.ndim != 2:
+            raise UltronInputError(
+                file, "image", f"expected 8-bit grey, got mode {mode} shape {array.shape}"
+            )
+        if frames and array.shape != frames[0].shape:
+            raise UltronInputError(
+                file, "image", f"size {array.shape} differs from {files[0].name} {frames[0].shape}"
+            )
+        frames.append(array)
+    return np.stack(frames)
+
+
+def read_ultranerf(
+    src: str | Path,
+    width_mm: float,
+    depth_mm: float,
+    name: str = "sweep",
+    kind: str = "other",
+    orthonormalize_tolerance: float = DEFAULT_ORTHONORMALIZE_TOLERANCE,
+) -> tuple[Sweep, ProbeGeometry, ImportReport]:
+    """Read one Ultra-NeRF sweep folder as a :class:`Sweep` and its :class:`ProbeGeometry`."""
+    src = Path(src)
+    validate_positive(width_mm, "argument", "width_mm")
+    validate_positive(depth_mm, "argument", "depth_mm")
+    if not src.is_dir():
+        raise UltronInputError(src, "SRC", "not a directory")
+    if (src / "images.npy").is_file():
+        images_path = src / "images.npy"
+        images = load_npy(images_path, "images")
+    elif (src / "images").is_dir():
+        images_path = src / "images"
+        images = read_png_frames(images_path)
+    else:
+        raise UltronInputError(src, "images", "expected images/0.png… or images.npy")
+    validate_images(images, images_path)
+    poses_path = src / "poses.npy"
+    poses = load_npy(poses_path, "poses")
+    if poses.ndim != 3 or poses.shape[1:] != (4, 4):
+        raise UltronInputError(poses_path, "poses", f"expected shape (N, 4, 4), got {poses.shape}")
+    if poses.shape[0] != images.shape[0]:
+        raise UltronInputError(
+            poses_path,
+            "poses",
+            f"has {poses.shape[0]} poses but {images.shape[0]} frames (N mismatch)",
+        )
+    if not np.issubdtype(poses.dtype, np.floating):
+        raise UltronInputError(
+            poses_path, "poses", f"expected a floating-point dtype, got {poses.dtype}"
+        )
+    if not (np.abs(poses[:, 3, :] - np.array([0, 0, 0, 1])) <= 1e-6).all():
+        raise UltronInputError(poses_path, "poses", "last row of some pose is not [0, 0, 0, 1]")
+    repaired, deviation = orthonormalize_poses(poses, orthonormalize_tolerance, poses_path)
+    sweep = Sweep(name=name, kind=kind, images=images, probe_to_world=repaired)
+    probe = ProbeGeometry(
+        float(width_mm), float(depth_mm), int(images.shape[1]), int(images.shape[2])
+    )
+    report = ImportReport(
+        n_frames=int(images.shape[0]),
+        image_shape=(int(images.shape[1]), int(images.shape[2])),
+        max_rotation_deviation=float(deviation.max()),
+        n_poses_beyond_tolerance=int((deviation > ROTATION_TOLERANCE).sum()),
+    )
+    return sweep, probe, report
+
+
+def add_sweep_to_dataset(
+    out: str | Path, sweep: Sweep, probe: ProbeGeometry, tolerance_mm: float = 1e-9
+) -> SweepDataset:
+    """Add ``sweep`` to the dataset at ``out`` (created if absent) and save it atomically.
+
+    An existing dataset must have the same probe geometry and no sweep of the same name.
+    """
+    out = Path(out)
+    if (out / "dataset.json").exists():
+        dataset = SweepDataset.load(out)
+        same = (
+            abs(dataset.probe.width_mm - probe.width_mm) <= tolerance_mm
+            and abs(dataset.probe.depth_mm - probe.depth_mm) <= tolerance_mm
+            and dataset.probe.image_shape == probe.image_shape
+        )
+        if not same:
+            raise UltronInputError(
+                out / "dataset.json",
+                "probe",
+                f"existing probe {dataset.probe} differs from the new sweep's {probe}",
+            )
+        if sweep.name in [s.name for s in dataset.sweeps]:
+            raise argument_error(
+                "sweep_name", f"dataset {out} already has a sweep named {sweep.name!r}"
+            )
+        dataset = SweepDataset(
+            dataset.probe, [*dataset.sweeps, sweep], dataset.reference, dataset.metadata
+        )
+        dataset.save(out, only_sweeps=[sweep.name])
+        return dataset
+    if out.exists() and any(out.iterdir()):
+        raise UltronInputError(out, "out", "exists, is not empty and holds no dataset.json")
+    dataset = SweepDataset(probe=probe, sweeps=[sweep])
+    dataset.save(out)
+    return dataset

@@ -1,0 +1,127 @@
+"""Validation of the arrays of an ``ultron-sweeps/1`` dataset.
+
+Every check raises :class:`~ultron.errors.UltronInputError` naming the file (or argument), the
+field and what was expected, so a user can fix the input without reading a traceback.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ultron.errors import UltronInputError
+
+#: Maximum allowed deviation of a pose's rotation block from orthonormality (|R Rᵀ − I|∞)
+#: and of its determinant from +1.
+ROTATION_TOLERANCE = 1e-3
+
+#: Label values: 0 background, 1 target (bone), 255 not annotated.
+LABEL_BACKGROUND = 0
+LABEL_TARGET = 1
+LABEL_UNANNOTATED = 255
+VALID_LABEL_VALUES = (LABEL_BACKGROUND, LABEL_TARGET, LABEL_UNANNOTATED)
+
+
+def load_npy(path: Path, field: str) -> np.ndarray:
+    """Load a ``.npy`` file without pickles, turning every failure into a clear error."""
+    if not path.is_file():
+        raise UltronInputError(path, field, "file is missing")
+    try:
+        return np.load(path, allow_pickle=False)
+    except (ValueError, EOFError, OSError) as exc:
+        raise UltronInputError(
+            path, field, f"not a readable .npy array (truncated or not .npy format: {exc})"
+        ) from None
+
+
+def validate_images(images: np.ndarray, where: str | Path, field: str = "images") -> None:
+    """Images must be a non-empty uint8 array of shape (N, H, W)."""
+    if not isinstance(images, np.ndarray):
+        raise UltronInputError(where, field, f"expected a numpy array, got {type(images).__name__}")
+    if images.dtype != np.uint8:
+        raise UltronInputError(where, field, f"expected dtype uint8, got {images.dtype}")
+    if images.ndim != 3:
+        raise UltronInputError(where, field, f"expected shape (N, H, W), got {images.shape}")
+    if min(images.shape) < 1:
+        raise UltronInputError(
+            where, field, f"expected a non-empty (N, H, W) array, got {images.shape}"
+        )
+
+
+def pose_errors(poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-pose orthonormality error max|R Rᵀ − I| and determinant error |det R − 1|."""
+    rot = poses[..., :3, :3].astype(np.float64)
+    gram = rot @ np.swapaxes(rot, -1, -2)
+    ortho = np.abs(gram - np.eye(3)).max(axis=(-1, -2))
+    det = np.abs(np.linalg.det(rot) - 1.0)
+    return ortho, det
+
+
+def validate_poses(
+    poses: np.ndarray,
+    where: str | Path,
+    field: str = "poses",
+    tolerance: float = ROTATION_TOLERANCE,
+) -> None:
+    """Poses must be finite rigid probe-to-world transforms of shape (N, 4, 4).
+
+    The rotation block must satisfy max|R Rᵀ − I| ≤ ``tolerance`` and |det R − 1| ≤ ``tolerance``
+    and the last row must be exactly (0, 0, 0, 1).
+    """
+    if not isinstance(poses, np.ndarray):
+        raise UltronInputError(where, field, f"expected a numpy array, got {type(poses).__name__}")
+    if not np.issubdtype(poses.dtype, np.floating):
+        raise UltronInputError(where, field, f"expected a floating-point dtype, got {poses.dtype}")
+    if poses.ndim != 3 or poses.shape[1:] != (4, 4) or poses.shape[0] < 1:
+        raise UltronInputError(where, field, f"expected shape (N, 4, 4), got {poses.shape}")
+    finite = np.isfinite(poses).all(axis=(1, 2))
+    if not finite.all():
+        bad = int(np.flatnonzero(~finite)[0])
+        raise UltronInputError(where, field, f"pose {bad} contains NaN or inf")
+    last_row_ok = (poses[:, 3, :] == np.array([0.0, 0.0, 0.0, 1.0])).all(axis=1)
+    if not last_row_ok.all():
+        bad = int(np.flatnonzero(~last_row_ok)[0])
+        raise UltronInputError(
+            where, field, f"pose {bad} last row is {poses[bad, 3].tolist()}, expected [0, 0, 0, 1]"
+        )
+    ortho, det = pose_errors(poses)
+    bad_mask = (ortho > tolerance) | (det > tolerance)
+    if bad_mask.any():
+        bad = int(np.flatnonzero(bad_mask)[0])
+        raise UltronInputError(
+            where,
+            field,
+            f"pose {bad} is not rigid: rotation block deviates from orthonormal by {ortho[bad]:.2e}"
+            f" and det is {1.0 + float(np.linalg.det(poses[bad, :3, :3]) - 1.0):.6f}"
+            f" (expected orthonormal with det +1 within {tolerance:g})",
+        )
+
+
+def validate_labels(labels: np.ndarray, where: str | Path, field: str = "labels") -> None:
+    """Labels must be uint8 (N, H, W) holding only 0 (background), 1 (target), 255 (unannotated)."""
+    if not isinstance(labels, np.ndarray):
+        raise UltronInputError(where, field, f"expected a numpy array, got {type(labels).__name__}")
+    if labels.dtype != np.uint8:
+        raise UltronInputError(where, field, f"expected dtype uint8, got {labels.dtype}")
+    if labels.ndim != 3:
+        raise UltronInputError(where, field, f"expected shape (N, H, W), got {labels.shape}")
+    present = np.unique(labels)
+    invalid = np.setdiff1d(present, np.array(VALID_LABEL_VALUES, dtype=np.uint8))
+    if invalid.size:
+        raise UltronInputError(
+            where,
+            field,
+            f"invalid label values {invalid[:8].tolist()}; expected only 0 (background),"
+            " 1 (target) and 255 (not annotated)",
+        )
+
+
+def validate_positive(value: object, where: str | Path, field: str) -> float:
+    """A finite, strictly positive number (bools are rejected)."""
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise UltronInputError(where, field, f"expected a positive number, got {value!r}")
+    number = float(value)
+    if not np.isfinite(number) or number <= 0:
+        raise UltronInputError(where, field, f"expected a positive number, got {value!r}")
+    return number
