@@ -36,13 +36,16 @@ def import_ultranerf(
             help="Largest rotation-block deviation from orthonormal that is repaired (nearest rotation).",
         ),
     ] = 0.05,
+    replace: Annotated[
+        bool, typer.Option("--replace", help="Replace an existing sweep of the same name.")
+    ] = False,
 ) -> None:
     """Import an Ultra-NeRF sweep into an ultron-sweeps/1 dataset (repeat to add sweeps)."""
     from ultron.data.importers import add_sweep_to_dataset, read_ultranerf
 
     name = sweep_name or _safe_name(src)
     sweep, probe, report = read_ultranerf(src, width_mm, depth_mm, name, kind, orthonormalize_tol)
-    dataset = add_sweep_to_dataset(out, sweep, probe)
+    dataset = add_sweep_to_dataset(out, sweep, probe, replace=replace)
     console.print(
         f"imported {report.n_frames} frames of {report.image_shape[0]}×{report.image_shape[1]}"
         f" as sweep {name!r} ({kind}) into {out} ({len(dataset.sweeps)} sweep(s))"

@@ -21,6 +21,7 @@ from __future__ import annotations
 import json
 import re
 import shutil
+import tempfile
 from collections.abc import Collection
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -238,17 +239,31 @@ class SweepDataset:
         return cls(probe=probe, sweeps=sweeps, reference=reference_path, metadata=metadata)
 
     def save(self, path: str | Path, only_sweeps: Collection[str] | None = None) -> None:
-        """Write the dataset to directory ``path``, every file atomically.
+        """Write the dataset to directory ``path`` atomically.
 
-        Sweep arrays are written first and ``dataset.json`` last, so an interrupted save leaves
-        any previous ``dataset.json`` (and therefore a loadable dataset) in place.
-        ``only_sweeps`` restricts the arrays written to those sweeps (the others must already be
-        on disk there), as when a sweep is added to an existing dataset.
+        A new dataset is written into a temporary sibling directory that is renamed to ``path``
+        at the end, so an interrupted save leaves nothing behind. Into an existing directory,
+        every file is replaced atomically, sweep arrays first and ``dataset.json`` last, so an
+        interruption leaves the previous ``dataset.json`` in place. ``only_sweeps`` restricts the
+        arrays written to those sweeps (the others must already be on disk there), as when a
+        sweep is added to an existing dataset.
         """
         root = Path(path)
         if root.exists() and not root.is_dir():
             raise UltronInputError(root, "out", "exists and is not a directory")
-        root.mkdir(parents=True, exist_ok=True)
+        if root.exists():
+            self._write_into(root, only_sweeps)
+            return
+        root.parent.mkdir(parents=True, exist_ok=True)
+        staging = Path(tempfile.mkdtemp(prefix=f".{root.name}.", suffix=".tmp", dir=root.parent))
+        try:
+            self._write_into(staging, None)
+            staging.rename(root)
+        except BaseException:
+            shutil.rmtree(staging, ignore_errors=True)
+            raise
+
+    def _write_into(self, root: Path, only_sweeps: Collection[str] | None) -> None:
         for sweep in self.sweeps:
             if only_sweeps is None or sweep.name in only_sweeps:
                 self._save_sweep(root, sweep)
@@ -281,10 +296,12 @@ class SweepDataset:
         folder = root / sweep.name
         atomic.save_npy(folder / "images.npy", sweep.images)
         atomic.save_npy(folder / "poses.npy", sweep.probe_to_world)
-        if sweep.labels is not None:
-            atomic.save_npy(folder / "labels.npy", sweep.labels)
-        if sweep.true_probe_to_world is not None:
-            atomic.save_npy(folder / "true_poses.npy", sweep.true_probe_to_world)
+        optional = {"labels.npy": sweep.labels, "true_poses.npy": sweep.true_probe_to_world}
+        for name, array in optional.items():
+            if array is not None:
+                atomic.save_npy(folder / name, array)
+            else:  # a replaced sweep must not inherit its predecessor's files
+                (folder / name).unlink(missing_ok=True)
 
     def _save_reference(self, root: Path) -> str:
         assert self.reference is not None

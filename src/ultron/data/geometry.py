@@ -52,18 +52,18 @@ def probe_points_mm(rows: torch.Tensor, cols: torch.Tensor, probe: ProbeGeometry
 
 
 def apply_pose(probe_to_world: torch.Tensor, points_probe: torch.Tensor) -> torch.Tensor:
-    """Map probe-frame points to world: x_world = R·p + t.
+    """Map probe-frame points to world, one set per pose: x_world[n] = R[n]·p[n] + t[n].
 
-    ``probe_to_world`` is (N, 4, 4); ``points_probe`` is (N, ..., 3) (one set per pose) or
-    (..., 3) (shared by all poses). Returns (N, ..., 3) in the poses' dtype.
+    ``probe_to_world`` is (N, 4, 4) and ``points_probe`` is (N, ..., 3): the leading axis pairs
+    each point set with its pose. Returns (N, ..., 3) in the poses' dtype.
     """
     poses = as_pose_tensor(probe_to_world)
     points = torch.as_tensor(points_probe).to(poses.dtype)
-    if points.ndim == 0 or points.shape[-1] != 3:
-        raise argument_error("points_probe", f"expected (..., 3), got {tuple(points.shape)}")
     n = poses.shape[0]
-    if points.ndim < 2 or points.shape[0] != n:
-        points = points.unsqueeze(0).expand(n, *points.shape)
+    if points.ndim < 2 or points.shape[-1] != 3 or points.shape[0] != n:
+        raise argument_error(
+            "points_probe", f"expected ({n}, ..., 3) to match {n} poses, got {tuple(points.shape)}"
+        )
     flat = points.reshape(n, -1, 3)
     world = flat @ poses[:, :3, :3].transpose(1, 2) + poses[:, None, :3, 3]
     return world.reshape(points.shape)
@@ -72,8 +72,10 @@ def apply_pose(probe_to_world: torch.Tensor, points_probe: torch.Tensor) -> torc
 def pixel_to_world(
     probe_to_world: torch.Tensor, rows: torch.Tensor, cols: torch.Tensor, probe: ProbeGeometry
 ) -> torch.Tensor:
-    """World points (N, ..., 3) of pixels (rows, cols) seen from each of the N poses."""
-    return apply_pose(probe_to_world, probe_points_mm(rows, cols, probe))
+    """World points (N, ..., 3) of the same pixels (rows, cols), broadcast to (...), in each of N poses."""
+    poses = as_pose_tensor(probe_to_world)
+    points = probe_points_mm(rows, cols, probe).to(poses.dtype)
+    return apply_pose(poses, points.unsqueeze(0).expand(poses.shape[0], *points.shape))
 
 
 def frame_pixels_world(probe_to_world: torch.Tensor, probe: ProbeGeometry) -> torch.Tensor:

@@ -186,11 +186,16 @@ def read_ultranerf(
 
 
 def add_sweep_to_dataset(
-    out: str | Path, sweep: Sweep, probe: ProbeGeometry, tolerance_mm: float = 1e-9
+    out: str | Path,
+    sweep: Sweep,
+    probe: ProbeGeometry,
+    replace: bool = False,
+    tolerance_mm: float = 1e-9,
 ) -> SweepDataset:
     """Add ``sweep`` to the dataset at ``out`` (created if absent) and save it atomically.
 
-    An existing dataset must have the same probe geometry and no sweep of the same name.
+    An existing dataset must have the same probe geometry; a sweep of the same name is an error
+    unless ``replace`` is true, in which case it is replaced in place.
     """
     out = Path(out)
     if (out / "dataset.json").exists():
@@ -206,13 +211,18 @@ def add_sweep_to_dataset(
                 "probe",
                 f"existing probe {dataset.probe} differs from the new sweep's {probe}",
             )
-        if sweep.name in [s.name for s in dataset.sweeps]:
+        names = [s.name for s in dataset.sweeps]
+        if sweep.name in names and not replace:
             raise argument_error(
-                "sweep_name", f"dataset {out} already has a sweep named {sweep.name!r}"
+                "sweep_name",
+                f"dataset {out} already has a sweep named {sweep.name!r} (replace it with --replace)",
             )
-        dataset = SweepDataset(
-            dataset.probe, [*dataset.sweeps, sweep], dataset.reference, dataset.metadata
-        )
+        sweeps = [s for s in dataset.sweeps if s.name != sweep.name]
+        if sweep.name in names:
+            sweeps.insert(names.index(sweep.name), sweep)
+        else:
+            sweeps.append(sweep)
+        dataset = SweepDataset(dataset.probe, sweeps, dataset.reference, dataset.metadata)
         dataset.save(out, only_sweeps=[sweep.name])
         return dataset
     if out.exists() and any(out.iterdir()):

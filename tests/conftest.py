@@ -1,0 +1,73 @@
+"""Shared fixtures: tiny datasets built by hand and the path of the shared sample data."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from ultron.data.dataset import ProbeGeometry, Sweep, SweepDataset
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+SHARED = Path(os.environ.get("ULTRON_SHARED", REPO_ROOT.parent / "shared"))
+L2_SAMPLE = SHARED / "data" / "ultranerf-synthetic-l2"
+
+
+def rotation_z(degrees: float) -> np.ndarray:
+    angle = np.deg2rad(degrees)
+    c, s = np.cos(angle), np.sin(angle)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def make_pose(rotation: np.ndarray | None = None, translation=(0.0, 0.0, 0.0)) -> np.ndarray:
+    pose = np.eye(4)
+    if rotation is not None:
+        pose[:3, :3] = rotation
+    pose[:3, 3] = translation
+    return pose
+
+
+def make_sweep(
+    name: str = "row",
+    kind: str = "row",
+    n: int = 3,
+    h: int = 8,
+    w: int = 6,
+    labels: bool = True,
+    seed: int = 0,
+) -> Sweep:
+    rng = np.random.default_rng(seed)
+    images = rng.integers(0, 256, size=(n, h, w), dtype=np.uint8)
+    poses = np.stack([make_pose(rotation_z(5.0 * i), (1.0 * i, 2.0, -0.5 * i)) for i in range(n)])
+    label_array = None
+    if labels:
+        label_array = rng.choice(np.array([0, 1, 255], dtype=np.uint8), size=(n, h, w))
+        label_array[-1] = 255  # last frame not annotated
+    return Sweep(name=name, kind=kind, images=images, probe_to_world=poses, labels=label_array)
+
+
+@pytest.fixture
+def tiny_dataset() -> SweepDataset:
+    """Two sweeps of 8 × 6 frames from a 12 mm × 16 mm probe."""
+    probe = ProbeGeometry(width_mm=12.0, depth_mm=16.0, height_px=8, width_px=6)
+    return SweepDataset(
+        probe=probe,
+        sweeps=[make_sweep("row", "row", seed=1), make_sweep("column", "column", n=4, seed=2)],
+        metadata={"origin": "test"},
+    )
+
+
+@pytest.fixture
+def tiny_dataset_dir(tmp_path: Path, tiny_dataset: SweepDataset) -> Path:
+    path = tmp_path / "tiny"
+    tiny_dataset.save(path)
+    return path
+
+
+@pytest.fixture
+def l2_sample() -> Path:
+    if not (L2_SAMPLE / "poses.npy").is_file():
+        pytest.skip(f"shared sample data not found at {L2_SAMPLE}")
+    return L2_SAMPLE

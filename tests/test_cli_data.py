@@ -1,0 +1,105 @@
+"""``ultron import-ultranerf`` and ``ultron info`` end to end."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from typer.testing import CliRunner
+
+from ultron.cli.main import app
+
+runner = CliRunner()
+
+
+@pytest.mark.parametrize("command", [[], ["import-ultranerf"], ["info"]])
+def test_help(command):
+    result = runner.invoke(app, [*command, "--help"])
+    assert result.exit_code == 0
+    assert "Usage" in result.output
+
+
+def test_import_and_info_on_l2(tmp_path: Path, l2_sample: Path):
+    out = tmp_path / "l2"
+    result = runner.invoke(
+        app,
+        [
+            "import-ultranerf",
+            str(l2_sample),
+            "--width-mm",
+            "80",
+            "--depth-mm",
+            "140",
+            "--out",
+            str(out),
+            "--sweep-name",
+            "l2",
+            "--kind",
+            "other",
+        ],
+    )
+    assert result.exit_code == 0, result.output
+    assert "imported 200 frames of 512×256" in result.output
+    result = runner.invoke(app, ["info", str(out)], terminal_width=200)
+    assert result.exit_code == 0, result.output
+    assert "frames: 200" in result.output
+    assert "512 rows (depth) × 256 columns" in result.output
+    assert "0.3125 mm lateral × 0.2734 mm axial" in result.output
+    assert "labelled frames: 0" in result.output
+    assert "reference: none" in result.output
+    assert "bounding box (mm): x [" in result.output
+    # a second import with another name adds a sweep
+    result = runner.invoke(
+        app,
+        [
+            "import-ultranerf",
+            str(l2_sample),
+            "--width-mm",
+            "80",
+            "--depth-mm",
+            "140",
+            "--out",
+            str(out),
+            "--sweep-name",
+            "again",
+            "--kind",
+            "row",
+        ],
+    )
+    assert result.exit_code == 0, result.output
+    result = runner.invoke(app, ["info", str(out)], terminal_width=200)
+    assert "sweeps: 2   frames: 400" in result.output
+
+
+def test_import_bad_probe_size_is_clear(tmp_path: Path, l2_sample: Path):
+    result = runner.invoke(
+        app,
+        [
+            "import-ultranerf",
+            str(l2_sample),
+            "--width-mm",
+            "-80",
+            "--depth-mm",
+            "140",
+            "--out",
+            str(tmp_path / "x"),
+        ],
+    )
+    assert result.exit_code == 2
+    assert "width_mm" in result.stderr
+    assert not (tmp_path / "x").exists()
+
+
+def test_console_script_exit_code(tmp_path: Path):
+    # the installed entry point, not just the typer app, exits 2 with one line
+    result = subprocess.run(
+        [sys.executable, "-m", "ultron.cli.main", "info", str(tmp_path / "nothing")],
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    assert result.returncode == 2
+    assert result.stderr.strip().count("\n") == 0
+    assert "dataset.json" in result.stderr and "Traceback" not in result.stderr
