@@ -21,25 +21,14 @@ def test_help(command):
     assert "Usage" in result.output
 
 
+def _import(src: Path, out: Path, name: str, kind: str):
+    args = ["import-ultranerf", str(src), "--width-mm", "80", "--depth-mm", "140"]
+    return runner.invoke(app, [*args, "--out", str(out), "--sweep-name", name, "--kind", kind])
+
+
 def test_import_and_info_on_l2(tmp_path: Path, l2_sample: Path):
     out = tmp_path / "l2"
-    result = runner.invoke(
-        app,
-        [
-            "import-ultranerf",
-            str(l2_sample),
-            "--width-mm",
-            "80",
-            "--depth-mm",
-            "140",
-            "--out",
-            str(out),
-            "--sweep-name",
-            "l2",
-            "--kind",
-            "other",
-        ],
-    )
+    result = _import(l2_sample, out, "l2", "other")
     assert result.exit_code == 0, result.output
     assert "imported 200 frames of 512×256" in result.output
     result = runner.invoke(app, ["info", str(out)], terminal_width=200)
@@ -51,23 +40,7 @@ def test_import_and_info_on_l2(tmp_path: Path, l2_sample: Path):
     assert "reference: none" in result.output
     assert "bounding box (mm): x [" in result.output
     # a second import with another name adds a sweep
-    result = runner.invoke(
-        app,
-        [
-            "import-ultranerf",
-            str(l2_sample),
-            "--width-mm",
-            "80",
-            "--depth-mm",
-            "140",
-            "--out",
-            str(out),
-            "--sweep-name",
-            "again",
-            "--kind",
-            "row",
-        ],
-    )
+    result = _import(l2_sample, out, "again", "row")
     assert result.exit_code == 0, result.output
     result = runner.invoke(app, ["info", str(out)], terminal_width=200)
     assert "sweeps: 2   frames: 400" in result.output
