@@ -1,0 +1,169 @@
+"""Regular sampling grids in world mm, chunked evaluation of a field on them, and the mask of
+voxels that some frame actually imaged."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from ultron.data.dataset import ProbeGeometry
+from ultron.data.geometry import as_pose_tensor, pixel_to_world
+from ultron.errors import argument_error
+
+PointsFn = Callable[[torch.Tensor], torch.Tensor]
+
+
+@dataclass(frozen=True)
+class GridSpec:
+    """A regular grid: voxel (i, j, k) has its centre at origin_mm + voxel_mm·(i, j, k).
+
+    Axes are world x, y, z in that order; ``shape`` = (nx, ny, nz).
+    """
+
+    origin_mm: tuple[float, float, float]
+    voxel_mm: float
+    shape: tuple[int, int, int]
+
+    def __post_init__(self) -> None:
+        if not (np.isfinite(self.voxel_mm) and self.voxel_mm > 0):
+            raise argument_error("voxel_mm", f"expected a positive voxel size, got {self.voxel_mm}")
+        if len(self.shape) != 3 or min(self.shape) < 2:
+            raise argument_error("shape", f"expected three sizes ≥ 2, got {self.shape}")
+
+    @classmethod
+    def from_bounds(
+        cls, bounds_mm: np.ndarray | torch.Tensor, voxel_mm: float, pad_voxels: int = 2
+    ) -> GridSpec:
+        """The grid of ``voxel_mm`` covering a (2, 3) [min, max] box, padded by ``pad_voxels``."""
+        box = np.asarray(bounds_mm, dtype=np.float64)
+        if box.shape != (2, 3) or not np.isfinite(box).all() or (box[1] < box[0]).any():
+            raise argument_error(
+                "bounds_mm", f"expected a finite (2, 3) [min, max] box, got {box.tolist()}"
+            )
+        if not (np.isfinite(voxel_mm) and voxel_mm > 0):
+            raise argument_error("voxel_mm", f"expected a positive voxel size, got {voxel_mm}")
+        origin = box[0] - pad_voxels * voxel_mm
+        shape = np.ceil((box[1] - box[0]) / voxel_mm).astype(int) + 1 + 2 * pad_voxels
+        return cls(tuple(float(o) for o in origin), float(voxel_mm), tuple(int(s) for s in shape))
+
+    @property
+    def n_voxels(self) -> int:
+        return int(np.prod(self.shape))
+
+    @property
+    def affine(self) -> np.ndarray:
+        """4 × 4 matrix mapping voxel indices (i, j, k, 1) to world mm."""
+        affine = np.eye(4)
+        affine[:3, :3] *= self.voxel_mm
+        affine[:3, 3] = self.origin_mm
+        return affine
+
+    def index_to_world(self, ijk: np.ndarray) -> np.ndarray:
+        """World mm of (fractional) voxel indices (..., 3)."""
+        return np.asarray(self.origin_mm) + np.asarray(ijk, dtype=np.float64) * self.voxel_mm
+
+    def world_to_index(self, points_mm: np.ndarray) -> np.ndarray:
+        """Fractional voxel indices (..., 3) of world points."""
+        return (
+            np.asarray(points_mm, dtype=np.float64) - np.asarray(self.origin_mm)
+        ) / self.voxel_mm
+
+    def points_mm(self, start: int, stop: int) -> torch.Tensor:
+        """World points (M, 3) float32 of flat voxel indices start..stop−1 (C order)."""
+        flat = torch.arange(start, stop, dtype=torch.int64)
+        ny, nz = self.shape[1], self.shape[2]
+        ijk = torch.stack([flat // (ny * nz), (flat // nz) % ny, flat % nz], dim=-1)
+        origin = torch.tensor(self.origin_mm, dtype=torch.float64)
+        return (origin + ijk.to(torch.float64) * self.voxel_mm).to(torch.float32)
+
+
+def evaluate_on_grid(
+    fn: PointsFn, grid: GridSpec, chunk_points: int = 131_072, mask: np.ndarray | None = None
+) -> np.ndarray:
+    """Evaluate ``fn`` (points (M, 3) world mm → values (M,)) on every voxel centre, in chunks.
+
+    Memory stays bounded by ``chunk_points`` per call. Voxels where ``mask`` is False are not
+    evaluated and get 0. Returns float32 (nx, ny, nz).
+    """
+    if chunk_points < 1:
+        raise argument_error("chunk_points", f"expected ≥ 1, got {chunk_points}")
+    if mask is not None and mask.shape != grid.shape:
+        raise argument_error("mask", f"expected shape {grid.shape}, got {mask.shape}")
+    out = np.zeros(grid.n_voxels, dtype=np.float32)
+    flat_mask = None if mask is None else mask.reshape(-1)
+    with torch.no_grad():
+        for start in range(0, grid.n_voxels, chunk_points):
+            stop = min(start + chunk_points, grid.n_voxels)
+            if flat_mask is not None and not flat_mask[start:stop].any():
+                continue
+            points = grid.points_mm(start, stop)
+            if flat_mask is not None:
+                keep = torch.from_numpy(flat_mask[start:stop])
+                values = torch.zeros(stop - start)
+                if keep.any():
+                    values[keep] = _call(fn, points[keep])
+            else:
+                values = _call(fn, points)
+            out[start:stop] = values.numpy()
+    return out.reshape(grid.shape)
+
+
+def _call(fn: PointsFn, points: torch.Tensor) -> torch.Tensor:
+    values = torch.as_tensor(fn(points)).reshape(-1).to(torch.float32)
+    if values.shape[0] != points.shape[0]:
+        raise argument_error(
+            "fn", f"returned {values.shape[0]} values for {points.shape[0]} points"
+        )
+    return values
+
+
+def field_of_view_mask(
+    grid: GridSpec,
+    probe_to_world: np.ndarray | torch.Tensor | Sequence[np.ndarray],
+    probe: ProbeGeometry,
+    elevation_half_thickness_mm: float,
+) -> np.ndarray:
+    """Boolean (nx, ny, nz) mask of voxels lying in some frame's field of view.
+
+    Each frame images the slab |z_probe| ≤ ``elevation_half_thickness_mm`` of its image
+    rectangle. The slab is rasterised by sampling it at half-voxel spacing (in-plane and in
+    elevation) and marking the voxels containing the samples, which is exact up to half a voxel
+    and avoids testing every voxel against every frame.
+    """
+    if isinstance(probe_to_world, list | tuple):
+        probe_to_world = np.concatenate([np.asarray(p) for p in probe_to_world], axis=0)
+    poses = as_pose_tensor(probe_to_world).to(torch.float64)
+    if not elevation_half_thickness_mm >= 0:
+        raise argument_error(
+            "elevation_half_thickness_mm", f"expected ≥ 0, got {elevation_half_thickness_mm}"
+        )
+    step = grid.voxel_mm / 2
+    width_mm = (probe.width_px - 1) * probe.lateral_spacing_mm
+    depth_mm = (probe.height_px - 1) * probe.axial_spacing_mm
+    cols = torch.linspace(
+        0, probe.width_px - 1, max(2, int(np.ceil(width_mm / step)) + 1), dtype=torch.float64
+    )
+    rows = torch.linspace(
+        0, probe.height_px - 1, max(2, int(np.ceil(depth_mm / step)) + 1), dtype=torch.float64
+    )
+    n_elev = max(1, int(np.ceil(2 * elevation_half_thickness_mm / step)) + 1)
+    elevations = torch.linspace(
+        -elevation_half_thickness_mm, elevation_half_thickness_mm, n_elev, dtype=torch.float64
+    )
+    mask = np.zeros(grid.shape, dtype=bool)
+    shape = np.asarray(grid.shape)
+    for start in range(0, poses.shape[0], 16):
+        chunk = poses[start : start + 16]
+        plane = pixel_to_world(chunk, rows[:, None], cols[None, :], probe)  # (n, R, C, 3)
+        normal = chunk[:, :3, 2]  # probe +z (elevation) in world
+        slab = (
+            plane[:, None] + elevations[None, :, None, None, None] * normal[:, None, None, None, :]
+        )
+        ijk = np.rint(grid.world_to_index(slab.reshape(-1, 3).numpy())).astype(np.int64)
+        inside = ((ijk >= 0) & (ijk < shape)).all(axis=1)
+        ijk = ijk[inside]
+        mask[ijk[:, 0], ijk[:, 1], ijk[:, 2]] = True
+    return mask

@@ -1,0 +1,1 @@
+"""Reporting: tables (and, later, figures and the HTML report)."""
