@@ -1,0 +1,133 @@
+"""Label-fraction selection and gathering of labelled pixels (METHOD.md §3).
+
+The label fraction is the share of annotated FRAMES used (not pixels). Frames are chosen
+deterministically from a seed and spread evenly across all sweeps: the number of frames is
+divided among the sweeps in proportion to their annotated frames (largest remainder, at least
+one per sweep when there are enough), and within a sweep the frames are evenly spaced from a
+seeded random phase, so that a small fraction still covers the whole sweep.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ultron.data.dataset import SweepDataset
+from ultron.data.validation import LABEL_UNANNOTATED
+from ultron.errors import UltronInputError, argument_error
+
+
+@dataclass(frozen=True)
+class FrameSelection:
+    """Chosen frames: ``frames[sweep_name]`` is a sorted int64 array of frame indices."""
+
+    fraction: float
+    seed: int
+    frames: dict[str, np.ndarray]
+
+    @property
+    def n_frames(self) -> int:
+        return int(sum(len(v) for v in self.frames.values()))
+
+    def to_dict(self) -> dict[str, object]:
+        return {
+            "fraction": self.fraction,
+            "seed": self.seed,
+            "frames": {name: idx.tolist() for name, idx in self.frames.items()},
+        }
+
+
+def select_label_frames(dataset: SweepDataset, fraction: float, seed: int) -> FrameSelection:
+    """Choose ⌈fraction × (annotated frames)⌉ annotated frames, spread across every sweep.
+
+    Raises a clear error when the dataset has no annotated frame or ``fraction`` is not in (0, 1].
+    """
+    if isinstance(fraction, bool) or not (0.0 < float(fraction) <= 1.0):
+        raise argument_error("label_fraction", f"expected a value in (0, 1], got {fraction!r}")
+    available = {s.name: s.labelled_frames for s in dataset.sweeps if len(s.labelled_frames)}
+    total = sum(len(v) for v in available.values())
+    if total == 0:
+        raise UltronInputError(
+            "dataset", "labels", "no annotated frames (labels.npy missing or all 255)"
+        )
+    wanted = max(1, math.ceil(fraction * total - 1e-9))
+    counts = _allocate(wanted, {name: len(v) for name, v in available.items()})
+    rng = np.random.default_rng(seed)
+    frames: dict[str, np.ndarray] = {}
+    for name, indices in available.items():
+        k = counts[name]
+        if k == 0:
+            frames[name] = np.zeros(0, dtype=np.int64)
+            continue
+        n = len(indices)
+        phase = rng.random()
+        positions = np.floor((np.arange(k) + phase) * n / k).astype(np.int64)
+        frames[name] = np.sort(indices[np.clip(positions, 0, n - 1)])
+    return FrameSelection(fraction=float(fraction), seed=int(seed), frames=frames)
+
+
+def _allocate(wanted: int, sizes: dict[str, int]) -> dict[str, int]:
+    """Split ``wanted`` among groups in proportion to their sizes (largest remainder)."""
+    total = sum(sizes.values())
+    names = list(sizes)
+    if wanted >= len(names):
+        # everyone gets one first, the rest proportionally
+        base = dict.fromkeys(names, 1)
+        rest = wanted - len(names)
+        spare = {n: sizes[n] - 1 for n in names}
+    else:
+        base = dict.fromkeys(names, 0)
+        rest = wanted
+        spare = dict(sizes)
+    spare_total = sum(spare.values())
+    if rest and spare_total:
+        exact = {n: rest * spare[n] / spare_total for n in names}
+        floor = {n: math.floor(exact[n]) for n in names}
+        left = rest - sum(floor.values())
+        order = sorted(names, key=lambda n: (exact[n] - floor[n], sizes[n]), reverse=True)
+        for n in order[:left]:
+            floor[n] += 1
+        for n in names:
+            base[n] += floor[n]
+    for n in names:
+        base[n] = min(base[n], sizes[n])
+    assert sum(base.values()) == min(wanted, total)
+    return base
+
+
+@dataclass(frozen=True)
+class LabelledPixels:
+    """Annotated pixels of selected frames (label ≠ 255), as flat arrays of equal length."""
+
+    sweep_index: np.ndarray  # int64, index into dataset.sweeps
+    frame: np.ndarray  # int64, frame index within its sweep
+    row: np.ndarray  # int64
+    col: np.ndarray  # int64
+    label: np.ndarray  # uint8, 0 or 1
+
+    def __len__(self) -> int:
+        return int(self.label.shape[0])
+
+
+def gather_labelled_pixels(dataset: SweepDataset, selection: FrameSelection) -> LabelledPixels:
+    """Every annotated pixel of the selected frames, with its sweep, frame, row and column."""
+    parts: list[tuple[np.ndarray, ...]] = []
+    for sweep_index, sweep in enumerate(dataset.sweeps):
+        frames = selection.frames.get(sweep.name)
+        if frames is None or len(frames) == 0 or sweep.labels is None:
+            continue
+        labels = sweep.labels[frames]
+        f, r, c = np.nonzero(labels != LABEL_UNANNOTATED)
+        parts.append((np.full(f.shape, sweep_index), frames[f], r, c, labels[f, r, c]))
+    if not parts:
+        raise UltronInputError("dataset", "labels", "the selected frames have no annotated pixel")
+    cat = [np.concatenate(p) for p in zip(*parts, strict=True)]
+    return LabelledPixels(
+        sweep_index=cat[0].astype(np.int64),
+        frame=cat[1].astype(np.int64),
+        row=cat[2].astype(np.int64),
+        col=cat[3].astype(np.int64),
+        label=cat[4].astype(np.uint8),
+    )

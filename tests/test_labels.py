@@ -1,0 +1,86 @@
+"""Label-fraction selection: deterministic, spread across sweeps, every annotated pixel gathered."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from conftest import make_pose
+
+from ultron.data.dataset import ProbeGeometry, Sweep, SweepDataset
+from ultron.data.labels import gather_labelled_pixels, select_label_frames
+from ultron.errors import UltronInputError
+
+
+def sweep_with_labels(name: str, n: int, unannotated: tuple[int, ...] = ()) -> Sweep:
+    labels = np.zeros((n, 4, 5), dtype=np.uint8)
+    labels[:, 2, 1] = 1
+    labels[:, 0, :] = 255
+    labels[list(unannotated)] = 255
+    poses = np.stack([make_pose(translation=(0.0, 0.0, float(i))) for i in range(n)])
+    return Sweep(name, "row", np.zeros((n, 4, 5), np.uint8), poses, labels)
+
+
+@pytest.fixture
+def dataset() -> SweepDataset:
+    probe = ProbeGeometry(5.0, 4.0, 4, 5)
+    return SweepDataset(
+        probe,
+        [
+            sweep_with_labels("a", 60),
+            sweep_with_labels("b", 60, (0, 1, 2)),
+            sweep_with_labels("c", 30),
+        ],
+    )
+
+
+def test_fraction_counts_and_spread(dataset):
+    selection = select_label_frames(dataset, 0.1, seed=0)
+    # 147 annotated frames → ceil(14.7) = 15, split 6/6/3 in proportion, all sweeps used
+    assert selection.n_frames == 15
+    assert {k: len(v) for k, v in selection.frames.items()} == {"a": 6, "b": 6, "c": 3}
+    a = selection.frames["a"]
+    # evenly spaced: gaps of exactly 10 frames
+    assert np.all(np.diff(a) == 10)
+    assert set(selection.frames["b"]).isdisjoint({0, 1, 2})  # never an unannotated frame
+
+
+def test_deterministic_from_seed(dataset):
+    one = select_label_frames(dataset, 0.05, seed=3)
+    two = select_label_frames(dataset, 0.05, seed=3)
+    assert one.to_dict() == two.to_dict()
+    others = [select_label_frames(dataset, 0.05, seed=s).to_dict()["frames"] for s in range(8)]
+    assert len({str(o) for o in others}) > 1  # the seed matters
+
+
+def test_full_fraction_takes_every_annotated_frame(dataset):
+    selection = select_label_frames(dataset, 1.0, seed=0)
+    assert selection.n_frames == 147
+    assert np.array_equal(selection.frames["b"], np.arange(3, 60))
+
+
+def test_tiny_fraction_still_selects_one_frame(dataset):
+    assert select_label_frames(dataset, 0.001, seed=0).n_frames == 1
+
+
+def test_gathered_pixels_skip_255(dataset):
+    selection = select_label_frames(dataset, 0.1, seed=1)
+    pixels = gather_labelled_pixels(dataset, selection)
+    # 3 annotated rows × 5 columns per frame, one bone pixel each
+    assert len(pixels) == 15 * 15
+    assert int(pixels.label.sum()) == 15
+    assert set(np.unique(pixels.row)) == {1, 2, 3}
+    bone = pixels.label == 1
+    assert set(pixels.row[bone]) == {2} and set(pixels.col[bone]) == {1}
+
+
+@pytest.mark.parametrize("fraction", [0.0, -0.1, 1.5])
+def test_bad_fraction(dataset, fraction):
+    with pytest.raises(UltronInputError, match="label_fraction"):
+        select_label_frames(dataset, fraction, seed=0)
+
+
+def test_no_labels_is_a_clear_error():
+    probe = ProbeGeometry(5.0, 4.0, 4, 5)
+    unlabelled = Sweep("a", "row", np.zeros((2, 4, 5), np.uint8), np.stack([np.eye(4)] * 2))
+    with pytest.raises(UltronInputError, match="no annotated frames"):
+        select_label_frames(SweepDataset(probe, [unlabelled]), 0.5, seed=0)
