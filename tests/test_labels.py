@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import make_pose
 
+from conftest import make_pose
 from ultron.data.dataset import ProbeGeometry, Sweep, SweepDataset
 from ultron.data.labels import gather_labelled_pixels, select_label_frames
 from ultron.errors import UltronInputError
