@@ -1,0 +1,192 @@
+"""Stage 2: fitting an occupancy network from labelled pixels (METHOD.md §3).
+
+Losses, with f the predicted occupancy, T the transmission reaching the pixel (exclusive,
+detached, never normalised) and y the label:
+
+* ``ultron`` — attenuation-compensated BCE(T·f, y):
+      L = −[ y·log(p) + (1 − y)·log(1 − p) ],  p = clamp(T·f, ε, 1 − ε)
+  A background label in acoustic shadow (T ≈ 0) costs nothing whatever f is, so occluded
+  bone labelled 0 does not teach the network "no bone"; where T = 1 it is plain BCE.
+  The clamp keeps the logarithms finite; where T·f < ε the clamp also stops the gradient.
+* ``ultron-noloss`` (the paper's ablation) and ``on`` — plain BCE(f, y).
+
+Class balance: bone is a small share of the labelled pixels (a few percent). Each class is
+given equal total weight — positives weighted by n_neg / n_pos (a "balanced" BCE), capped at
+``max_positive_weight`` — so the thin bone band is not drowned by background; with the cap a
+degenerate label set cannot make single pixels dominate. ``positive_weight`` overrides it.
+
+Optimisation: Adam (lr 1e-4) with an exponential decay that reaches ``final_lr_factor``× the
+initial rate at the last iteration, shuffled minibatches drawn with a seeded generator.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import torch
+
+from ultron.errors import argument_error
+from ultron.fields.occupancy import OccupancyNetwork, OccupancyNetworkConfig
+
+LOSSES = ("ultron", "bce")
+EPSILON = 1e-6
+
+
+def attenuation_compensated_bce(
+    occupancy: torch.Tensor,
+    transmission: torch.Tensor,
+    target: torch.Tensor,
+    weight: torch.Tensor | None = None,
+    eps: float = EPSILON,
+) -> torch.Tensor:
+    """Mean of −w·[y log p + (1−y) log(1−p)], p = clamp(T·f, ε, 1−ε) (see module doc)."""
+    if occupancy.shape != transmission.shape or occupancy.shape != target.shape:
+        raise argument_error(
+            "occupancy/transmission/target",
+            f"shapes differ: {tuple(occupancy.shape)}, {tuple(transmission.shape)}, {tuple(target.shape)}",
+        )
+    p = (transmission * occupancy).clamp(eps, 1 - eps)
+    loss = -(target * torch.log(p) + (1 - target) * torch.log1p(-p))
+    if weight is not None:
+        loss = loss * weight
+    return loss.mean()
+
+
+def binary_cross_entropy(
+    occupancy: torch.Tensor,
+    target: torch.Tensor,
+    weight: torch.Tensor | None = None,
+    eps: float = EPSILON,
+) -> torch.Tensor:
+    """Plain BCE(f, y): the compensated loss with T = 1."""
+    return attenuation_compensated_bce(occupancy, torch.ones_like(occupancy), target, weight, eps)
+
+
+@dataclass(frozen=True)
+class OccupancyTrainConfig:
+    """Settings of :func:`fit_occupancy`."""
+
+    loss: str = "ultron"
+    iters: int = 3000
+    batch_size: int = 4096
+    lr: float = 1e-4
+    final_lr_factor: float = 0.1
+    positive_weight: float | None = None
+    max_positive_weight: float = 20.0
+    seed: int = 0
+    network: OccupancyNetworkConfig = field(default_factory=OccupancyNetworkConfig)
+
+    def __post_init__(self) -> None:
+        if self.loss not in LOSSES:
+            raise argument_error("loss", f"expected one of {LOSSES}, got {self.loss!r}")
+        if self.iters < 0:
+            raise argument_error("iters", f"expected ≥ 0, got {self.iters}")
+        if self.batch_size < 1:
+            raise argument_error("batch_size", f"expected ≥ 1, got {self.batch_size}")
+        if not self.lr > 0:
+            raise argument_error("lr", f"expected > 0, got {self.lr}")
+        if not 0 < self.final_lr_factor <= 1:
+            raise argument_error(
+                "final_lr_factor", f"expected in (0, 1], got {self.final_lr_factor}"
+            )
+        if self.positive_weight is not None and not self.positive_weight > 0:
+            raise argument_error("positive_weight", f"expected > 0, got {self.positive_weight}")
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+@dataclass(frozen=True)
+class OccupancyTrainingData:
+    """Precomputed per-pixel inputs (P, D), transmission T (P,) and labels y (P,) ∈ {0, 1}."""
+
+    inputs: torch.Tensor
+    transmission: torch.Tensor
+    labels: torch.Tensor
+
+    def __post_init__(self) -> None:
+        n = self.labels.shape[0]
+        if self.inputs.ndim != 2 or self.inputs.shape[0] != n or self.transmission.shape != (n,):
+            raise argument_error(
+                "training data",
+                f"inputs {tuple(self.inputs.shape)}, transmission {tuple(self.transmission.shape)}"
+                f" and labels {tuple(self.labels.shape)} do not match",
+            )
+        if n == 0:
+            raise argument_error("training data", "no labelled pixels")
+
+
+def positive_class_weight(labels: torch.Tensor, config: OccupancyTrainConfig) -> float:
+    """n_neg / n_pos capped at ``max_positive_weight`` (or the configured override)."""
+    if config.positive_weight is not None:
+        return float(config.positive_weight)
+    n_pos = float(labels.sum())
+    n_neg = float(labels.numel()) - n_pos
+    if n_pos == 0 or n_neg == 0:
+        return 1.0
+    return float(min(max(n_neg / n_pos, 1.0), config.max_positive_weight))
+
+
+def fit_occupancy(
+    data: OccupancyTrainingData,
+    config: OccupancyTrainConfig,
+    network: OccupancyNetwork | None = None,
+    trainable: Callable[[OccupancyNetwork], list[torch.nn.Parameter]] | None = None,
+    progress: Callable[[int, float], None] | None = None,
+) -> tuple[OccupancyNetwork, list[dict[str, float]]]:
+    """Train (a copy-free, in-place) ``network`` on ``data``; returns it and a loss log.
+
+    ``trainable`` selects the parameters to optimise (default: all), e.g. for fine-tuning with
+    frozen layers. ``progress(step, loss)`` is called every step.
+    """
+    generator = torch.Generator().manual_seed(config.seed)
+    if network is None:
+        torch.manual_seed(config.seed)
+        network_config = config.network
+        if network_config.in_dim != data.inputs.shape[1]:
+            network_config = OccupancyNetworkConfig(
+                **{**asdict(network_config), "in_dim": data.inputs.shape[1]}
+            )
+        network = OccupancyNetwork(network_config)
+    parameters = trainable(network) if trainable else list(network.parameters())
+    optimiser = torch.optim.Adam(parameters, lr=config.lr)
+    gamma = config.final_lr_factor ** (1.0 / max(config.iters, 1))
+    scheduler = torch.optim.lr_scheduler.ExponentialLR(optimiser, gamma)
+    labels = data.labels.to(torch.float32)
+    pos_weight = positive_class_weight(labels, config)
+    n = labels.shape[0]
+    log: list[dict[str, float]] = []
+    order = torch.randperm(n, generator=generator)
+    cursor = 0
+    start = time.perf_counter()
+    network.train()
+    for step in range(config.iters):
+        if cursor + config.batch_size > n:
+            order = torch.randperm(n, generator=generator)
+            cursor = 0
+        batch = order[cursor : cursor + min(config.batch_size, n)]
+        cursor += config.batch_size
+        y = labels[batch]
+        weight = torch.where(y > 0.5, pos_weight, 1.0)
+        f = network.occupancy(data.inputs[batch])
+        if config.loss == "ultron":
+            loss = attenuation_compensated_bce(f, data.transmission[batch], y, weight)
+        else:
+            loss = binary_cross_entropy(f, y, weight)
+        optimiser.zero_grad(set_to_none=True)
+        loss.backward()
+        optimiser.step()
+        scheduler.step()
+        value = float(loss.detach())
+        if not math.isfinite(value):
+            raise FloatingPointError(f"occupancy loss became {value} at step {step}")
+        if step % 50 == 0 or step == config.iters - 1:
+            log.append({"step": step, "loss": value, "seconds": time.perf_counter() - start})
+        if progress is not None:
+            progress(step, value)
+    network.eval()
+    return network, log

@@ -1,0 +1,135 @@
+"""Stage 2: the attenuation-compensated loss and occupancy network training."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from ultron.errors import UltronInputError
+from ultron.fields.occupancy import OccupancyNetwork, OccupancyNetworkConfig
+from ultron.train.occupancy import (
+    OccupancyTrainConfig,
+    OccupancyTrainingData,
+    attenuation_compensated_bce,
+    binary_cross_entropy,
+    fit_occupancy,
+    positive_class_weight,
+)
+
+
+def test_zero_gradient_where_transmission_is_zero():
+    f = torch.tensor([0.2, 0.7, 0.9], dtype=torch.float64, requires_grad=True)
+    transmission = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+    target = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+    attenuation_compensated_bce(f, transmission, target).backward()
+    assert f.grad[0] == 0 and f.grad[1] == 0
+    assert f.grad[2] != 0
+
+
+def test_equals_bce_where_transmission_is_one():
+    f = torch.tensor([0.1, 0.5, 0.8, 0.99])
+    y = torch.tensor([0.0, 1.0, 1.0, 0.0])
+    ours = attenuation_compensated_bce(f, torch.ones(4), y)
+    torch.testing.assert_close(ours, torch.nn.functional.binary_cross_entropy(f, y))
+    torch.testing.assert_close(binary_cross_entropy(f, y), ours)
+
+
+def test_shadowed_background_costs_nothing():
+    # a confident "bone" prediction under a background label in full shadow is free
+    loss = attenuation_compensated_bce(
+        torch.tensor([0.99]), torch.tensor([0.0]), torch.tensor([0.0])
+    )
+    assert float(loss) < 1e-5
+
+
+def test_numerically_safe_at_extremes():
+    f = torch.tensor([0.0, 1.0], requires_grad=True)
+    loss = attenuation_compensated_bce(f, torch.ones(2), torch.tensor([1.0, 0.0]))
+    loss.backward()
+    assert torch.isfinite(loss) and torch.isfinite(f.grad).all()
+
+
+def test_gradcheck_float64():
+    f = torch.rand(6, dtype=torch.float64).clamp(0.05, 0.95).requires_grad_()
+    transmission = torch.rand(6, dtype=torch.float64).clamp(0.1, 1.0).requires_grad_()
+    y = torch.tensor([0, 1, 0, 1, 1, 0], dtype=torch.float64)
+    assert torch.autograd.gradcheck(
+        lambda a, b: attenuation_compensated_bce(a, b, y), (f, transmission)
+    )
+
+
+def test_shape_mismatch_is_an_error():
+    with pytest.raises(UltronInputError, match="shapes differ"):
+        attenuation_compensated_bce(torch.zeros(3), torch.zeros(2), torch.zeros(3))
+
+
+def test_balanced_positive_weight():
+    labels = torch.tensor([1.0] + [0.0] * 9)
+    assert positive_class_weight(labels, OccupancyTrainConfig()) == pytest.approx(9.0)
+    assert positive_class_weight(torch.tensor([1.0] + [0.0] * 99), OccupancyTrainConfig()) == 20.0
+    assert positive_class_weight(labels, OccupancyTrainConfig(positive_weight=2.0)) == 2.0
+
+
+SMALL = OccupancyNetworkConfig(width=64, depth=4, skip_at=2, n_frequencies=2)
+
+
+def _separable_data(
+    n: int = 4000, transmission: torch.Tensor | None = None
+) -> OccupancyTrainingData:
+    generator = torch.Generator().manual_seed(0)
+    inputs = torch.rand(n, 3, generator=generator) * 2 - 1
+    labels = (inputs[:, 0] > 0.3).to(torch.uint8)
+    transmission = torch.ones(n) if transmission is None else transmission
+    return OccupancyTrainingData(inputs, transmission, labels)
+
+
+def test_network_learns_a_separable_rule():
+    data = _separable_data()
+    config = OccupancyTrainConfig(
+        iters=300, batch_size=512, lr=1e-3, loss="bce", seed=1, network=SMALL
+    )
+    network, log = fit_occupancy(data, config)
+    assert log[-1]["loss"] < 0.5 * log[0]["loss"]
+    with torch.no_grad():
+        predicted = network.occupancy(data.inputs) > 0.5
+    accuracy = (predicted == data.labels.bool()).float().mean()
+    assert accuracy > 0.95
+
+
+def test_compensated_loss_ignores_shadowed_negatives():
+    # the rule is x0 > 0.3, but points with x0 > 0.6 are labelled 0 in full shadow (T = 0):
+    # the compensated loss must still predict bone there, plain BCE must not
+    data = _separable_data()
+    shadow = data.inputs[:, 0] > 0.6
+    labels = data.labels.clone()
+    labels[shadow] = 0
+    transmission = torch.where(shadow, 0.0, 1.0)
+    shadowed = OccupancyTrainingData(data.inputs, transmission, labels)
+    probe = torch.tensor([[0.8, 0.0, 0.0]])
+    results = {}
+    for loss in ("ultron", "bce"):
+        config = OccupancyTrainConfig(
+            iters=300, batch_size=512, lr=1e-3, loss=loss, seed=1, network=SMALL
+        )
+        network, _ = fit_occupancy(shadowed, config)
+        with torch.no_grad():
+            results[loss] = float(network.occupancy(probe))
+    assert results["bce"] < 0.5
+    assert results["ultron"] > results["bce"]
+
+
+def test_training_is_deterministic():
+    data = _separable_data(500)
+    config = OccupancyTrainConfig(iters=20, batch_size=64, seed=3, network=SMALL)
+    a, _ = fit_occupancy(data, config)
+    b, _ = fit_occupancy(data, config)
+    for pa, pb in zip(a.parameters(), b.parameters(), strict=True):
+        assert torch.equal(pa, pb)
+
+
+def test_network_shapes_and_last_layers():
+    network = OccupancyNetwork(OccupancyNetworkConfig(in_dim=3, n_frequencies=2))
+    assert network(torch.zeros(5, 3)).shape == (5,)
+    assert len(network.last_layers(2)) == 2
+    with pytest.raises(UltronInputError, match="inputs"):
+        network(torch.zeros(5, 4))
