@@ -1,0 +1,171 @@
+"""``ultron reconstruct`` and ``ultron demo``."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from ultron.cli.common import console, user_errors
+
+
+def _field_progress():
+    """A rich progress bar fed by the field fit's per-step dicts; returns (bar, callback)."""
+    from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+
+    bar = Progress(
+        TextColumn("[bold]fitting acoustic field"),
+        BarColumn(),
+        TextColumn("{task.completed}/{task.total}"),
+        TextColumn("{task.fields[status]}"),
+        TimeRemainingColumn(),
+        console=console,
+        transient=True,
+    )
+    task = bar.add_task("field", total=1, status="")
+
+    def update(entry: dict) -> None:
+        status = f"loss {entry.get('loss', float('nan')):.4f}"
+        if "psnr" in entry:
+            status += f"  PSNR {entry['psnr']:.2f} dB"
+        bar.update(
+            task,
+            total=entry.get("iterations", 1),
+            completed=entry.get("step", 0) + 1,
+            status=status,
+        )
+
+    return bar, update
+
+
+def _request(
+    method: str, label_fraction: float, seed: int, occupancy_iters: int | None, points: int
+):
+    from ultron.methods.run import ReconstructionRequest
+    from ultron.methods.ultron_method import UltronConfig
+    from ultron.metrics.surface import MetricsConfig
+    from ultron.train.occupancy import OccupancyTrainConfig
+
+    occupancy = (
+        OccupancyTrainConfig(seed=seed)
+        if occupancy_iters is None
+        else OccupancyTrainConfig(iters=occupancy_iters, seed=seed)
+    )
+    return ReconstructionRequest(
+        method=method,
+        label_fraction=label_fraction,
+        seed=seed,
+        ultron=UltronConfig(occupancy=occupancy),
+        metrics=MetricsConfig(n_points=points),
+    )
+
+
+def _field_config(field_iters: int | None, seed: int):
+    from ultron.train.field_fit import FieldTrainConfig
+
+    return (
+        FieldTrainConfig(seed=seed)
+        if field_iters is None
+        else FieldTrainConfig(iterations=field_iters, seed=seed)
+    )
+
+
+@user_errors
+def reconstruct(
+    dataset: Annotated[
+        Path, typer.Argument(help="Dataset directory (ultron-sweeps/1) with labels.")
+    ],
+    out: Annotated[Path, typer.Option("--out", help="Output directory.")],
+    method: Annotated[
+        str, typer.Option("--method", help="ultron, ultron-noloss or compounding.")
+    ] = "ultron",
+    label_fraction: Annotated[
+        float, typer.Option("--label-fraction", help="Share of annotated frames used, in (0, 1].")
+    ] = 0.1,
+    field: Annotated[
+        Path | None,
+        typer.Option("--field", help="A fitted FIELD_DIR [default: fit and cache one]."),
+    ] = None,
+    seed: Annotated[int, typer.Option("--seed", help="Seed of label selection and training.")] = 0,
+    field_iters: Annotated[
+        int | None, typer.Option("--field-iters", help="Field iterations when fitting.")
+    ] = None,
+    occupancy_iters: Annotated[
+        int | None, typer.Option("--occupancy-iters", help="Occupancy iterations.")
+    ] = None,
+    points: Annotated[
+        int, typer.Option("--points", help="Points per surface for metrics.")
+    ] = 100_000,
+) -> None:
+    """Reconstruct a bone surface: mesh.ply/.stl/.obj, occupancy.nii.gz, metrics.json, run.json."""
+    from ultron.methods.run import reconstruct as run
+
+    request = _request(method, label_fraction, seed, occupancy_iters, points)
+    bar, update = _field_progress()
+    with bar:
+        summary = run(
+            dataset, request, out, field, _field_config(field_iters, seed), progress=update
+        )
+    _print_summary({method: summary})
+    console.print(f"outputs in {out}")
+
+
+def _print_summary(summaries: dict) -> None:
+    from ultron.report.tables import metrics_table
+
+    with_metrics = {k: v["metrics"] for k, v in summaries.items() if v.get("metrics")}
+    if with_metrics:
+        console.print(
+            metrics_table(
+                with_metrics, "surface distances to the reference (mm)", ("cd", "hd", "mad", "rmse")
+            )
+        )
+    for name, summary in summaries.items():
+        timings = ", ".join(f"{k} {v:.1f} s" for k, v in summary["timings_s"].items())
+        console.print(f"{name}: {timings}")
+
+
+@user_errors
+def demo(
+    out: Annotated[Path, typer.Option("--out", help="Output directory.")] = Path("runs/demo"),
+    seed: Annotated[
+        int, typer.Option("--seed", help="Seed of simulation, labels and training.")
+    ] = 0,
+) -> None:
+    """Simulate L3, fit the acoustic field, run UltrON and UltrON w/o loss at 10%, compare."""
+    from ultron.data.dataset import SweepDataset
+    from ultron.methods.run import reconstruct as run
+    from ultron.phantom import SimulationConfig, simulate_dataset
+    from ultron.train.field_fit import fit_field
+
+    dataset_dir = out / "dataset"
+    if (dataset_dir / "dataset.json").is_file():
+        console.print(f"using the simulated dataset in {dataset_dir}")
+    else:
+        with console.status("simulating the L3 phantom"):
+            simulate_dataset(SimulationConfig(phantom="L3", seed=seed), out=dataset_dir)
+        console.print(f"simulated L3 → {dataset_dir}")
+    dataset = SweepDataset.load(dataset_dir)
+    field_dir = out / "field"
+    bar, update = _field_progress()
+    with bar:
+        fit_field(dataset, _field_config(None, seed), field_dir, progress=update, resume=True)
+    console.print(f"acoustic field → {field_dir}")
+    summaries = {}
+    labels = {"ultron": "UltrON (10%)", "ultron-noloss": "UltrON w/o loss (10%)"}
+    for method, label in labels.items():
+        with console.status(f"{label}: occupancy, mesh, metrics"):
+            summaries[label] = run(
+                dataset_dir, _request(method, 0.1, seed, None, 100_000), out / method, field_dir
+            )
+    _print_summary(summaries)
+    for method in labels:
+        console.print(
+            f"{method}: {out / method / 'mesh.ply'}, {out / method / 'occupancy.nii.gz'}, {out / method / 'metrics.json'}"
+        )
+
+
+def register(app: typer.Typer) -> None:
+    app.command("reconstruct")(reconstruct)
+    app.command("demo")(demo)

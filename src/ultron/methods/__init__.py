@@ -1,0 +1,1 @@
+"""Reconstruction methods (UltrON, its ablation, baselines) and the shared run outputs."""

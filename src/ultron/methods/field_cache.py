@@ -1,0 +1,63 @@
+"""Acoustic fields cached by dataset content: one fit per dataset and field configuration.
+
+The key is a SHA-256 over the dataset's ``dataset.json`` and every sweep's images and poses
+(labels and the reference do not affect stage 1) plus the field-training configuration. The
+cache lives in ``$ULTRON_CACHE`` (default ``~/.cache/ultron``) under ``fields/<key>``; a fit
+interrupted there resumes from its checkpoint on the next call.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+CHUNK = 1 << 20
+
+
+def cache_root() -> Path:
+    return Path(os.environ.get("ULTRON_CACHE", Path.home() / ".cache" / "ultron"))
+
+
+def dataset_hash(dataset_dir: str | Path, extra: dict[str, Any] | None = None) -> str:
+    """Content hash of a dataset directory's stage-1 inputs (and ``extra``, e.g. a config)."""
+    root = Path(dataset_dir)
+    digest = hashlib.sha256()
+    meta = json.loads((root / "dataset.json").read_text(encoding="utf-8"))
+    digest.update(
+        json.dumps({k: meta.get(k) for k in ("format", "probe", "sweeps")}, sort_keys=True).encode()
+    )
+    for sweep in meta["sweeps"]:
+        for name in ("images.npy", "poses.npy"):
+            with open(root / sweep["name"] / name, "rb") as handle:
+                while block := handle.read(CHUNK):
+                    digest.update(block)
+    if extra is not None:
+        digest.update(json.dumps(extra, sort_keys=True, default=str).encode())
+    return digest.hexdigest()[:20]
+
+
+def cached_field_dir(dataset_dir: str | Path, config_dict: dict[str, Any]) -> Path:
+    return cache_root() / "fields" / dataset_hash(dataset_dir, config_dict)
+
+
+def get_or_fit_field(
+    dataset_dir: str | Path,
+    dataset,
+    config,
+    progress: Callable[[dict[str, Any]], None] | None = None,
+):
+    """Load the cached field for this dataset and configuration, fitting it first if needed."""
+    from ultron.fields.fitted import CHECKPOINT, FIELD_JSON, load_field
+    from ultron.train.field_fit import fit_field
+
+    field_dir = cached_field_dir(dataset_dir, config.to_dict())
+    done = field_dir / "done"
+    if done.is_file() and (field_dir / FIELD_JSON).is_file() and (field_dir / CHECKPOINT).is_file():
+        return load_field(field_dir), field_dir, True
+    fitted = fit_field(dataset, config, field_dir, progress=progress, resume=True)
+    done.write_text("ok\n")
+    return fitted, field_dir, False

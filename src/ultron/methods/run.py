@@ -1,0 +1,152 @@
+"""``reconstruct``: one dataset, one method, one label fraction → DIR with mesh, volume, metrics.
+
+Outputs (every file atomic): ``mesh.ply``, ``mesh.stl``, ``mesh.obj``, ``occupancy.nii.gz``
+(aligned with the mesh in 3D Slicer, see :mod:`ultron.mesh.export`), ``metrics.json`` when the
+dataset has a reference surface, and ``run.json`` (configuration, label selection, versions,
+timings per stage, peak memory). The reference is read only after the mesh exists, for metrics.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from ultron import atomic
+from ultron.data.dataset import SweepDataset
+from ultron.errors import argument_error
+from ultron.mesh.compounding import CompoundingConfig, compound_labels
+from ultron.mesh.export import load_mesh, save_mesh, save_volume_nifti
+from ultron.mesh.extract import extract_surface
+from ultron.methods.runinfo import StageTimer, write_run_json
+from ultron.methods.ultron_method import Reconstruction, UltronConfig, reconstruct_ultron
+from ultron.metrics.surface import MetricsConfig, evaluate_meshes
+
+FIELD_METHODS = ("ultron", "ultron-noloss")
+METHODS = (*FIELD_METHODS, "compounding")
+
+
+@dataclass(frozen=True)
+class ReconstructionRequest:
+    """What to run: the method, its label fraction and seed, and per-stage settings."""
+
+    method: str = "ultron"
+    label_fraction: float = 0.1
+    seed: int = 0
+    ultron: UltronConfig = field(default_factory=UltronConfig)
+    compounding: CompoundingConfig = field(default_factory=CompoundingConfig)
+    metrics: MetricsConfig = field(default_factory=MetricsConfig)
+
+    def __post_init__(self) -> None:
+        if self.method not in METHODS:
+            raise argument_error("method", f"expected one of {METHODS}, got {self.method!r}")
+        if not 0 < self.label_fraction <= 1:
+            raise argument_error(
+                "label_fraction", f"expected a value in (0, 1], got {self.label_fraction}"
+            )
+
+
+def run_method(
+    dataset: SweepDataset, request: ReconstructionRequest, fitted, timer: StageTimer
+) -> Reconstruction:
+    """Reconstruct with ``request.method`` (``fitted`` is the acoustic field, for UltrON)."""
+    from ultron.data.labels import select_label_frames
+
+    if request.method in FIELD_METHODS:
+        if fitted is None:
+            raise argument_error(
+                "field", f"method {request.method!r} needs a fitted acoustic field"
+            )
+        config = UltronConfig(
+            **{
+                **request.ultron.__dict__,
+                "label_fraction": request.label_fraction,
+                "seed": request.seed,
+            }
+        )
+        return reconstruct_ultron(dataset, fitted, request.method, config, timer)
+    with timer.stage("labels"):
+        selection = select_label_frames(dataset, request.label_fraction, request.seed)
+    with timer.stage("mesh"):
+        compounded = compound_labels(dataset, selection, request.compounding)
+        mesh = extract_surface(compounded.volume, compounded.grid, request.ultron.extraction)
+    info = {
+        "selection": selection.to_dict(),
+        "n_label_frames": selection.n_frames,
+        "hole_fill_radius_mm": compounded.hole_fill_radius_mm,
+        "compounding_config": request.compounding.__dict__,
+    }
+    return Reconstruction(mesh=mesh, volume=compounded.volume, grid=compounded.grid, info=info)
+
+
+def write_outputs(
+    out_dir: str | Path,
+    dataset: SweepDataset,
+    request: ReconstructionRequest,
+    result: Reconstruction,
+    timer: StageTimer,
+    extra: dict[str, Any] | None = None,
+) -> dict[str, Any]:
+    """Write the mesh, volume, metrics (with a reference) and run.json; return the summary."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    with timer.stage("write"):
+        for suffix in (".ply", ".stl", ".obj"):
+            save_mesh(result.mesh, out / f"mesh{suffix}")
+        save_volume_nifti(result.volume, result.grid, out / "occupancy.nii.gz")
+    metrics = None
+    if dataset.reference is not None:
+        with timer.stage("metrics"):
+            metrics = evaluate_meshes(result.mesh, load_mesh(dataset.reference), request.metrics)
+        metrics["method"] = request.method
+        metrics["label_fraction"] = request.label_fraction
+        atomic.write_json(out / "metrics.json", metrics)
+    info = {k: v for k, v in result.info.items() if k != "network"}
+    payload = {
+        "method": request.method,
+        "label_fraction": request.label_fraction,
+        "seed": request.seed,
+        "mesh": {"vertices": len(result.mesh.vertices), "faces": len(result.mesh.faces),
+                 "area_mm2": float(result.mesh.area)},
+        **info,
+        **(extra or {}),
+    }  # fmt: skip
+    write_run_json(out, payload, timer)
+    return {"out": str(out), "metrics": metrics, "timings_s": dict(timer.seconds)}
+
+
+def reconstruct(
+    dataset_dir: str | Path,
+    request: ReconstructionRequest,
+    out_dir: str | Path,
+    field_dir: str | Path | None = None,
+    field_config=None,
+    progress: Callable[[dict[str, Any]], None] | None = None,
+) -> dict[str, Any]:
+    """Load the dataset, get the field (given, or fitted and cached), run, write DIR."""
+    timer = StageTimer()
+    with timer.stage("load"):
+        dataset = SweepDataset.load(dataset_dir)
+    fitted, extra = None, {}
+    if request.method in FIELD_METHODS:
+        with timer.stage("field"):
+            fitted, used_dir, cached = load_or_fit_field(
+                dataset_dir, dataset, field_dir, field_config, progress
+            )
+        extra = {"field_dir": str(used_dir), "field_cached": cached}
+    result = run_method(dataset, request, fitted, timer)
+    return write_outputs(out_dir, dataset, request, result, timer, extra)
+
+
+def load_or_fit_field(dataset_dir, dataset, field_dir, field_config, progress):
+    """A given FIELD_DIR is loaded (its probe must match); otherwise the cached fit is used."""
+    from ultron.fields.fitted import load_field
+    from ultron.methods.field_cache import get_or_fit_field
+    from ultron.train.field_fit import FieldTrainConfig
+
+    if field_dir is not None:
+        fitted = load_field(field_dir)
+        fitted.check_probe(dataset.probe, where=str(dataset_dir))
+        return fitted, Path(field_dir), True
+    return get_or_fit_field(dataset_dir, dataset, field_config or FieldTrainConfig(), progress)
