@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import typer
 
-from ultron.cli import data_cmds, eval_cmds, phantom_cmds, reconstruct_cmds
+from ultron.cli import data_cmds, eval_cmds, field_cmds, phantom_cmds, reconstruct_cmds
 
 app = typer.Typer(
     name="ultron",
@@ -16,6 +16,7 @@ app = typer.Typer(
 
 data_cmds.register(app)
 eval_cmds.register(app)
+field_cmds.register(app)
 phantom_cmds.register(app)
 reconstruct_cmds.register(app)
 

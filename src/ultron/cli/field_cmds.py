@@ -1,0 +1,194 @@
+"""``ultron fit-field`` and ``ultron render`` (stage 1: the acoustic neural field)."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from ultron.cli.common import console, user_errors
+from ultron.errors import argument_error
+
+
+def _passive_openmp() -> None:
+    """Let OpenMP threads sleep instead of spin while waiting (unless the user set a policy).
+
+    On a CPU shared with other jobs, spinning threads make torch's many small parallel ops
+    up to 10× slower; this only takes effect when torch is not imported yet.
+    """
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+
+def _parse_shape(text: str | None) -> tuple[int, int] | None:
+    if text is None:
+        return None
+    parts = text.lower().split("x")
+    if len(parts) != 2 or not all(p.strip().isdigit() for p in parts):
+        raise argument_error("--fit-shape", f"expected HxW such as 256x128, got {text!r}")
+    return int(parts[0]), int(parts[1])
+
+
+@user_errors
+def fit_field_command(
+    dataset: Annotated[Path, typer.Argument(help="Dataset directory (ultron-sweeps/1).")],
+    out: Annotated[Path, typer.Option("--out", help="FIELD_DIR to write (resumed if it exists).")],
+    backend: Annotated[
+        str, typer.Option("--backend", help="grid (fast, default) or mlp (the paper's network).")
+    ] = "grid",
+    iters: Annotated[int, typer.Option("--iters", help="Training iterations.")] = 3000,
+    seed: Annotated[int, typer.Option("--seed", help="Seed of initialisation and batches.")] = 0,
+    holdout_every: Annotated[
+        int,
+        typer.Option("--holdout-every", help="Hold out every K-th frame for checks (0: none)."),
+    ] = 10,
+    fit_shape: Annotated[
+        str | None,
+        typer.Option("--fit-shape", help="Fit at HxW pixels (frames area-resampled) [native]."),
+    ] = None,
+    train_scatterers: Annotated[
+        str,
+        typer.Option(
+            "--train-scatterers",
+            help="expected (E[S], default) or sample (Ultra-NeRF's per-step draw) in training.",
+        ),
+    ] = "expected",
+    check_every: Annotated[
+        int, typer.Option("--check-every", help="Held-out check every N steps.")
+    ] = 250,
+    threads: Annotated[
+        int | None, typer.Option("--threads", help="torch CPU threads [torch default].")
+    ] = None,
+    no_resume: Annotated[
+        bool, typer.Option("--no-resume", help="Start afresh even if a checkpoint exists.")
+    ] = False,
+) -> None:
+    """Fit an acoustic neural field (Ultra-NeRF) to a dataset's frames and write FIELD_DIR."""
+    _passive_openmp()
+    import torch
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from ultron.data.dataset import SweepDataset
+    from ultron.fields import FieldConfig
+    from ultron.train import FieldTrainConfig, fit_field
+
+    if threads is not None:
+        if threads < 1:
+            raise argument_error("--threads", f"expected ≥ 1, got {threads}")
+        torch.set_num_threads(threads)
+    data = SweepDataset.load(dataset)
+    config = FieldTrainConfig(
+        field=FieldConfig(backend=backend),
+        iterations=iters,
+        seed=seed,
+        holdout_every=holdout_every,
+        fit_shape=_parse_shape(fit_shape),
+        train_scatterers=train_scatterers,
+        check_every=check_every,
+    )
+    columns = (
+        TextColumn("[bold]fit-field"),
+        BarColumn(),
+        TextColumn("{task.completed}/{task.total}"),
+        TextColumn("loss {task.fields[loss]:.4f}  PSNR {task.fields[psnr]:.2f} dB"),
+        TextColumn("held-out {task.fields[holdout]}"),
+        TimeElapsedColumn(),
+    )
+    with Progress(*columns, console=console, transient=False) as bar:
+        task = bar.add_task("fit", total=iters, loss=0.0, psnr=0.0, holdout="—")
+
+        def progress(entry: dict) -> None:
+            extra = {}
+            if "holdout_psnr" in entry:
+                extra["holdout"] = (
+                    f"{entry['holdout_psnr']:.2f} dB / SSIM {entry['holdout_ssim']:.3f}"
+                )
+            bar.update(
+                task, completed=entry["step"], loss=entry["loss"], psnr=entry["psnr"], **extra
+            )
+
+        fitted = fit_field(data, config, out, progress=progress, resume=not no_resume)
+    stats = fitted.theta_stats
+    console.print(
+        f"wrote {out}: field.json, checkpoint.pt, theta_stats.json, train_log.jsonl"
+        f" ({backend}, fitted at {fitted.probe.height_px}×{fitted.probe.width_px} px)",
+        highlight=False,
+    )
+    if stats is not None:
+        summary = ", ".join(
+            f"{c} {m:.4g}±{s:.3g}"
+            for c, m, s in zip(stats.channels, stats.mean, stats.std, strict=True)
+        )
+        console.print(f"θ statistics: {summary}", highlight=False)
+
+
+@user_errors
+def render_command(
+    field_dir: Annotated[Path, typer.Argument(help="FIELD_DIR written by ultron fit-field.")],
+    out: Annotated[Path, typer.Option("--out", help="Output .npy: (N, H, W) float32 in [0, 1].")],
+    poses: Annotated[
+        Path | None, typer.Option("--poses", help="POSES.npy: (N, 4, 4) probe-to-world, mm.")
+    ] = None,
+    dataset: Annotated[
+        Path | None, typer.Option("--dataset", help="Dataset whose sweep's poses to render.")
+    ] = None,
+    sweep: Annotated[
+        str | None, typer.Option("--sweep", help="Sweep name (with --dataset).")
+    ] = None,
+    maps: Annotated[
+        bool,
+        typer.Option("--maps", help="Also write OUT.theta.npy (N,H,W,C) and OUT.transmission.npy."),
+    ] = False,
+    seed: Annotated[int, typer.Option("--seed", help="Seed of the scatterer draw.")] = 0,
+    expected: Annotated[
+        bool, typer.Option("--expected", help="Render the scatterer expectation (no speckle).")
+    ] = False,
+) -> None:
+    """Render B-mode frames from a fitted field at given probe poses (field's probe geometry)."""
+    _passive_openmp()
+    import numpy as np
+
+    from ultron import atomic
+    from ultron.data.dataset import SweepDataset
+    from ultron.data.validation import load_npy, validate_poses
+    from ultron.fields import load_field
+
+    if (poses is None) == (dataset is None):
+        raise argument_error("--poses/--dataset", "give exactly one of --poses or --dataset")
+    if out.suffix != ".npy":
+        raise argument_error("--out", f"expected a .npy file name, got {out}")
+    fitted = load_field(field_dir)
+    if poses is not None:
+        if sweep is not None:
+            raise argument_error("--sweep", "only valid with --dataset")
+        pose_array = load_npy(poses, "poses")
+        if pose_array.ndim == 2:
+            pose_array = pose_array[None]
+        validate_poses(pose_array, poses, "poses")
+    else:
+        if sweep is None:
+            raise argument_error("--sweep", "required with --dataset")
+        data = SweepDataset.load(dataset)
+        fitted.check_probe(data.probe, str(dataset))
+        pose_array = data.sweep(sweep).probe_to_world
+    if maps:
+        result = fitted.render_maps(pose_array, seed=seed, expected=expected)
+        images = result.bmode
+        atomic.save_npy(out.with_suffix(".theta.npy"), result.theta)
+        atomic.save_npy(out.with_suffix(".transmission.npy"), result.transmission)
+        atomic.write_json(out.with_suffix(".maps.json"), {"theta_channels": list(result.channels)})
+    else:
+        images = fitted.render(pose_array, seed=seed, expected=expected)
+    atomic.save_npy(out, np.asarray(images, dtype=np.float32))
+    what = "expected" if expected else f"seed {seed}"
+    console.print(
+        f"rendered {images.shape[0]} frames of {images.shape[1]}×{images.shape[2]} ({what}) to {out}"
+        + (f" (+ θ {list(fitted.channels)} and T maps)" if maps else ""),
+        highlight=False,
+    )
+
+
+def register(app: typer.Typer) -> None:
+    app.command("fit-field")(fit_field_command)
+    app.command("render")(render_command)

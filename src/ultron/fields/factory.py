@@ -1,0 +1,72 @@
+"""The field configuration (backend choice) and the factory that builds a backend."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import torch
+
+from ultron.errors import argument_error
+from ultron.fields.base import AcousticField
+from ultron.fields.grid import GridField, GridFieldConfig
+from ultron.fields.mlp import MLPField, MLPFieldConfig
+
+BACKENDS = ("grid", "mlp")
+
+
+@dataclass(frozen=True)
+class FieldConfig:
+    """Which backend (``grid``, the fast default, or the paper's ``mlp``) and its settings."""
+
+    backend: str = "grid"
+    learn_density: bool = False
+    grid: GridFieldConfig = field(default_factory=GridFieldConfig)
+    mlp: MLPFieldConfig = field(default_factory=MLPFieldConfig)
+
+    def __post_init__(self) -> None:
+        if self.backend not in BACKENDS:
+            raise argument_error("backend", f"expected one of {BACKENDS}, got {self.backend!r}")
+
+    def to_dict(self) -> dict[str, Any]:
+        data = asdict(self)
+        if data["grid"]["resolutions"] is not None:
+            data["grid"]["resolutions"] = list(data["grid"]["resolutions"])
+        return data
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> FieldConfig:
+        try:
+            grid = dict(data.get("grid", {}))
+            if grid.get("resolutions") is not None:
+                grid["resolutions"] = tuple(grid["resolutions"])
+            return cls(
+                backend=data.get("backend", "grid"),
+                learn_density=bool(data.get("learn_density", False)),
+                grid=GridFieldConfig(**grid),
+                mlp=MLPFieldConfig(**data.get("mlp", {})),
+            )
+        except TypeError as exc:
+            raise argument_error("field config", f"unexpected or missing entries ({exc})") from None
+
+
+def build_field(
+    config: FieldConfig, half_extent_mm: float, pixel_mm: float, seed: int = 0
+) -> tuple[AcousticField, FieldConfig]:
+    """A freshly initialised backend and the config with derived sizes filled in.
+
+    ``half_extent_mm`` is the unit cube's half side and ``pixel_mm`` the data's smallest pixel
+    spacing (the grid's default finest cell). Initialisation is seeded by ``seed`` only.
+    """
+    generator = torch.Generator().manual_seed(int(seed))
+    if config.backend == "grid":
+        grid_config = config.grid.resolved(half_extent_mm, pixel_mm)
+        resolved = FieldConfig(config.backend, config.learn_density, grid_config, config.mlp)
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(int(seed))
+            module: AcousticField = GridField(grid_config, config.learn_density, generator)
+        return module, resolved
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(int(seed))
+        module = MLPField(config.mlp, config.learn_density)
+    return module, config

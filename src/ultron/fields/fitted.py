@@ -1,0 +1,311 @@
+"""A fitted acoustic field on disk (FIELD_DIR) and its Python API.
+
+FIELD_DIR layout (written by :func:`ultron.train.fit_field`, every file atomically)::
+
+    field.json        format, field config (sizes resolved), render config, probe geometry
+                      the field was fitted at, world ↔ unit-cube transform, training config, step
+    checkpoint.pt     {"model", "optimizer", "scheduler", "step", "generator"} (torch.save)
+    theta_stats.json  per-channel mean / std of θ over the training frames (stage 2 normalises θ)
+    train_log.jsonl   one JSON object per logged step
+"""
+
+from __future__ import annotations
+
+import io
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from ultron.data.dataset import ProbeGeometry
+from ultron.data.geometry import UnitCube, as_pose_tensor
+from ultron.errors import UltronInputError, argument_error
+from ultron.fields.base import AcousticField
+from ultron.fields.factory import FieldConfig, build_field
+from ultron.fields.properties import CHANNELS, CHANNELS_WITH_DENSITY, AcousticProperties
+from ultron.render.renderer import RenderConfig, RenderedFrames, render_field
+
+FIELD_FORMAT = "ultron-field/1"
+FIELD_JSON = "field.json"
+CHECKPOINT = "checkpoint.pt"
+THETA_STATS = "theta_stats.json"
+TRAIN_LOG = "train_log.jsonl"
+
+
+@dataclass(frozen=True)
+class ThetaStatistics:
+    """Per-channel mean and standard deviation of θ, in the named channel order."""
+
+    channels: tuple[str, ...]
+    mean: tuple[float, ...]
+    std: tuple[float, ...]
+
+    def normalise(self, theta: torch.Tensor) -> torch.Tensor:
+        """(θ − mean) / std for a (…, C) tensor in :attr:`channels` order."""
+        if theta.shape[-1] != len(self.channels):
+            raise argument_error("theta", f"expected {len(self.channels)} channels")
+        mean = torch.tensor(self.mean, dtype=theta.dtype)
+        std = torch.tensor(self.std, dtype=theta.dtype)
+        return (theta - mean) / std
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"channels": list(self.channels), "mean": list(self.mean), "std": list(self.std)}
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> ThetaStatistics:
+        return cls(tuple(data["channels"]), tuple(data["mean"]), tuple(data["std"]))
+
+
+@dataclass(frozen=True)
+class FieldMaps:
+    """Per-pixel maps of rendered frames, numpy float32 (N, H, W) each.
+
+    ``theta`` is (N, H, W, C) in ``channels`` order; ``transmission`` is T along each frame's
+    own scanlines (exclusive, T = 1 at the transducer face).
+    """
+
+    bmode: np.ndarray
+    theta: np.ndarray
+    channels: tuple[str, ...]
+    transmission: np.ndarray
+
+
+def probe_to_dict(probe: ProbeGeometry) -> dict[str, Any]:
+    return {
+        "width_mm": probe.width_mm,
+        "depth_mm": probe.depth_mm,
+        "height_px": probe.height_px,
+        "width_px": probe.width_px,
+    }
+
+
+class FittedField:
+    """A trained acoustic field with its geometry: query θ, render B-mode, θ and T maps."""
+
+    def __init__(
+        self,
+        field: AcousticField,
+        field_config: FieldConfig,
+        unit_cube: UnitCube,
+        probe: ProbeGeometry,
+        render_config: RenderConfig,
+        theta_stats: ThetaStatistics | None = None,
+    ) -> None:
+        self.field = field.eval()
+        self.field_config = field_config
+        self.unit_cube = unit_cube
+        self.probe = probe
+        self.render_config = render_config
+        self.theta_stats = theta_stats
+
+    @property
+    def channels(self) -> tuple[str, ...]:
+        return CHANNELS_WITH_DENSITY if self.field.learn_density else CHANNELS
+
+    def check_probe(self, probe: ProbeGeometry, where: str = "dataset") -> None:
+        """Raise unless ``probe`` has this field's physical width and depth (mm)."""
+        for name in ("width_mm", "depth_mm"):
+            mine, theirs = getattr(self.probe, name), getattr(probe, name)
+            if abs(mine - theirs) > 1e-6 * max(1.0, abs(mine)):
+                raise UltronInputError(
+                    where, f"probe.{name}", f"{theirs:g} differs from the field's {mine:g}"
+                )
+
+    @torch.no_grad()
+    def query(
+        self, points_mm: np.ndarray | torch.Tensor, chunk: int = 1 << 17
+    ) -> AcousticProperties:
+        """θ at world points (…, 3) in mm, float32 tensors of shape (…)."""
+        points = torch.as_tensor(
+            np.asarray(points_mm) if not torch.is_tensor(points_mm) else points_mm
+        )
+        if points.ndim < 1 or points.shape[-1] != 3:
+            raise argument_error("points_mm", f"expected (..., 3), got {tuple(points.shape)}")
+        if not torch.isfinite(points).all():
+            raise argument_error("points_mm", "contains NaN or infinite values")
+        flat = self.unit_cube.to_unit(points.reshape(-1, 3).to(torch.float64), torch.float32)
+        parts = [self.field(flat[i : i + chunk]).stack() for i in range(0, flat.shape[0], chunk)]
+        stacked = torch.cat(parts, dim=0) if parts else torch.zeros(0, len(self.channels))
+        return AcousticProperties.unstack(
+            stacked.reshape(*points.shape[:-1], len(self.channels)), self.channels
+        )
+
+    def _poses(self, probe_to_world: np.ndarray | torch.Tensor) -> torch.Tensor:
+        poses = as_pose_tensor(probe_to_world, "probe_to_world").to(torch.float64)
+        if not torch.isfinite(poses).all():
+            raise argument_error("probe_to_world", "contains NaN or infinite values")
+        return poses
+
+    @torch.no_grad()
+    def _render_chunks(
+        self, poses: torch.Tensor, seed: int, expected: bool, chunk_frames: int
+    ) -> list[RenderedFrames]:
+        if chunk_frames < 1:
+            raise argument_error("chunk_frames", f"expected ≥ 1, got {chunk_frames}")
+        generator = torch.Generator().manual_seed(int(seed))
+        return [
+            render_field(
+                self.field,
+                self.unit_cube,
+                self.probe,
+                poses[i : i + chunk_frames],
+                self.render_config,
+                generator=generator,
+                expected=expected,
+            )
+            for i in range(0, poses.shape[0], chunk_frames)
+        ]
+
+    def render(
+        self,
+        probe_to_world: np.ndarray | torch.Tensor,
+        seed: int = 0,
+        expected: bool = False,
+        chunk_frames: int = 8,
+    ) -> np.ndarray:
+        """B-mode frames (N, H, W) float32 in [0, 1] at the field's probe geometry.
+
+        Scatterers are drawn from a generator seeded by ``seed`` (deterministic), or replaced
+        by their expectation when ``expected`` (the speckle-free mean image).
+        """
+        poses = self._poses(probe_to_world)
+        chunks = self._render_chunks(poses, seed, expected, chunk_frames)
+        if not chunks:
+            return np.zeros((0, *self.probe.image_shape), dtype=np.float32)
+        return torch.cat([c.intensity for c in chunks]).clamp(0, 1).numpy().astype(np.float32)
+
+    def render_maps(
+        self,
+        probe_to_world: np.ndarray | torch.Tensor,
+        seed: int = 0,
+        expected: bool = False,
+        chunk_frames: int = 8,
+    ) -> FieldMaps:
+        """B-mode plus θ maps (N, H, W, C) and the transmission T (N, H, W) per frame."""
+        poses = self._poses(probe_to_world)
+        chunks = self._render_chunks(poses, seed, expected, chunk_frames)
+        shape = (0, *self.probe.image_shape)
+        if not chunks:
+            empty = np.zeros(shape, dtype=np.float32)
+            return FieldMaps(
+                empty, empty[..., None].repeat(len(self.channels), -1), self.channels, empty
+            )
+        return FieldMaps(
+            bmode=torch.cat([c.intensity for c in chunks]).clamp(0, 1).numpy(),
+            theta=torch.cat([c.properties.stack() for c in chunks]).numpy(),
+            channels=self.channels,
+            transmission=torch.cat([c.transmission for c in chunks]).numpy(),
+        )
+
+    @torch.no_grad()
+    def pixel_theta_transmission(
+        self,
+        probe_to_world: np.ndarray | torch.Tensor,
+        frame_index: np.ndarray | torch.Tensor,
+        rows: np.ndarray | torch.Tensor,
+        cols: np.ndarray | torch.Tensor,
+        chunk_frames: int = 8,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """θ (P, C) and T (P,) at pixels (frame_index, rows, cols) of frames ``probe_to_world``.
+
+        T is the exclusive transmission along that frame's own scanline, computed from the
+        fitted field without gradient (stage 2's attenuation compensation). Frames are
+        processed ``chunk_frames`` at a time, only those that hold requested pixels.
+        """
+        poses = self._poses(probe_to_world)
+        idx = [torch.as_tensor(np.asarray(a), dtype=torch.int64) for a in (frame_index, rows, cols)]
+        frame_idx, row_idx, col_idx = torch.broadcast_tensors(*idx)
+        frame_idx, row_idx, col_idx = (
+            frame_idx.reshape(-1),
+            row_idx.reshape(-1),
+            col_idx.reshape(-1),
+        )
+        height, width = self.probe.image_shape
+        for name, values, bound in (
+            ("frame_index", frame_idx, poses.shape[0]),
+            ("rows", row_idx, height),
+            ("cols", col_idx, width),
+        ):
+            if values.numel() and (values.min() < 0 or values.max() >= bound):
+                raise argument_error(name, f"indices must lie in [0, {bound})")
+        theta = torch.zeros(frame_idx.shape[0], len(self.channels))
+        transmission = torch.zeros(frame_idx.shape[0])
+        needed = torch.unique(frame_idx)
+        for start in range(0, needed.shape[0], chunk_frames):
+            frames = needed[start : start + chunk_frames]
+            rendered = render_field(
+                self.field,
+                self.unit_cube,
+                self.probe,
+                poses[frames],
+                self.render_config,
+                expected=True,
+            )
+            local = torch.searchsorted(frames, frame_idx)
+            mask = (local < frames.shape[0]) & (
+                frames[local.clamp(max=frames.shape[0] - 1)] == frame_idx
+            )
+            sel = mask.nonzero().squeeze(1)
+            f, r, c = local[sel], row_idx[sel], col_idx[sel]
+            theta[sel] = rendered.properties.stack()[f, r, c]
+            transmission[sel] = rendered.transmission[f, r, c]
+        return theta, transmission
+
+
+def read_field_json(field_dir: Path) -> dict[str, Any]:
+    path = field_dir / FIELD_JSON
+    if not path.is_file():
+        raise UltronInputError(path, FIELD_JSON, "file is missing (not a fitted field directory)")
+    try:
+        meta = json.loads(path.read_text(encoding="utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise UltronInputError(path, FIELD_JSON, f"not valid JSON ({exc})") from None
+    if not isinstance(meta, dict) or meta.get("format") != FIELD_FORMAT:
+        raise UltronInputError(path, "format", f"expected {FIELD_FORMAT!r}")
+    return meta
+
+
+def read_checkpoint(field_dir: Path) -> dict[str, Any]:
+    path = field_dir / CHECKPOINT
+    if not path.is_file():
+        raise UltronInputError(path, CHECKPOINT, "checkpoint file is missing")
+    try:
+        return torch.load(io.BytesIO(path.read_bytes()), map_location="cpu", weights_only=True)
+    except Exception as exc:  # corrupt or foreign file
+        raise UltronInputError(path, CHECKPOINT, f"cannot be read ({type(exc).__name__})") from None
+
+
+def load_field(field_dir: str | Path) -> FittedField:
+    """Load a fitted field from FIELD_DIR (field.json + checkpoint.pt [+ theta_stats.json])."""
+    root = Path(field_dir)
+    if not root.is_dir():
+        raise UltronInputError(root, "field_dir", "is not a directory")
+    meta = read_field_json(root)
+    where = root / FIELD_JSON
+    try:
+        field_config = FieldConfig.from_dict(meta["field"])
+        render_config = RenderConfig.from_dict(meta["render"])
+        probe = ProbeGeometry(**meta["probe"])
+        unit_cube = UnitCube.from_dict(meta["unit_cube"])
+    except KeyError as exc:
+        raise UltronInputError(where, str(exc.args[0]), "entry is missing") from None
+    checkpoint = read_checkpoint(root)
+    module, _ = build_field(
+        field_config,
+        unit_cube.half_extent_mm,
+        min(probe.axial_spacing_mm, probe.lateral_spacing_mm),
+    )
+    try:
+        module.load_state_dict(checkpoint["model"])
+    except (KeyError, RuntimeError) as exc:
+        raise UltronInputError(
+            root / CHECKPOINT, "model", f"does not match field.json ({str(exc).splitlines()[0]})"
+        ) from None
+    stats = None
+    stats_path = root / THETA_STATS
+    if stats_path.is_file():
+        stats = ThetaStatistics.from_dict(json.loads(stats_path.read_text(encoding="utf-8")))
+    return FittedField(module, field_config, unit_cube, probe, render_config, stats)

@@ -1,0 +1,307 @@
+"""Acoustic fields: building blocks, backends, fitting, checkpoints, the Python API and CLI."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from typer.testing import CliRunner
+
+from ultron.cli.main import app
+from ultron.data.dataset import ProbeGeometry, Sweep, SweepDataset
+from ultron.errors import UltronInputError
+from ultron.fields import (
+    CHANNELS,
+    AcousticProperties,
+    FieldConfig,
+    GridFieldConfig,
+    PositionalEncoding,
+    SkipMLP,
+    build_field,
+    load_field,
+)
+from ultron.render import RenderConfig, pixel_points_mm, render_properties
+from ultron.train import FieldTrainConfig, fit_field, resample_frames
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    """Tiny workloads run faster (and steadier on a shared CPU) on one thread."""
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(previous)
+
+
+PROBE = ProbeGeometry(width_mm=8.0, depth_mm=9.0, height_px=24, width_px=16)
+
+
+def truth(points_mm: torch.Tensor) -> AcousticProperties:
+    """A tiny analytic volume: lateral stripes of scattering, a reflecting layer at y = 5 mm."""
+    x, y, z = points_mm.unbind(-1)
+    phi = 0.45 + 0.3 * torch.sin(x * 0.9) * torch.cos(z * 0.7)
+    beta = 0.4 * torch.exp(-(((y - 5.0 - 0.3 * z) / 0.4) ** 2))
+    alpha = torch.full_like(x, 0.02)
+    return AcousticProperties(alpha, beta, phi)
+
+
+def tiny_dataset(n_frames: int = 20, probe: ProbeGeometry = PROBE) -> SweepDataset:
+    poses = np.repeat(np.eye(4)[None], n_frames, axis=0)
+    poses[:, 2, 3] = np.linspace(0.0, 4.0, n_frames)  # sweep along elevation
+    points = pixel_points_mm(torch.as_tensor(poses), probe)
+    rendered = render_properties(
+        truth(points), probe.axial_spacing_mm, RenderConfig(), expected=True
+    )
+    images = (rendered.intensity.clamp(0, 1) * 255).round().to(torch.uint8).numpy()
+    return SweepDataset(probe, [Sweep("row", "row", images, poses)])
+
+
+def quick_config(**overrides) -> FieldTrainConfig:
+    values = dict(
+        field=FieldConfig(grid=GridFieldConfig(cell_mm=0.5)),
+        iterations=20,
+        frames_per_batch=4,
+        patch_width=16,
+        holdout_every=5,
+        check_every=10,
+        checkpoint_every=10,
+        log_every=5,
+        train_scatterers="expected",
+    )
+    values.update(overrides)
+    return FieldTrainConfig(**values)
+
+
+# ----------------------------------------------------------------- building blocks
+def test_positional_encoding_hand_worked() -> None:
+    enc = PositionalEncoding(2)
+    out = enc(torch.tensor([[0.5, 0.0, 0.25]]))
+    assert out.shape == (1, enc.output_dim(3)) == (1, 15)
+    # layout: x | sin(πx) | cos(πx) | sin(2πx) | cos(2πx), 3 coordinates each
+    expected = [0.5, 0.0, 0.25, 1.0, 0.0, math.sin(math.pi / 4), 0.0, 1.0, math.cos(math.pi / 4)]
+    expected += [0.0, 0.0, 1.0, -1.0, 1.0, 0.0]
+    torch.testing.assert_close(out[0], torch.tensor(expected), atol=1e-6, rtol=0)
+    assert PositionalEncoding(10).output_dim(3) == 63
+
+
+def test_skip_mlp_reconcatenates_the_input() -> None:
+    net = SkipMLP(5, 2, width=16, depth=8, skip_at=4)
+    assert [layer.in_features for layer in net.hidden] == [5, 16, 16, 16, 21, 16, 16, 16]
+    assert net(torch.zeros(3, 7, 5)).shape == (3, 7, 2)
+    with pytest.raises(UltronInputError, match="skip_at"):
+        SkipMLP(5, 2, depth=4, skip_at=4)
+
+
+def test_properties_stack_round_trip_and_named_order() -> None:
+    props = AcousticProperties(torch.tensor([0.1]), torch.tensor([0.2]), torch.tensor([0.3]))
+    assert props.channels == CHANNELS == ("attenuation", "reflection", "scattering")
+    stacked = props.stack()
+    assert stacked[0].tolist() == pytest.approx([0.1, 0.2, 0.3])
+    back = AcousticProperties.unstack(stacked)
+    assert torch.equal(back.reflection, props.reflection) and back.density is None
+    with pytest.raises(UltronInputError, match="values"):
+        AcousticProperties.unstack(torch.zeros(2, 4))
+
+
+@pytest.mark.parametrize("backend", ["grid", "mlp"])
+def test_backends_give_valid_ranges(backend: str) -> None:
+    config = FieldConfig(backend=backend, learn_density=True, grid=GridFieldConfig(cell_mm=1.0))
+    field, resolved = build_field(config, half_extent_mm=10.0, pixel_mm=0.5, seed=0)
+    props = field(torch.rand(4, 5, 3) * 2 - 1)
+    assert props.shape == (4, 5) and props.channels[-1] == "density"
+    assert bool((props.attenuation >= 0).all())
+    for name in ("reflection", "scattering", "density"):
+        values = getattr(props, name)
+        assert bool(((values > 0) & (values < 1)).all())
+    if backend == "grid":  # 20 mm cube side / 1 mm cell → 21 nodes, then ÷4
+        assert resolved.grid.resolutions == (21, 5)
+
+
+def test_grid_resolution_follows_pixel_size_and_is_bounded() -> None:
+    assert GridFieldConfig().resolved(50.0, 0.25).resolutions[0] == 401
+    with pytest.raises(UltronInputError, match="cell_mm"):
+        GridFieldConfig().resolved(500.0, 0.01)
+
+
+def test_resample_frames_keeps_pixel_positions() -> None:
+    ramp = torch.arange(8.0)[None, None, :].expand(1, 4, 8) / 10  # value = 0.1 · column
+    out = resample_frames(ramp, (4, 4))
+    # new column k sits at old column 2k: interior values are exact
+    torch.testing.assert_close(out[0, 0, 1:], torch.tensor([0.2, 0.4, 0.6]))
+
+
+# ----------------------------------------------------------------- fitting
+def test_grid_field_overfits_a_tiny_volume(tmp_path: Path) -> None:
+    """150 steps reduce the training loss by at least 3× (stated factor)."""
+    losses: list[float] = []
+    config = quick_config(iterations=150, holdout_every=0, check_every=150, checkpoint_every=150)
+    fitted = fit_field(
+        tiny_dataset(), config, tmp_path / "f", progress=lambda e: losses.append(e["loss"])
+    )
+    first, last = np.mean(losses[:5]), np.mean(losses[-20:])
+    print(f"loss {first:.4f} -> {last:.4f} ({first / last:.1f}x)")
+    assert last < first / 3, (first, last)
+    stats = json.loads((tmp_path / "f" / "theta_stats.json").read_text())
+    assert stats["channels"] == list(CHANNELS) and all(s > 0 for s in stats["std"])
+    assert fitted.theta_stats is not None
+
+
+def test_mlp_backend_trains(tmp_path: Path) -> None:
+    config = quick_config(field=FieldConfig(backend="mlp"), iterations=3, learning_rate=1e-3)
+    fitted = fit_field(tiny_dataset(8), config, tmp_path / "m")
+    assert fitted.field_config.backend == "mlp"
+    assert load_field(tmp_path / "m").render(np.eye(4), seed=1).shape == (1, 24, 16)
+
+
+def test_learned_density_field_round_trip(tmp_path: Path) -> None:
+    field_config = FieldConfig(learn_density=True, grid=GridFieldConfig(cell_mm=0.5))
+    config = quick_config(field=field_config, iterations=3, train_scatterers="sample")
+    fit_field(tiny_dataset(8), config, tmp_path / "d")
+    loaded = load_field(tmp_path / "d")
+    maps = loaded.render_maps(np.eye(4), seed=0)
+    assert maps.channels[-1] == "density" and maps.theta.shape == (1, 24, 16, 4)
+    stats = json.loads((tmp_path / "d" / "theta_stats.json").read_text())
+    assert stats["channels"][-1] == "density"
+
+
+def test_checkpoint_round_trip_and_exact_resume(tmp_path: Path) -> None:
+    data = tiny_dataset()
+    fitted = fit_field(data, quick_config(iterations=20), tmp_path / "full")
+    poses = data.all_poses()[:3]
+    loaded = load_field(tmp_path / "full")
+    np.testing.assert_array_equal(fitted.render(poses, seed=3), loaded.render(poses, seed=3))
+    np.testing.assert_array_equal(
+        loaded.render(poses, seed=3), load_field(tmp_path / "full").render(poses, seed=3)
+    )
+    assert not np.array_equal(loaded.render(poses, seed=3), loaded.render(poses, seed=4))
+
+    # interrupted during step 11 (checkpoint at 10), resumed to 20: identical to one run
+    def interrupt(entry: dict) -> None:
+        if entry["step"] == 11:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        fit_field(data, quick_config(iterations=20), tmp_path / "resumed", progress=interrupt)
+    assert json.loads((tmp_path / "resumed" / "field.json").read_text())["step"] == 10
+    resumed = fit_field(data, quick_config(iterations=20), tmp_path / "resumed")
+    np.testing.assert_array_equal(resumed.render(poses, seed=3), fitted.render(poses, seed=3))
+    log = (tmp_path / "resumed" / "train_log.jsonl").read_text().splitlines()
+    assert [json.loads(line)["step"] for line in log] == [5, 10, 15, 20]
+    with pytest.raises(UltronInputError, match="different configuration"):
+        fit_field(data, quick_config(iterations=30, seed=1), tmp_path / "resumed")
+
+
+def test_api_maps_and_pixel_theta_transmission(tmp_path: Path) -> None:
+    data = tiny_dataset(10)
+    fitted = fit_field(data, quick_config(iterations=5), tmp_path / "f")
+    poses = data.all_poses()[[2, 7]]
+    maps = fitted.render_maps(poses, expected=True)
+    assert maps.bmode.shape == (2, 24, 16) and maps.theta.shape == (2, 24, 16, 3)
+    assert maps.bmode.dtype == np.float32 and 0 <= maps.bmode.min() and maps.bmode.max() <= 1
+    np.testing.assert_array_equal(maps.transmission[:, 0], 1.0)  # exclusive T at the face
+    assert bool((np.diff(maps.transmission, axis=1) <= 1e-7).all())  # non-increasing in depth
+    theta, t = fitted.pixel_theta_transmission(poses, [1, 0, 1], [0, 5, 23], [3, 9, 15])
+    np.testing.assert_allclose(theta[0].numpy(), maps.theta[1, 0, 3], rtol=1e-6)
+    np.testing.assert_allclose(theta[2].numpy(), maps.theta[1, 23, 15], rtol=1e-6)
+    np.testing.assert_allclose(
+        t.numpy(), maps.transmission[[1, 0, 1], [0, 5, 23], [3, 9, 15]], rtol=1e-6
+    )
+    points = torch.as_tensor(pixel_points_mm(torch.as_tensor(poses), fitted.probe))
+    np.testing.assert_allclose(
+        fitted.query(points).stack().numpy(), maps.theta, rtol=1e-5, atol=1e-7
+    )
+
+
+# ----------------------------------------------------------------- bad inputs
+def test_bad_inputs_give_clear_errors(tmp_path: Path) -> None:
+    data = tiny_dataset(8)
+    fitted = fit_field(data, quick_config(iterations=2, holdout_every=0), tmp_path / "f")
+    with pytest.raises(UltronInputError, match=r"probe_to_world.*\(N, 4, 4\)"):
+        fitted.render(np.zeros((2, 3, 4)))
+    with pytest.raises(UltronInputError, match="points_mm"):
+        fitted.query(np.zeros((5, 2)))
+    with pytest.raises(UltronInputError, match=r"probe.width_mm"):
+        fitted.check_probe(ProbeGeometry(9.0, 9.0, 24, 16))
+    with pytest.raises(UltronInputError, match="rows"):
+        fitted.pixel_theta_transmission(np.eye(4), [0], [24], [0])
+    (tmp_path / "f" / "checkpoint.pt").unlink()
+    with pytest.raises(UltronInputError, match=r"checkpoint.pt.*missing"):
+        load_field(tmp_path / "f")
+    with pytest.raises(UltronInputError, match=r"field\.json"):
+        load_field(tmp_path)
+    with pytest.raises(UltronInputError, match="backend"):
+        FieldConfig(backend="hash")
+    with pytest.raises(UltronInputError, match="iterations"):
+        FieldTrainConfig(iterations=0)
+
+
+def test_cli_fit_render_and_errors(tmp_path: Path) -> None:
+    runner = CliRunner()
+    data_dir, field_dir = tmp_path / "data", tmp_path / "field"
+    tiny_dataset(10).save(data_dir)
+    result = runner.invoke(
+        app,
+        [
+            "fit-field",
+            str(data_dir),
+            "--out",
+            str(field_dir),
+            "--iters",
+            "4",
+            "--holdout-every",
+            "5",
+            "--check-every",
+            "2",
+        ],
+    )
+    assert result.exit_code == 0, result.output
+    assert {"field.json", "checkpoint.pt", "theta_stats.json", "train_log.jsonl"} <= {
+        p.name for p in field_dir.iterdir()
+    }
+    meta = json.loads((field_dir / "field.json").read_text())
+    assert meta["unit_cube"]["half_extent_mm"] > 0 and meta["holdout_frames"] == [4, 9]
+    out = tmp_path / "r.npy"
+    args = [
+        "render",
+        str(field_dir),
+        "--dataset",
+        str(data_dir),
+        "--sweep",
+        "row",
+        "--out",
+        str(out),
+    ]
+    assert runner.invoke(app, [*args, "--maps", "--seed", "2"]).exit_code == 0
+    frames = np.load(out)
+    assert frames.shape == (10, 24, 16) and frames.dtype == np.float32
+    assert np.load(tmp_path / "r.theta.npy").shape == (10, 24, 16, 3)
+    assert np.load(tmp_path / "r.transmission.npy").shape == (10, 24, 16)
+    again = tmp_path / "again.npy"
+    poses = tmp_path / "poses.npy"
+    np.save(poses, np.load(data_dir / "row" / "poses.npy"))
+    assert (
+        runner.invoke(
+            app,
+            ["render", str(field_dir), "--poses", str(poses), "--out", str(again), "--seed", "2"],
+        ).exit_code
+        == 0
+    )
+    np.testing.assert_array_equal(np.load(again), frames)
+
+    np.save(poses, np.zeros((3, 4, 3)))
+    bad = runner.invoke(app, ["render", str(field_dir), "--poses", str(poses), "--out", str(again)])
+    assert bad.exit_code == 2 and "poses" in bad.output
+    other = tmp_path / "other"
+    tiny_dataset(4, ProbeGeometry(10.0, 9.0, 24, 16)).save(other)
+    bad = runner.invoke(
+        app,
+        ["render", str(field_dir), "--dataset", str(other), "--sweep", "row", "--out", str(again)],
+    )
+    assert bad.exit_code == 2 and "probe.width_mm" in bad.output
+    (field_dir / "checkpoint.pt").unlink()
+    bad = runner.invoke(app, [*args])
+    assert bad.exit_code == 2 and "checkpoint.pt" in bad.output
