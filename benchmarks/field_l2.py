@@ -21,7 +21,8 @@ from __future__ import annotations
 import os
 
 # The CPU is shared with other jobs: passive OpenMP waiting (threads sleep instead of spinning)
-# avoids the collapse of small parallel ops under oversubscription. Set before importing torch.
+# avoids the collapse of small parallel ops under oversubscription. Set before importing torch;
+# OMP_WAIT_POLICY=ACTIVE in the environment overrides it (faster on an idle machine).
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import argparse

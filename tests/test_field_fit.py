@@ -210,6 +210,13 @@ def test_api_maps_and_pixel_theta_transmission(tmp_path: Path) -> None:
     np.testing.assert_allclose(
         t.numpy(), maps.transmission[[1, 0, 1], [0, 5, 23], [3, 9, 15]], rtol=1e-6
     )
+    native = ProbeGeometry(8.0, 9.0, 48, 32)  # a finer pixel grid of the same probe
+    theta_n, t_n = fitted.pixel_theta_transmission(poses, [0], [10], [6], probe=native)
+    point = pixel_points_mm(torch.as_tensor(poses[:1]), native)[0, 10, 6]
+    torch.testing.assert_close(theta_n[0], fitted.query(point).stack(), rtol=1e-5, atol=1e-7)
+    assert 0 < float(t_n[0]) <= 1
+    with pytest.raises(UltronInputError, match=r"probe\.depth_mm"):
+        fitted.pixel_theta_transmission(poses, [0], [0], [0], probe=ProbeGeometry(8.0, 5.0, 8, 8))
     points = torch.as_tensor(pixel_points_mm(torch.as_tensor(poses), fitted.probe))
     np.testing.assert_allclose(
         fitted.query(points).stack().numpy(), maps.theta, rtol=1e-5, atol=1e-7

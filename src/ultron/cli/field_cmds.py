@@ -45,7 +45,9 @@ def fit_field_command(
     ] = 10,
     fit_shape: Annotated[
         str | None,
-        typer.Option("--fit-shape", help="Fit at HxW pixels (frames area-resampled) [native]."),
+        typer.Option(
+            "--fit-shape", help="Fit at HxW pixels, frames area-resampled (default: native size)."
+        ),
     ] = None,
     train_scatterers: Annotated[
         str,
@@ -58,7 +60,7 @@ def fit_field_command(
         int, typer.Option("--check-every", help="Held-out check every N steps.")
     ] = 250,
     threads: Annotated[
-        int | None, typer.Option("--threads", help="torch CPU threads [torch default].")
+        int | None, typer.Option("--threads", help="torch CPU threads (default: torch's choice).")
     ] = None,
     no_resume: Annotated[
         bool, typer.Option("--no-resume", help="Start afresh even if a checkpoint exists.")

@@ -208,14 +208,23 @@ class FittedField:
         rows: np.ndarray | torch.Tensor,
         cols: np.ndarray | torch.Tensor,
         chunk_frames: int = 8,
+        probe: ProbeGeometry | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """θ (P, C) and T (P,) at pixels (frame_index, rows, cols) of frames ``probe_to_world``.
 
         T is the exclusive transmission along that frame's own scanline, computed from the
         fitted field without gradient (stage 2's attenuation compensation). Frames are
         processed ``chunk_frames`` at a time, only those that hold requested pixels.
+
+        ``probe`` (default: the field's) gives the pixel grid of ``rows``/``cols``, e.g. the
+        dataset's native grid when the field was fitted at a reduced ``fit_shape``; it must have
+        the field's width and depth in mm. T is then accumulated at that grid's step Δ (α is per
+        mm; β is per sample, as in Ultra-NeRF, so a much finer grid counts a reflector more often).
         """
         poses = self._poses(probe_to_world)
+        grid = self.probe if probe is None else probe
+        if probe is not None:
+            self.check_probe(probe, "argument")
         idx = [torch.as_tensor(np.asarray(a), dtype=torch.int64) for a in (frame_index, rows, cols)]
         frame_idx, row_idx, col_idx = torch.broadcast_tensors(*idx)
         frame_idx, row_idx, col_idx = (
@@ -223,7 +232,7 @@ class FittedField:
             row_idx.reshape(-1),
             col_idx.reshape(-1),
         )
-        height, width = self.probe.image_shape
+        height, width = grid.image_shape
         for name, values, bound in (
             ("frame_index", frame_idx, poses.shape[0]),
             ("rows", row_idx, height),
@@ -239,7 +248,7 @@ class FittedField:
             rendered = render_field(
                 self.field,
                 self.unit_cube,
-                self.probe,
+                grid,
                 poses[frames],
                 self.render_config,
                 expected=True,
