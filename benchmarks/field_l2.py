@@ -18,13 +18,9 @@ Usage (after ``ultron import-ultranerf /work/shared/data/ultranerf-synthetic-l2 
 
 from __future__ import annotations
 
-import os
-
-# The CPU is shared with other jobs: passive OpenMP waiting (threads sleep instead of spinning)
-# avoids the collapse of small parallel ops under oversubscription. Set before importing torch;
-# OMP_WAIT_POLICY=ACTIVE in the environment overrides it (faster on an idle machine).
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-
+# OpenMP keeps its default (spinning) wait policy: fastest on a dedicated 2-core machine. On a
+# CPU shared with other jobs set OMP_WAIT_POLICY=PASSIVE (small parallel ops slow down up to 10x
+# under oversubscription otherwise).
 import argparse
 import resource
 import tempfile

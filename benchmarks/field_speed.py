@@ -17,14 +17,11 @@ Usage::
 
 from __future__ import annotations
 
-import os
-
-# The CPU is shared with other jobs: passive OpenMP waiting (threads sleep instead of spinning)
-# avoids the collapse of small parallel ops under oversubscription (up to 10x slower steps). Set
-# before importing torch. On an idle machine spinning is faster: run with OMP_WAIT_POLICY=ACTIVE.
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-
+# OpenMP keeps its default (spinning) wait policy: fastest on a dedicated 2-core machine. On a
+# CPU shared with other jobs set OMP_WAIT_POLICY=PASSIVE (small parallel ops slow down up to 10x
+# under oversubscription otherwise).
 import argparse
+import os
 import resource
 import statistics
 import tempfile

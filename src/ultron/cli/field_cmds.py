@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 from typing import Annotated
 
@@ -10,15 +9,6 @@ import typer
 
 from ultron.cli.common import console, user_errors
 from ultron.errors import argument_error
-
-
-def _passive_openmp() -> None:
-    """Let OpenMP threads sleep instead of spin while waiting (unless the user set a policy).
-
-    On a CPU shared with other jobs, spinning threads make torch's many small parallel ops
-    up to 10× slower; this only takes effect when torch is not imported yet.
-    """
-    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 
 def _parse_shape(text: str | None) -> tuple[int, int] | None:
@@ -67,7 +57,6 @@ def fit_field_command(
     ] = False,
 ) -> None:
     """Fit an acoustic neural field (Ultra-NeRF) to a dataset's frames and write FIELD_DIR."""
-    _passive_openmp()
     import torch
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
@@ -148,7 +137,6 @@ def render_command(
     ] = False,
 ) -> None:
     """Render B-mode frames from a fitted field at given probe poses (field's probe geometry)."""
-    _passive_openmp()
     import numpy as np
 
     from ultron import atomic
