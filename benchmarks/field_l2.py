@@ -13,7 +13,7 @@ against the real frames resampled to that resolution (area average, ultron pixel
 Usage (after ``ultron import-ultranerf /work/shared/data/ultranerf-synthetic-l2 --width-mm 80
 --depth-mm 140 --out /tmp/l2``)::
 
-    python benchmarks/field_l2.py /tmp/l2 --fit-shape 256x128 --iters 1500
+    python benchmarks/field_l2.py /tmp/l2 --fit-shape 256x128 --iters 3000
 """
 
 from __future__ import annotations
@@ -51,7 +51,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("dataset", type=Path)
     parser.add_argument("--fit-shape", default="256x128", help="HxW at which to fit and compare")
-    parser.add_argument("--iters", type=int, default=1500)
+    parser.add_argument("--iters", type=int, default=3000)  # the field's default fit length
     parser.add_argument("--backend", default="grid", choices=("grid", "mlp"))
     parser.add_argument("--train-scatterers", default="expected", choices=("sample", "expected"))
     parser.add_argument("--holdout-every", type=int, default=10)
