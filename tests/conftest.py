@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 from ultron.data.dataset import ProbeGeometry, Sweep, SweepDataset
 
@@ -71,3 +72,12 @@ def l2_sample() -> Path:
     if not (L2_SAMPLE / "poses.npy").is_file():
         pytest.skip(f"shared sample data not found at {L2_SAMPLE}")
     return L2_SAMPLE
+
+
+@pytest.fixture(scope="module")
+def one_torch_thread():
+    """Run a module's tests on one torch thread (the simulator's own setting), then restore."""
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(previous)

@@ -30,12 +30,7 @@ from ultron.phantom.tissue import CORTICAL_BONE, GEL_PULP
 EXACT_LABELS = AnnotationConfig(jitter_mm=0.0, error_rate=0.0)
 
 
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @pytest.fixture(scope="module")

@@ -24,12 +24,17 @@ from ultron.errors import argument_error
 
 
 def as_pose_tensor(
-    probe_to_world: np.ndarray | torch.Tensor, name: str = "probe_to_world"
+    probe_to_world: np.ndarray | torch.Tensor | Sequence[np.ndarray],
+    name: str = "probe_to_world",
 ) -> torch.Tensor:
-    """Poses as a float64 tensor of shape (N, 4, 4); a single (4, 4) pose becomes (1, 4, 4)."""
-    poses = torch.as_tensor(
-        np.asarray(probe_to_world) if not torch.is_tensor(probe_to_world) else probe_to_world
-    )
+    """Poses as a tensor of shape (N, 4, 4); a single (4, 4) pose becomes (1, 4, 4) and a list
+    or tuple of pose arrays (e.g. one per sweep) is concatenated."""
+    if isinstance(probe_to_world, list | tuple):
+        probe_to_world = np.concatenate([np.asarray(p) for p in probe_to_world], axis=0)
+    if torch.is_tensor(probe_to_world):
+        poses = probe_to_world
+    else:
+        poses = torch.as_tensor(np.asarray(probe_to_world))
     if poses.ndim == 2:
         poses = poses.unsqueeze(0)
     if poses.ndim != 3 or poses.shape[1:] != (4, 4):
@@ -37,6 +42,20 @@ def as_pose_tensor(
     if not torch.is_floating_point(poses):
         poses = poses.to(torch.float64)
     return poses
+
+
+def as_bounds_mm(bounds_mm: np.ndarray | torch.Tensor, name: str = "bounds_mm") -> np.ndarray:
+    """A finite float64 (2, 3) [min, max] box with min ≤ max on every axis."""
+    box = np.asarray(bounds_mm, dtype=np.float64)
+    if box.shape != (2, 3) or not np.isfinite(box).all() or (box[1] < box[0]).any():
+        raise argument_error(name, f"expected a finite (2, 3) [min, max] box, got {box.tolist()}")
+    return box
+
+
+def median_frame_gap_mm(probe_to_world: np.ndarray) -> float:
+    """Median distance between the origins of consecutive frames (N ≥ 2 poses), mm."""
+    origins = np.asarray(probe_to_world)[:, :3, 3]
+    return float(np.median(np.linalg.norm(np.diff(origins, axis=0), axis=1)))
 
 
 def probe_points_mm(rows: torch.Tensor, cols: torch.Tensor, probe: ProbeGeometry) -> torch.Tensor:
@@ -135,8 +154,6 @@ def field_of_view_bounds_mm(
 
     A frame is a planar rectangle, so its four corner pixels bound it exactly.
     """
-    if isinstance(poses, list | tuple):
-        poses = np.concatenate([np.asarray(p) for p in poses], axis=0)
     tensor = as_pose_tensor(poses, "poses").to(torch.float64)
     rows = torch.tensor(
         [0.0, 0.0, probe.height_px - 1.0, probe.height_px - 1.0], dtype=torch.float64
@@ -170,11 +187,7 @@ class UnitCube:
     @classmethod
     def from_bounds(cls, bounds_mm: torch.Tensor | np.ndarray, margin: float = 0.05) -> UnitCube:
         """The cube centred on a (2, 3) box whose largest half-side, grown by ``margin``, maps to 1."""
-        box = np.asarray(bounds_mm, dtype=np.float64)
-        if box.shape != (2, 3) or not np.isfinite(box).all() or (box[1] < box[0]).any():
-            raise argument_error(
-                "bounds_mm", f"expected a finite (2, 3) [min, max] box, got {box.tolist()}"
-            )
+        box = as_bounds_mm(bounds_mm)
         if margin < 0:
             raise argument_error("margin", f"expected ≥ 0, got {margin}")
         center = (box[0] + box[1]) / 2

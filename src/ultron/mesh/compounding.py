@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from ultron.data.dataset import SweepDataset
-from ultron.data.geometry import apply_pose, probe_points_mm
+from ultron.data.geometry import apply_pose, median_frame_gap_mm, probe_points_mm
 from ultron.data.labels import FrameSelection, LabelledPixels, gather_labelled_pixels
 from ultron.errors import UltronInputError, argument_error
 from ultron.mesh.grid import GridSpec
@@ -92,8 +92,7 @@ def auto_hole_fill_radius_mm(
         frames = selection.frames.get(sweep.name)
         if frames is None or len(frames) < 2:
             continue
-        origins = sweep.probe_to_world[frames, :3, 3]
-        gaps.append(float(np.median(np.linalg.norm(np.diff(origins, axis=0), axis=1))))
+        gaps.append(median_frame_gap_mm(sweep.probe_to_world[frames]))
     radius = 0.5 * max(gaps) if gaps else 0.0
     return float(np.clip(radius, np.sqrt(3) * voxel_mm, MAX_AUTO_RADIUS_MM))
 

@@ -10,7 +10,7 @@ import numpy as np
 import torch
 
 from ultron.data.dataset import ProbeGeometry
-from ultron.data.geometry import as_pose_tensor, pixel_to_world
+from ultron.data.geometry import as_bounds_mm, as_pose_tensor, pixel_to_world
 from ultron.errors import argument_error
 
 PointsFn = Callable[[torch.Tensor], torch.Tensor]
@@ -38,11 +38,7 @@ class GridSpec:
         cls, bounds_mm: np.ndarray | torch.Tensor, voxel_mm: float, pad_voxels: int = 2
     ) -> GridSpec:
         """The grid of ``voxel_mm`` covering a (2, 3) [min, max] box, padded by ``pad_voxels``."""
-        box = np.asarray(bounds_mm, dtype=np.float64)
-        if box.shape != (2, 3) or not np.isfinite(box).all() or (box[1] < box[0]).any():
-            raise argument_error(
-                "bounds_mm", f"expected a finite (2, 3) [min, max] box, got {box.tolist()}"
-            )
+        box = as_bounds_mm(bounds_mm)
         if not (np.isfinite(voxel_mm) and voxel_mm > 0):
             raise argument_error("voxel_mm", f"expected a positive voxel size, got {voxel_mm}")
         origin = box[0] - pad_voxels * voxel_mm
@@ -133,8 +129,6 @@ def field_of_view_mask(
     elevation) and marking the voxels containing the samples, which is exact up to half a voxel
     and avoids testing every voxel against every frame.
     """
-    if isinstance(probe_to_world, list | tuple):
-        probe_to_world = np.concatenate([np.asarray(p) for p in probe_to_world], axis=0)
     poses = as_pose_tensor(probe_to_world).to(torch.float64)
     if not elevation_half_thickness_mm >= 0:
         raise argument_error(

@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 from ultron.data.dataset import SweepDataset
-from ultron.data.geometry import field_of_view_bounds_mm
+from ultron.data.geometry import field_of_view_bounds_mm, median_frame_gap_mm
 from ultron.data.labels import FrameSelection, gather_labelled_pixels, select_label_frames
 from ultron.errors import UltronInputError, argument_error
 from ultron.fields.occupancy import OccupancyNetwork
@@ -64,11 +64,7 @@ class Reconstruction:
 def elevation_half_thickness_mm(dataset: SweepDataset, voxel_mm: float) -> float:
     """Half-thickness of the slab each frame is taken to image: 0.75 × the largest median gap
     between consecutive frames of a sweep (so that neighbouring slabs overlap), ≥ one voxel."""
-    gaps = [
-        float(np.median(np.linalg.norm(np.diff(s.probe_to_world[:, :3, 3], axis=0), axis=1)))
-        for s in dataset.sweeps
-        if s.n_frames > 1
-    ]
+    gaps = [median_frame_gap_mm(s.probe_to_world) for s in dataset.sweeps if s.n_frames > 1]
     return max(0.75 * max(gaps, default=0.0), voxel_mm)
 
 

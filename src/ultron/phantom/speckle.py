@@ -23,6 +23,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from ultron.data.geometry import as_bounds_mm
 from ultron.errors import argument_error
 from ultron.phantom.tissue import Tissue
 
@@ -103,9 +104,7 @@ def scatterer_field(
     box_mm: np.ndarray | torch.Tensor, voxel_mm: float, gel: Tissue, bone: Tissue, seed: int
 ) -> ScattererField:
     """The world-anchored scatterer field over ``box_mm`` (2, 3) (see the module docstring)."""
-    box = np.asarray(box_mm, dtype=np.float64)
-    if box.shape != (2, 3) or not np.isfinite(box).all() or (box[1] < box[0]).any():
-        raise argument_error("box_mm", f"expected a finite (2, 3) [min, max] box, got {box}")
+    box = as_bounds_mm(box_mm, "box_mm")
     if not (math.isfinite(voxel_mm) and voxel_mm > 0):
         raise argument_error("voxel_mm", f"expected a positive lattice spacing, got {voxel_mm}")
     lo = np.floor(box[0] / voxel_mm).astype(np.int64) - 1
