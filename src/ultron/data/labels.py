@@ -110,6 +110,29 @@ class LabelledPixels:
     def __len__(self) -> int:
         return int(self.label.shape[0])
 
+    def world_mm(self, dataset: SweepDataset, subset: np.ndarray | None = None) -> np.ndarray:
+        """World positions (M, 3) float64 mm of these pixels (or of ``subset`` indices), each
+        through its own frame's ``probe_to_world``."""
+        import torch
+
+        from ultron.data.geometry import apply_pose, probe_points_mm
+
+        index = np.arange(len(self)) if subset is None else np.asarray(subset, dtype=np.int64)
+        out = np.zeros((index.size, 3))
+        for sweep_index, sweep in enumerate(dataset.sweeps):
+            sel = np.flatnonzero(self.sweep_index[index] == sweep_index)
+            if sel.size == 0:
+                continue
+            pick = index[sel]
+            probe = probe_points_mm(
+                torch.as_tensor(self.row[pick], dtype=torch.float64),
+                torch.as_tensor(self.col[pick], dtype=torch.float64),
+                dataset.probe,
+            )
+            poses = torch.as_tensor(sweep.probe_to_world[self.frame[pick]], dtype=torch.float64)
+            out[sel] = apply_pose(poses, probe[:, None, :])[:, 0].numpy()
+        return out
+
 
 def gather_labelled_pixels(dataset: SweepDataset, selection: FrameSelection) -> LabelledPixels:
     """Every annotated pixel of the selected frames, with its sweep, frame, row and column."""

@@ -2,12 +2,19 @@
 
 from ultron.mesh.export import load_mesh, nifti_affine, save_mesh, save_volume_nifti
 from ultron.mesh.extract import ExtractionConfig, NoSurfaceError, extract_surface
-from ultron.mesh.grid import GridSpec, evaluate_on_grid, field_of_view_mask
+from ultron.mesh.grid import (
+    GridSpec,
+    evaluate_coarse_to_fine,
+    evaluate_on_grid,
+    field_of_view_mask,
+)
+from ultron.mesh.smoothing import smooth_constrained
 
 __all__ = [
     "ExtractionConfig",
     "GridSpec",
     "NoSurfaceError",
+    "evaluate_coarse_to_fine",
     "evaluate_on_grid",
     "extract_surface",
     "field_of_view_mask",
@@ -15,4 +22,5 @@ __all__ = [
     "nifti_affine",
     "save_mesh",
     "save_volume_nifti",
+    "smooth_constrained",
 ]

@@ -3,9 +3,14 @@
 Follows METHOD.md §5: the occupancy is binarised at 0.5, smoothed with PyMCubes' ``smooth``
 (whose output is positive inside and has its zero level on a smooth surface between inside and
 outside voxels), and triangulated by marching cubes at level 0; vertices are mapped from voxel
-indices to world mm. Small disconnected pieces (speckle-like false positives) are dropped: a
-connected component is kept when its area is at least ``min_component_fraction`` of the largest
-component's area (default 5%).
+indices to world mm. The smoothing is PyMCubes' constrained (Lempitsky) method, assembled
+vectorised in :mod:`ultron.mesh.smoothing` (PyMCubes' own assembly loops over voxels in Python).
+
+Small disconnected pieces (speckle-like false positives) are dropped twice: before smoothing, a
+26-connected component of occupied voxels is kept when it has at least
+``min_component_fraction`` of the largest component's voxels (this also keeps the smoothing
+band small); after marching cubes, a mesh component is kept when its area is at least that
+fraction of the largest one's (default 5%).
 """
 
 from __future__ import annotations
@@ -16,6 +21,7 @@ import numpy as np
 
 from ultron.errors import UltronError, argument_error
 from ultron.mesh.grid import GridSpec
+from ultron.mesh.smoothing import smooth_constrained
 
 
 class NoSurfaceError(UltronError):
@@ -65,6 +71,7 @@ def extract_surface(occupancy: np.ndarray, grid: GridSpec, config: ExtractionCon
         raise NoSurfaceError(
             "no surface: every voxel is occupied (the grid lies inside the object)"
         )
+    binary = keep_large_voxel_components(binary, config.min_component_fraction)
     # crop to the occupied box (smoothing cost grows with the volume), with a margin that also
     # closes objects touching the grid border
     margin = 3
@@ -73,7 +80,7 @@ def extract_surface(occupancy: np.ndarray, grid: GridSpec, config: ExtractionCon
     hi = nonzero.max(axis=0) + 1
     crop = binary[lo[0] : hi[0], lo[1] : hi[1], lo[2] : hi[2]]
     padded = np.pad(crop, margin, constant_values=False)
-    embedding = mcubes.smooth(padded) if config.smooth else padded.astype(np.float64) - 0.5
+    embedding = smooth_constrained(padded) if config.smooth else padded.astype(np.float64) - 0.5
     vertices, faces = mcubes.marching_cubes(embedding, 0.0)
     if len(faces) == 0:
         raise NoSurfaceError("no surface: marching cubes produced no triangles")
@@ -85,6 +92,20 @@ def extract_surface(occupancy: np.ndarray, grid: GridSpec, config: ExtractionCon
     if mesh.volume < 0:
         mesh.invert()
     return mesh
+
+
+def keep_large_voxel_components(binary: np.ndarray, min_fraction: float) -> np.ndarray:
+    """Keep 26-connected components with ≥ ``min_fraction`` × the largest one's voxel count."""
+    from scipy import ndimage
+
+    labels, n = ndimage.label(binary, structure=np.ones((3, 3, 3), dtype=bool))
+    if n <= 1:
+        return binary
+    sizes = np.bincount(labels.ravel())
+    sizes[0] = 0
+    keep = sizes >= min_fraction * sizes.max()
+    keep[0] = False
+    return keep[labels]
 
 
 def keep_large_components(mesh, min_fraction: float):

@@ -69,11 +69,22 @@ class GridSpec:
 
     def points_mm(self, start: int, stop: int) -> torch.Tensor:
         """World points (M, 3) float32 of flat voxel indices start..stop−1 (C order)."""
-        flat = torch.arange(start, stop, dtype=torch.int64)
+        return self.flat_points_mm(torch.arange(start, stop, dtype=torch.int64))
+
+    def flat_points_mm(self, flat: torch.Tensor) -> torch.Tensor:
+        """World points (M, 3) float32 of flat (C-order) voxel indices."""
         ny, nz = self.shape[1], self.shape[2]
         ijk = torch.stack([flat // (ny * nz), (flat // nz) % ny, flat % nz], dim=-1)
         origin = torch.tensor(self.origin_mm, dtype=torch.float64)
         return (origin + ijk.to(torch.float64) * self.voxel_mm).to(torch.float32)
+
+    def coarsened(self, factor: int) -> GridSpec:
+        """The grid of every ``factor``-th node: coarse node I is this grid's voxel factor·I
+        (the last coarse node may lie up to factor − 1 voxels beyond this grid)."""
+        if not isinstance(factor, int) or factor < 1:
+            raise argument_error("factor", f"expected a positive integer, got {factor!r}")
+        shape = tuple(max(2, -(-(n - 1) // factor) + 1) for n in self.shape)
+        return GridSpec(self.origin_mm, self.voxel_mm * factor, shape)
 
 
 def evaluate_on_grid(
@@ -84,27 +95,83 @@ def evaluate_on_grid(
     Memory stays bounded by ``chunk_points`` per call. Voxels where ``mask`` is False are not
     evaluated and get 0. Returns float32 (nx, ny, nz).
     """
-    if chunk_points < 1:
-        raise argument_error("chunk_points", f"expected ≥ 1, got {chunk_points}")
     if mask is not None and mask.shape != grid.shape:
         raise argument_error("mask", f"expected shape {grid.shape}, got {mask.shape}")
     out = np.zeros(grid.n_voxels, dtype=np.float32)
-    flat_mask = None if mask is None else mask.reshape(-1)
-    with torch.no_grad():
-        for start in range(0, grid.n_voxels, chunk_points):
-            stop = min(start + chunk_points, grid.n_voxels)
-            if flat_mask is not None and not flat_mask[start:stop].any():
-                continue
-            points = grid.points_mm(start, stop)
-            if flat_mask is not None:
-                keep = torch.from_numpy(flat_mask[start:stop])
-                values = torch.zeros(stop - start)
-                if keep.any():
-                    values[keep] = _call(fn, points[keep])
-            else:
-                values = _call(fn, points)
-            out[start:stop] = values.numpy()
+    flat = np.arange(grid.n_voxels) if mask is None else np.flatnonzero(mask)
+    out[flat] = evaluate_at(fn, grid, flat, chunk_points)
     return out.reshape(grid.shape)
+
+
+def evaluate_at(
+    fn: PointsFn, grid: GridSpec, flat_indices: np.ndarray, chunk_points: int = 131_072
+) -> np.ndarray:
+    """``fn`` at the centres of the voxels with these flat (C-order) indices, float32 (M,)."""
+    if chunk_points < 1:
+        raise argument_error("chunk_points", f"expected ≥ 1, got {chunk_points}")
+    flat = torch.from_numpy(np.asarray(flat_indices, dtype=np.int64))
+    out = np.zeros(flat.shape[0], dtype=np.float32)
+    with torch.no_grad():
+        for start in range(0, flat.shape[0], chunk_points):
+            chunk = flat[start : start + chunk_points]
+            out[start : start + chunk.shape[0]] = _call(fn, grid.flat_points_mm(chunk)).numpy()
+    return out
+
+
+def evaluate_coarse_to_fine(
+    fn: PointsFn,
+    grid: GridSpec,
+    level: float,
+    factor: int = 2,
+    chunk_points: int = 131_072,
+    coarse_mask: np.ndarray | None = None,
+) -> np.ndarray:
+    """``fn`` on ``grid``, evaluated exactly only near the ``level`` set.
+
+    1. Evaluate on ``grid.coarsened(factor)`` (zero where ``coarse_mask`` is False).
+    2. A coarse cell is *ambiguous* when its 8 corner values do not all lie on the same side
+       of ``level``; ambiguous cells are dilated by one cell.
+    3. Fine voxels inside dilated ambiguous cells are evaluated exactly (zero where the
+       nearest coarse node is masked); every other fine voxel takes the trilinear
+       interpolation of its cell's corners, which lies on the same side of ``level`` as all of
+       them, so the binarised volume is unchanged wherever the coarse cell was unambiguous.
+
+    Structures thinner than one coarse cell that fall between coarse nodes can be missed;
+    ``factor = 1`` evaluates every voxel. Returns float32 ``grid.shape``.
+    """
+    coarse = grid.coarsened(factor)
+    if coarse_mask is not None and coarse_mask.shape != coarse.shape:
+        raise argument_error(
+            "coarse_mask", f"expected shape {coarse.shape}, got {coarse_mask.shape}"
+        )
+    if factor == 1:
+        return evaluate_on_grid(fn, grid, chunk_points, coarse_mask)
+    values = evaluate_on_grid(fn, coarse, chunk_points, coarse_mask)
+    above = torch.from_numpy(values >= level)[None, None].float()
+    corners_max = torch.nn.functional.max_pool3d(above, 2, stride=1)
+    corners_min = -torch.nn.functional.max_pool3d(-above, 2, stride=1)
+    ambiguous = (corners_max != corners_min).float()
+    ambiguous = torch.nn.functional.max_pool3d(ambiguous, 3, stride=1, padding=1)[0, 0] > 0
+    # fine volume: trilinear interpolation of the coarse nodes (node I ↔ fine index factor·I)
+    full = [factor * (n - 1) + 1 for n in coarse.shape]
+    fine = torch.nn.functional.interpolate(
+        torch.from_numpy(values)[None, None], size=full, mode="trilinear", align_corners=True
+    )[0, 0, : grid.shape[0], : grid.shape[1], : grid.shape[2]]
+    fine = fine.numpy().copy()
+    cells = [
+        np.minimum(np.arange(n) // factor, c - 2)
+        for n, c in zip(grid.shape, coarse.shape, strict=True)
+    ]
+    refine = ambiguous.numpy()[np.ix_(*cells)]
+    if coarse_mask is not None:
+        nodes = [np.minimum((np.arange(n) + factor // 2) // factor, c - 1)
+                 for n, c in zip(grid.shape, coarse.shape, strict=True)]  # fmt: skip
+        inside = coarse_mask[np.ix_(*nodes)]
+        fine[refine & ~inside] = 0.0
+        refine &= inside
+    flat = np.flatnonzero(refine)
+    fine.reshape(-1)[flat] = evaluate_at(fn, grid, flat, chunk_points)
+    return fine
 
 
 def _call(fn: PointsFn, points: torch.Tensor) -> torch.Tensor:

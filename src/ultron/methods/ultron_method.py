@@ -24,7 +24,7 @@ from ultron.data.labels import FrameSelection, gather_labelled_pixels, select_la
 from ultron.errors import UltronInputError, argument_error
 from ultron.fields.occupancy import OccupancyNetwork
 from ultron.mesh.extract import ExtractionConfig, extract_surface
-from ultron.mesh.grid import GridSpec, evaluate_on_grid, field_of_view_mask
+from ultron.mesh.grid import GridSpec, evaluate_coarse_to_fine, field_of_view_mask
 from ultron.methods.runinfo import StageTimer
 from ultron.train.occupancy import OccupancyTrainConfig, OccupancyTrainingData, fit_occupancy
 
@@ -39,6 +39,7 @@ class UltronConfig:
     seed: int = 0
     occupancy: OccupancyTrainConfig = field(default_factory=OccupancyTrainConfig)
     voxel_mm: float | None = None
+    coarse_factor: int = 2
     chunk_points: int = 65_536
     extraction: ExtractionConfig = field(default_factory=ExtractionConfig)
 
@@ -49,6 +50,10 @@ class UltronConfig:
             )
         if self.voxel_mm is not None and not self.voxel_mm > 0:
             raise argument_error("voxel_mm", f"expected > 0, got {self.voxel_mm}")
+        if not isinstance(self.coarse_factor, int) or self.coarse_factor < 1:
+            raise argument_error(
+                "coarse_factor", f"expected a positive integer, got {self.coarse_factor!r}"
+            )
 
 
 @dataclass
@@ -110,16 +115,30 @@ def occupancy_function(fitted, network: OccupancyNetwork):
 
 
 def mesh_occupancy(fn, dataset: SweepDataset, config: UltronConfig, timer: StageTimer) -> tuple:
-    """Evaluate ``fn`` on the scan grid inside the field of view and extract the surface."""
+    """Evaluate ``fn`` on the scan grid inside the field of view and extract the surface.
+
+    The field-of-view mask is rasterised on the coarse grid of the coarse-to-fine evaluation
+    (:func:`~ultron.mesh.grid.evaluate_coarse_to_fine`), so it is exact to one coarse voxel.
+    """
     grid = scan_grid(dataset, config.voxel_mm)
-    with timer.stage("mesh"):
+    coarse = grid.coarsened(config.coarse_factor)
+    with timer.stage("mesh_fov_mask"):
         mask = field_of_view_mask(
-            grid,
+            coarse,
             dataset.all_poses(),
             dataset.probe,
             elevation_half_thickness_mm(dataset, grid.voxel_mm),
         )
-        volume = evaluate_on_grid(fn, grid, config.chunk_points, mask=mask)
+    with timer.stage("mesh_evaluate"):
+        volume = evaluate_coarse_to_fine(
+            fn,
+            grid,
+            config.extraction.threshold,
+            config.coarse_factor,
+            config.chunk_points,
+            coarse_mask=mask,
+        )
+    with timer.stage("mesh_extract"):
         mesh = extract_surface(volume, grid, config.extraction)
     return mesh, volume, grid
 

@@ -71,7 +71,7 @@ class OccupancyTrainConfig:
     """Settings of :func:`fit_occupancy`."""
 
     loss: str = "ultron"
-    iters: int = 3000
+    iters: int = 1500
     batch_size: int = 4096
     lr: float = 1e-4
     final_lr_factor: float = 0.1

@@ -1,0 +1,108 @@
+"""Constrained smoothing of a binary volume's 0.5 level set (Lempitsky, CVPR 2010).
+
+This is PyMCubes' ``smooth_constrained`` (the method ``mcubes.smooth`` picks for volumes under
+500³) with its sparse system assembled by vectorised numpy instead of a Python loop over voxels:
+on the demo's 235 × 196 × 131 crop PyMCubes spends ≈ 200 s and ≈ 6 GB building the matrix in a
+``lil_matrix``. The energy, constraints, band, Jacobi iteration and stopping rule are PyMCubes'
+own, and ``tests/test_mesh.py`` checks that both give the same embedding.
+
+Energy: with u the embedding on the band B = {|d| ≤ band_radius} around the 0.5 level set (d the
+signed Euclidean distance, positive inside, ±0.5 at the border voxels) and D_a the second
+difference along axis a (a missing neighbour contributes the voxel itself, i.e. a Neumann
+boundary), minimise
+
+    E(u) = ½ Σ_a ‖D_a u‖² = ½ uᵀ Q u,   Q = Σ_a D_aᵀ D_a,
+
+subject to u ≥ d where d > 0 (inside stays inside), u ≤ d where d < 0, with bounds of magnitude
+< 1 relaxed to 0, by damped Jacobi (weight ½) with the bounds projected after every step, until
+the energy improves by less than ``rel_tol`` per iteration (checked every 10) or ``max_iters``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import sparse
+
+from ultron.errors import argument_error
+
+
+def second_difference_system(band: np.ndarray) -> sparse.csr_matrix:
+    """Q = Σ_a D_aᵀ D_a over the voxels of ``band`` (in C order), D_a as in the module doc."""
+    band = np.asarray(band, dtype=bool)
+    if band.ndim != 3:
+        raise argument_error("band", f"expected a 3D boolean array, got shape {band.shape}")
+    n = int(band.sum())
+    index = np.full(band.shape, -1, dtype=np.int64)
+    index[band] = np.arange(n)
+    coords = np.nonzero(band)
+    rows, cols, vals = [], [], []
+    for axis in range(3):
+        diagonal = np.full(n, -2.0)
+        for offset in (-1, 1):
+            neighbour = list(coords)
+            neighbour[axis] = coords[axis] + offset
+            inside = (neighbour[axis] >= 0) & (neighbour[axis] < band.shape[axis])
+            neighbour_index = np.full(n, -1, dtype=np.int64)
+            neighbour_index[inside] = index[tuple(c[inside] for c in neighbour)]
+            present = neighbour_index >= 0
+            rows.append(axis * n + np.flatnonzero(present))
+            cols.append(neighbour_index[present])
+            vals.append(np.ones(int(present.sum())))
+            diagonal[~present] += 1.0
+        rows.append(axis * n + np.arange(n))
+        cols.append(np.arange(n))
+        vals.append(diagonal)
+    d = sparse.csr_matrix(
+        (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(3 * n, n)
+    )
+    return (d.T @ d).tocsr()
+
+
+def smooth_constrained(
+    binary: np.ndarray, band_radius: int = 4, max_iters: int = 500, rel_tol: float = 1e-6
+) -> np.ndarray:
+    """Smooth embedding (float64, positive inside, zero level on the smoothed surface).
+
+    Same result as ``mcubes.smooth_constrained(binary, band_radius, max_iters, rel_tol)``.
+    """
+    from mcubes.smoothing import signed_distance_function
+
+    binary = np.asarray(binary)
+    if binary.ndim != 3:
+        raise argument_error("binary", f"expected a 3D array, got shape {binary.shape}")
+    if band_radius < 1:
+        raise argument_error("band_radius", f"expected ≥ 1, got {band_radius}")
+    distance, _, band = signed_distance_function(binary, band_radius)
+    q = second_difference_system(band)
+    result = np.asarray(distance, dtype=np.float64)
+    x = result[band]
+    upper = np.where(x < 0, x, np.inf)
+    lower = np.where(x > 0, x, -np.inf)
+    upper[np.abs(upper) < 1] = 0
+    lower[np.abs(lower) < 1] = 0
+    result[band] = _projected_jacobi(q, x, lower, upper, max_iters, rel_tol)
+    return result
+
+
+def _projected_jacobi(
+    q: sparse.csr_matrix,
+    x: np.ndarray,
+    lower: np.ndarray,
+    upper: np.ndarray,
+    max_iters: int,
+    rel_tol: float,
+    weight: float = 0.5,
+) -> np.ndarray:
+    """x ← clip(w·(−D⁻¹(Q − D)x) + (1 − w)·x, lower, upper), D = diag(Q)."""
+    diagonal = q.diagonal()
+    check_each = 10
+    cumulative_tol = 1 - (1 - rel_tol) ** check_each
+    energy = float(x @ (q @ x)) / 2
+    for i in range(max_iters):
+        jacobi = -(q @ x - diagonal * x) / diagonal
+        x = np.clip(weight * jacobi + (1 - weight) * x, lower, upper)
+        if (i + 1) % check_each == 0:
+            previous, energy = energy, float(x @ (q @ x)) / 2
+            if previous <= 0 or (previous - energy) / previous < cumulative_tol:
+                break
+    return x
