@@ -96,3 +96,32 @@ def test_unknown_method_is_a_clear_error():
 
     with pytest.raises(UltronInputError, match="method"):
         ReconstructionRequest(method="magic")
+
+
+def test_on_end_to_end(tiny: Path, tmp_path: Path):
+    from dataclasses import replace
+
+    from ultron.methods.on_method import ONConfig
+
+    on = ONConfig()
+    on = replace(on, occupancy=replace(on.occupancy, iters=400, batch_size=1024, lr=1e-3))
+    request = ReconstructionRequest(method="on", label_fraction=1.0, on=on, metrics=FAST_METRICS)
+    summary = reconstruct(tiny, request, tmp_path / "out")
+    run = _check_outputs(tmp_path / "out", with_metrics=True)
+    assert run["n_label_frames"] == 24 and "unit_cube" in run
+    assert run["occupancy_config"]["loss"] == "bce"
+    assert len(load_mesh(tmp_path / "out" / "mesh.ply").faces) > 100
+    # ON memorises the labelled band's positions: its surface lies on the vertebra
+    assert summary["metrics"]["mean"]["mad"] < 4.0
+
+
+def test_on_rejects_the_compensated_loss():
+    from ultron.methods.on_method import ONConfig
+
+    with pytest.raises(ValueError, match="occupancy.loss"):
+        ONConfig(occupancy=OccupancyTrainConfig(loss="ultron"))
+
+
+def test_bad_rocosdf_preset_is_a_clear_error():
+    with pytest.raises(ValueError, match="preset"):
+        ReconstructionRequest(method="rocosdf", rocosdf_preset="slow")

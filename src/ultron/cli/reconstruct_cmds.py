@@ -40,8 +40,16 @@ def _field_progress():
 
 
 def _request(
-    method: str, label_fraction: float, seed: int, occupancy_iters: int | None, points: int
+    method: str,
+    label_fraction: float,
+    seed: int,
+    occupancy_iters: int | None,
+    points: int,
+    preset: str = "fast",
 ):
+    from dataclasses import replace
+
+    from ultron.methods.on_method import ONConfig
     from ultron.methods.run import ReconstructionRequest
     from ultron.methods.ultron_method import UltronConfig
     from ultron.metrics.surface import MetricsConfig
@@ -52,11 +60,16 @@ def _request(
         if occupancy_iters is None
         else OccupancyTrainConfig(iters=occupancy_iters, seed=seed)
     )
+    on = ONConfig()
+    if occupancy_iters is not None:
+        on = replace(on, occupancy=replace(on.occupancy, iters=occupancy_iters))
     return ReconstructionRequest(
         method=method,
         label_fraction=label_fraction,
         seed=seed,
         ultron=UltronConfig(occupancy=occupancy),
+        on=on,
+        rocosdf_preset=preset,
         metrics=MetricsConfig(n_points=points),
     )
 
@@ -78,7 +91,11 @@ def reconstruct(
     ],
     out: Annotated[Path, typer.Option("--out", help="Output directory.")],
     method: Annotated[
-        str, typer.Option("--method", help="ultron, ultron-noloss or compounding.")
+        str,
+        typer.Option(
+            "--method",
+            help="ultron, ultron-noloss, compounding, on, rocosdf, unsr-row or unsr-col.",
+        ),
     ] = "ultron",
     label_fraction: Annotated[
         float, typer.Option("--label-fraction", help="Share of annotated frames used, in (0, 1].")
@@ -92,16 +109,19 @@ def reconstruct(
         int | None, typer.Option("--field-iters", help="Field iterations when fitting.")
     ] = None,
     occupancy_iters: Annotated[
-        int | None, typer.Option("--occupancy-iters", help="Occupancy iterations.")
+        int | None, typer.Option("--occupancy-iters", help="Occupancy iterations (ultron*, on).")
     ] = None,
     points: Annotated[
         int, typer.Option("--points", help="Points per surface for metrics.")
     ] = 100_000,
+    preset: Annotated[
+        str, typer.Option("--preset", help="RoCoSDF/UNSR settings: fast or paper.")
+    ] = "fast",
 ) -> None:
     """Reconstruct a bone surface: mesh.ply/.stl/.obj, occupancy.nii.gz, metrics.json, run.json."""
     from ultron.methods.run import reconstruct as run
 
-    request = _request(method, label_fraction, seed, occupancy_iters, points)
+    request = _request(method, label_fraction, seed, occupancy_iters, points, preset)
     bar, update = _field_progress()
     with bar:
         summary = run(

@@ -19,12 +19,15 @@ from ultron.errors import argument_error
 from ultron.mesh.compounding import CompoundingConfig, compound_labels
 from ultron.mesh.export import load_mesh, save_mesh, save_volume_nifti
 from ultron.mesh.extract import extract_surface
+from ultron.methods.on_method import ONConfig, reconstruct_on
 from ultron.methods.runinfo import StageTimer, write_run_json
 from ultron.methods.ultron_method import Reconstruction, UltronConfig, reconstruct_ultron
 from ultron.metrics.surface import MetricsConfig, evaluate_meshes
 
 FIELD_METHODS = ("ultron", "ultron-noloss")
-METHODS = (*FIELD_METHODS, "compounding")
+SDF_VIEWS = {"rocosdf": ("row", "column"), "unsr-row": ("row",), "unsr-col": ("column",)}
+METHODS = (*FIELD_METHODS, "compounding", "on", *SDF_VIEWS)
+ROCOSDF_PRESETS = ("fast", "paper")
 
 
 @dataclass(frozen=True)
@@ -36,6 +39,8 @@ class ReconstructionRequest:
     seed: int = 0
     ultron: UltronConfig = field(default_factory=UltronConfig)
     compounding: CompoundingConfig = field(default_factory=CompoundingConfig)
+    on: ONConfig = field(default_factory=ONConfig)
+    rocosdf_preset: str = "fast"
     metrics: MetricsConfig = field(default_factory=MetricsConfig)
 
     def __post_init__(self) -> None:
@@ -44,6 +49,10 @@ class ReconstructionRequest:
         if not 0 < self.label_fraction <= 1:
             raise argument_error(
                 "label_fraction", f"expected a value in (0, 1], got {self.label_fraction}"
+            )
+        if self.rocosdf_preset not in ROCOSDF_PRESETS:
+            raise argument_error(
+                "preset", f"expected one of {ROCOSDF_PRESETS}, got {self.rocosdf_preset!r}"
             )
 
 
@@ -66,6 +75,24 @@ def run_method(
             }
         )
         return reconstruct_ultron(dataset, fitted, request.method, config, timer)
+    if request.method == "on":
+        return reconstruct_on(dataset, request.label_fraction, request.seed, request.on, timer)
+    if request.method in SDF_VIEWS:
+        from ultron.methods.rocosdf import RoCoSDFConfig, reconstruct_rocosdf
+
+        with timer.stage("labels"):
+            selection = select_label_frames(dataset, request.label_fraction, request.seed)
+        result = reconstruct_rocosdf(
+            dataset,
+            selection,
+            RoCoSDFConfig.preset(request.rocosdf_preset),
+            request.seed,
+            SDF_VIEWS[request.method],
+            timer=timer,
+        )
+        result.info = {"selection": selection.to_dict(), "n_label_frames": selection.n_frames,
+                       "preset": request.rocosdf_preset, **result.info}  # fmt: skip
+        return result
     with timer.stage("labels"):
         selection = select_label_frames(dataset, request.label_fraction, request.seed)
     with timer.stage("mesh"):

@@ -1,0 +1,96 @@
+"""ON, the coordinate occupancy network baseline (METHOD.md §4).
+
+The same network as UltrON's f_ω (8 × 128, skip at 4, ReLU, sigmoid), but on the positionally
+encoded world position of each labelled pixel mapped to the unit cube of the scanned region
+(:class:`~ultron.data.geometry.UnitCube` of the field-of-view box, so the reference mesh is
+never read), trained with plain BCE on the same labelled pixels (same label-fraction
+selection, same class balance), meshed exactly as UltrON is (:func:`mesh_occupancy`).
+
+Positional encoding: coordinates need more bands than θ (NeRF uses 10 for positions); the
+default of 8 bands resolves a period of 2/2⁷ of the cube's half-extent (≈ 1 mm on the default
+phantom's ≈ 70 mm half-extent), the scale of the labels' 2 mm band.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from ultron.data.dataset import SweepDataset
+from ultron.data.geometry import UnitCube, field_of_view_bounds_mm
+from ultron.data.labels import gather_labelled_pixels, select_label_frames
+from ultron.errors import argument_error
+from ultron.fields.occupancy import OccupancyNetworkConfig
+from ultron.methods.runinfo import StageTimer
+from ultron.methods.ultron_method import Reconstruction, UltronConfig, mesh_occupancy
+from ultron.train.occupancy import OccupancyTrainConfig, OccupancyTrainingData, fit_occupancy
+
+
+def _on_training() -> OccupancyTrainConfig:
+    return OccupancyTrainConfig(loss="bce", network=OccupancyNetworkConfig(n_frequencies=8))
+
+
+@dataclass(frozen=True)
+class ONConfig:
+    """Settings of the ON baseline; meshing settings are shared with UltrON's config."""
+
+    occupancy: OccupancyTrainConfig = field(default_factory=_on_training)
+    meshing: UltronConfig = field(default_factory=UltronConfig)
+
+    def __post_init__(self) -> None:
+        if self.occupancy.loss != "bce":
+            raise argument_error(
+                "occupancy.loss", f"ON trains with 'bce', got {self.occupancy.loss!r}"
+            )
+
+
+def scan_unit_cube(dataset: SweepDataset) -> UnitCube:
+    """The unit cube of everything the probe saw (from the poses and probe geometry only)."""
+    return UnitCube.from_bounds(field_of_view_bounds_mm(dataset.all_poses(), dataset.probe))
+
+
+def on_training_data(dataset: SweepDataset, cube: UnitCube, selection) -> OccupancyTrainingData:
+    """Unit-cube positions of the selected frames' labelled pixels, T = 1, labels."""
+    pixels = gather_labelled_pixels(dataset, selection)
+    positions = cube.to_unit(torch.from_numpy(pixels.world_mm(dataset)), dtype=torch.float32)
+    labels = torch.from_numpy(pixels.label.astype(np.uint8))
+    return OccupancyTrainingData(positions, torch.ones(len(pixels)), labels)
+
+
+def reconstruct_on(
+    dataset: SweepDataset,
+    label_fraction: float,
+    seed: int,
+    config: ONConfig | None = None,
+    timer: StageTimer | None = None,
+) -> Reconstruction:
+    """Fit ON on ``label_fraction`` of the annotated frames and mesh it."""
+    config = config or ONConfig()
+    timer = timer or StageTimer()
+    occupancy = OccupancyTrainConfig(**{**config.occupancy.to_dict(), "seed": seed,
+                                        "network": config.occupancy.network})  # fmt: skip
+    with timer.stage("labels"):
+        selection = select_label_frames(dataset, label_fraction, seed)
+        cube = scan_unit_cube(dataset)
+        data = on_training_data(dataset, cube, selection)
+    with timer.stage("occupancy_fit"):
+        network, log = fit_occupancy(data, occupancy)
+
+    def fn(points_mm: torch.Tensor) -> torch.Tensor:
+        return network.occupancy(cube.to_unit(points_mm, dtype=torch.float32))
+
+    mesh, volume, grid = mesh_occupancy(fn, dataset, config.meshing, timer)
+    info = {
+        "selection": selection.to_dict(),
+        "n_label_frames": selection.n_frames,
+        "n_labelled_pixels": len(data.labels),
+        "n_bone_pixels": int(data.labels.sum()),
+        "unit_cube": cube.to_dict(),
+        "occupancy_config": occupancy.to_dict(),
+        "occupancy_log": log,
+        "grid": {"origin_mm": list(grid.origin_mm), "voxel_mm": grid.voxel_mm,
+                 "shape": list(grid.shape)},
+    }  # fmt: skip
+    return Reconstruction(mesh=mesh, volume=volume, grid=grid, info=info | {"network": network})
