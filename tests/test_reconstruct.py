@@ -118,7 +118,7 @@ def test_on_end_to_end(tiny: Path, tmp_path: Path):
 def test_on_rejects_the_compensated_loss():
     from ultron.methods.on_method import ONConfig
 
-    with pytest.raises(ValueError, match="occupancy.loss"):
+    with pytest.raises(ValueError, match=r"occupancy\.loss"):
         ONConfig(occupancy=OccupancyTrainConfig(loss="ultron"))
 
 
