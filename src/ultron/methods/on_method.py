@@ -13,7 +13,7 @@ phantom's ≈ 70 mm half-extent), the scale of the labels' 2 mm band.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import torch
@@ -69,8 +69,7 @@ def reconstruct_on(
     """Fit ON on ``label_fraction`` of the annotated frames and mesh it."""
     config = config or ONConfig()
     timer = timer or StageTimer()
-    occupancy = OccupancyTrainConfig(**{**config.occupancy.to_dict(), "seed": seed,
-                                        "network": config.occupancy.network})  # fmt: skip
+    occupancy = replace(config.occupancy, seed=seed)
     with timer.stage("labels"):
         selection = select_label_frames(dataset, label_fraction, seed)
         cube = scan_unit_cube(dataset)

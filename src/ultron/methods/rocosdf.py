@@ -68,7 +68,6 @@ import numpy as np
 import torch
 
 from ultron.data.dataset import SweepDataset
-from ultron.data.geometry import apply_pose, probe_points_mm
 from ultron.data.labels import FrameSelection, gather_labelled_pixels
 from ultron.errors import UltronInputError, argument_error
 from ultron.fields.sdf import SDFNetwork, SDFNetworkConfig
@@ -267,28 +266,16 @@ def view_point_clouds(
     pixels = gather_labelled_pixels(dataset, selection)
     clouds: dict[str, np.ndarray] = {}
     for view in views:
-        parts = []
-        for sweep_index, sweep in enumerate(dataset.sweeps):
-            if sweep.kind not in VIEW_KINDS[view]:
-                continue
-            sel = np.flatnonzero((pixels.sweep_index == sweep_index) & (pixels.label == 1))
-            if sel.size == 0:
-                continue
-            probe = probe_points_mm(
-                torch.as_tensor(pixels.row[sel], dtype=torch.float64),
-                torch.as_tensor(pixels.col[sel], dtype=torch.float64),
-                dataset.probe,
-            )
-            poses = torch.as_tensor(sweep.probe_to_world[pixels.frame[sel]], dtype=torch.float64)
-            parts.append(apply_pose(poses, probe[:, None, :])[:, 0].numpy())
-        if not parts:
+        view_sweeps = [i for i, s in enumerate(dataset.sweeps) if s.kind in VIEW_KINDS[view]]
+        bone = np.flatnonzero(np.isin(pixels.sweep_index, view_sweeps) & (pixels.label == 1))
+        if bone.size == 0:
             names = [s.name for s in dataset.sweeps if s.kind in VIEW_KINDS[view]]
             raise UltronInputError(
                 where,
                 "labels",
                 f"the selected frames of the {view} view's sweeps {names} contain no bone pixel (label 1)",
             )
-        points = np.concatenate(parts)
+        points = pixels.world_mm(dataset, bone)
         clouds[view] = _voxel_centres(points, voxel_mm) if voxel_mm is not None else points
         if len(clouds[view]) < 2:
             raise UltronInputError(

@@ -82,7 +82,7 @@ def run_method(
 
         with timer.stage("labels"):
             selection = select_label_frames(dataset, request.label_fraction, request.seed)
-        result = reconstruct_rocosdf(
+        return reconstruct_rocosdf(
             dataset,
             selection,
             RoCoSDFConfig.preset(request.rocosdf_preset),
@@ -90,9 +90,6 @@ def run_method(
             SDF_VIEWS[request.method],
             timer=timer,
         )
-        result.info = {"selection": selection.to_dict(), "n_label_frames": selection.n_frames,
-                       "preset": request.rocosdf_preset, **result.info}  # fmt: skip
-        return result
     with timer.stage("labels"):
         selection = select_label_frames(dataset, request.label_fraction, request.seed)
     with timer.stage("mesh"):

@@ -12,7 +12,7 @@ Nothing here reads the reference mesh.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -149,13 +149,7 @@ def reconstruct_ultron(
     """Run stages 2 and 3 of UltrON (``method`` ``ultron`` or ``ultron-noloss``)."""
     if method not in METHOD_LOSSES:
         raise argument_error("method", f"expected one of {tuple(METHOD_LOSSES)}, got {method!r}")
-    occupancy_config = OccupancyTrainConfig(
-        **{
-            **config.occupancy.to_dict(),
-            "loss": METHOD_LOSSES[method],
-            "network": config.occupancy.network,
-        }
-    )
+    occupancy_config = replace(config.occupancy, loss=METHOD_LOSSES[method])
     with timer.stage("labels"):
         selection = select_label_frames(dataset, config.label_fraction, config.seed)
         data = occupancy_training_data(dataset, fitted, selection)
