@@ -42,7 +42,8 @@ def add_arguments(parser: argparse.ArgumentParser, default_out: str) -> None:
 
 
 def prepare(args: argparse.Namespace) -> tuple[Path, Path, float]:
-    """The dataset (simulated L3 unless given) and its fitted field (fitted unless given)."""
+    """The dataset (simulated ``args.phantom``, default L3, unless given) and its fitted field
+    (fitted unless given)."""
     from ultron.data.dataset import SweepDataset
     from ultron.phantom import SimulationConfig, simulate_dataset
     from ultron.train.field_fit import FieldTrainConfig, fit_field
@@ -51,7 +52,8 @@ def prepare(args: argparse.Namespace) -> tuple[Path, Path, float]:
     if dataset_dir is None:
         dataset_dir = args.out / "dataset"
         if not (dataset_dir / "dataset.json").is_file():
-            simulate_dataset(SimulationConfig(phantom="L3", seed=args.seed), out=dataset_dir)
+            phantom = getattr(args, "phantom", "L3")
+            simulate_dataset(SimulationConfig(phantom=phantom, seed=args.seed), out=dataset_dir)
     field_dir = args.field
     field_seconds = 0.0
     if field_dir is None:

@@ -4,7 +4,14 @@ from __future__ import annotations
 
 import typer
 
-from ultron.cli import data_cmds, eval_cmds, field_cmds, phantom_cmds, reconstruct_cmds
+from ultron.cli import (
+    benchmark_cmds,
+    data_cmds,
+    eval_cmds,
+    field_cmds,
+    phantom_cmds,
+    reconstruct_cmds,
+)
 
 app = typer.Typer(
     name="ultron",
@@ -19,6 +26,7 @@ eval_cmds.register(app)
 field_cmds.register(app)
 phantom_cmds.register(app)
 reconstruct_cmds.register(app)
+benchmark_cmds.register(app)
 
 
 def main() -> None:

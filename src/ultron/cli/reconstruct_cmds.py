@@ -182,10 +182,59 @@ def demo(
     _print_summary(summaries)
     for method in labels:
         console.print(
-            f"{method}: {out / method / 'mesh.ply'}, {out / method / 'occupancy.nii.gz'}, {out / method / 'metrics.json'}"
+            f"{method}: {out / method / 'mesh.ply'}, {out / method / 'occupancy.nii.gz'}, "
+            f"{out / method / 'metrics.json'}, {out / method / 'report.html'}"
         )
+
+
+@user_errors
+def finetune(
+    model_dir: Annotated[
+        Path, typer.Argument(help="Output directory of a reconstruct --method ultron run.")
+    ],
+    dataset: Annotated[Path, typer.Argument(help="The new shape's dataset directory.")],
+    out: Annotated[Path, typer.Option("--out", help="Output directory.")],
+    label_fraction: Annotated[
+        float, typer.Option("--label-fraction", help="Share of annotated frames used, in (0, 1].")
+    ] = 0.01,
+    iters: Annotated[
+        int, typer.Option("--iters", help="Fine-tuning iterations; 0 applies the model as is.")
+    ] = 100,
+    field: Annotated[
+        Path | None,
+        typer.Option("--field", help="The new dataset's FIELD_DIR [default: fit and cache one]."),
+    ] = None,
+    seed: Annotated[int, typer.Option("--seed", help="Seed of label selection and training.")] = 0,
+    field_iters: Annotated[
+        int | None, typer.Option("--field-iters", help="Field iterations when fitting.")
+    ] = None,
+    points: Annotated[
+        int, typer.Option("--points", help="Points per surface for metrics.")
+    ] = 100_000,
+) -> None:
+    """Adapt a trained UltrON network to a new shape: freeze its last two layers, train the rest
+    on a few labelled frames through the new dataset's own acoustic field, mesh, evaluate."""
+    from ultron.methods.finetune import FinetuneConfig
+    from ultron.methods.finetune import finetune as run
+    from ultron.metrics.surface import MetricsConfig
+
+    config = FinetuneConfig(
+        label_fraction=label_fraction,
+        iters=iters,
+        seed=seed,
+        metrics=MetricsConfig(n_points=points),
+    )
+    bar, update = _field_progress()
+    with bar:
+        summary = run(
+            model_dir, dataset, config, out, field, _field_config(field_iters, seed), update
+        )
+    name = f"fine-tuned ({label_fraction:g}, {iters} iter)" if iters else "w/o fine-tuning"
+    _print_summary({name: summary})
+    console.print(f"outputs in {out}")
 
 
 def register(app: typer.Typer) -> None:
     app.command("reconstruct")(reconstruct)
+    app.command("finetune")(finetune)
     app.command("demo")(demo)

@@ -92,4 +92,7 @@ def reconstruct_on(
         "grid": {"origin_mm": list(grid.origin_mm), "voxel_mm": grid.voxel_mm,
                  "shape": list(grid.shape)},
     }  # fmt: skip
-    return Reconstruction(mesh=mesh, volume=volume, grid=grid, info=info | {"network": network})
+    model = {"input": "unit_cube", "unit_cube": cube.to_dict()}
+    return Reconstruction(
+        mesh=mesh, volume=volume, grid=grid, info=info | {"network": network, "model": model}
+    )

@@ -437,4 +437,7 @@ def reconstruct_rocosdf(
         "shape": list(grid.shape),
     }
     info["volume"] = "sigmoid(-f / voxel): inside indicator, 0.5 on the zero level"
-    return Reconstruction(mesh=mesh, volume=volume, grid=grid, info=info | {"network": network})
+    model = {"input": "normalised_mm", "normalisation": info["normalisation"]}
+    return Reconstruction(
+        mesh=mesh, volume=volume, grid=grid, info=info | {"network": network, "model": model}
+    )

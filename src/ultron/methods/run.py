@@ -19,6 +19,7 @@ from ultron.errors import argument_error
 from ultron.mesh.compounding import CompoundingConfig, compound_labels
 from ultron.mesh.export import load_mesh, save_mesh, save_volume_nifti
 from ultron.mesh.extract import extract_surface
+from ultron.methods.model_io import save_network
 from ultron.methods.on_method import ONConfig, reconstruct_on
 from ultron.methods.runinfo import StageTimer, write_run_json
 from ultron.methods.ultron_method import Reconstruction, UltronConfig, reconstruct_ultron
@@ -107,12 +108,20 @@ def run_method(
 def write_outputs(
     out_dir: str | Path,
     dataset: SweepDataset,
-    request: ReconstructionRequest,
+    identity: dict[str, Any],
     result: Reconstruction,
     timer: StageTimer,
+    metrics_config: MetricsConfig,
     extra: dict[str, Any] | None = None,
+    report: bool = True,
 ) -> dict[str, Any]:
-    """Write the mesh, volume, metrics (with a reference) and run.json; return the summary."""
+    """Write the mesh, volume, metrics (with a reference), the occupancy network (when the
+    method has one, ``network.pt``, see :mod:`ultron.methods.model_io`) and run.json; return the summary.
+
+    ``identity`` (method, label_fraction, seed, …) heads run.json and tags metrics.json.
+    With ``report``, ``report.html`` follows run.json (:mod:`ultron.report.run_report`); its
+    time is in the returned timings, not in run.json.
+    """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     with timer.stage("write"):
@@ -122,21 +131,28 @@ def write_outputs(
     metrics = None
     if dataset.reference is not None:
         with timer.stage("metrics"):
-            metrics = evaluate_meshes(result.mesh, load_mesh(dataset.reference), request.metrics)
-        metrics["method"] = request.method
-        metrics["label_fraction"] = request.label_fraction
+            metrics = evaluate_meshes(result.mesh, load_mesh(dataset.reference), metrics_config)
+        metrics["method"] = identity["method"]
+        metrics["label_fraction"] = identity.get("label_fraction")
         atomic.write_json(out / "metrics.json", metrics)
-    info = {k: v for k, v in result.info.items() if k != "network"}
+    info = {k: v for k, v in result.info.items() if k not in ("network", "model")}
+    if "network" in result.info:
+        with timer.stage("write"):
+            meta = {"method": identity["method"], **result.info.get("model", {})}
+            save_network(out, result.info["network"], meta)
     payload = {
-        "method": request.method,
-        "label_fraction": request.label_fraction,
-        "seed": request.seed,
+        **identity,
         "mesh": {"vertices": len(result.mesh.vertices), "faces": len(result.mesh.faces),
                  "area_mm2": float(result.mesh.area)},
         **info,
         **(extra or {}),
     }  # fmt: skip
     write_run_json(out, payload, timer)
+    if report:
+        from ultron.report.run_report import write_run_report
+
+        with timer.stage("report"):
+            write_run_report(out, dataset=dataset)
     return {"out": str(out), "metrics": metrics, "timings_s": dict(timer.seconds)}
 
 
@@ -147,8 +163,10 @@ def reconstruct(
     field_dir: str | Path | None = None,
     field_config=None,
     progress: Callable[[dict[str, Any]], None] | None = None,
+    report: bool = True,
 ) -> dict[str, Any]:
-    """Load the dataset, get the field (given, or fitted and cached), run, write DIR."""
+    """Load the dataset, get the field (given, or fitted and cached), run, write DIR (with
+    ``report.html`` unless ``report`` is false)."""
     timer = StageTimer()
     with timer.stage("load"):
         dataset = SweepDataset.load(dataset_dir)
@@ -158,9 +176,15 @@ def reconstruct(
             fitted, used_dir, cached = load_or_fit_field(
                 dataset_dir, dataset, field_dir, field_config, progress
             )
-        extra = {"field_dir": str(used_dir), "field_cached": cached}
+        extra = {"field_dir": str(Path(used_dir).resolve()), "field_cached": cached}
     result = run_method(dataset, request, fitted, timer)
-    return write_outputs(out_dir, dataset, request, result, timer, extra)
+    identity = {
+        "method": request.method,
+        "label_fraction": request.label_fraction,
+        "seed": request.seed,
+        "dataset_dir": str(Path(dataset_dir).resolve()),
+    }
+    return write_outputs(out_dir, dataset, identity, result, timer, request.metrics, extra, report)
 
 
 def load_or_fit_field(dataset_dir, dataset, field_dir, field_config, progress):

@@ -169,4 +169,11 @@ def reconstruct_ultron(
             "shape": list(grid.shape),
         },
     }
-    return Reconstruction(mesh=mesh, volume=volume, grid=grid, info=info | {"network": network})
+    model = {
+        "input": "theta",
+        "theta_channels": list(fitted.channels),
+        "loss": occupancy_config.loss,
+    }
+    return Reconstruction(
+        mesh=mesh, volume=volume, grid=grid, info=info | {"network": network, "model": model}
+    )

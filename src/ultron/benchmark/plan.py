@@ -1,0 +1,404 @@
+"""What ``ultron benchmark`` runs: its settings, the tables' rows and the task graph.
+
+Layout of the output directory ``DIR`` (every path below is relative to it):
+
+* ``data/<P>-s<S>/dataset`` — phantom ``P`` simulated with seed ``S``; ``data/<P>-s<S>/field``
+  — its acoustic field (one per dataset, shared by every method that needs one). The robustness
+  conditions get their own datasets and fields: ``data/L3-annot-s<S>`` and ``data/L3-pose-s<S>``.
+* ``runs/<dataset>/<row-slug>`` — one ``reconstruct`` (or ``finetune``) output per cell.
+
+A run directory is shared by every table row that needs the same run (Table 2's "full training"
+is Table 1's UltrON (10%) cell of L2; the robustness "default" rows are Table 1's L3 cells), so
+it is computed once. Tasks form a graph: ``simulate`` → ``field`` → the cells that need a field
+(UltrON, UltrON w/o loss); RoCoSDF, ON and compounding need only the simulated dataset; the
+fine-tuning cells need L2's field and the L3 UltrON (10%) cell of the same seed.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+from ultron.errors import argument_error
+from ultron.methods.on_method import ONConfig
+from ultron.methods.run import ROCOSDF_PRESETS, ReconstructionRequest
+from ultron.methods.ultron_method import UltronConfig
+from ultron.metrics.surface import MetricsConfig
+from ultron.phantom.annotation import AnnotationConfig
+from ultron.phantom.dataset import SimulationConfig
+from ultron.phantom.protocols import TrackingNoise
+from ultron.phantom.shapes import PHANTOMS
+from ultron.train.field_fit import FieldTrainConfig
+from ultron.train.occupancy import OccupancyTrainConfig
+
+TABLE1, TABLE2, ROBUSTNESS = "table1", "table2", "robustness"
+#: Metrics aggregated in the tables (each cell contributes the mean over its metric repeats).
+METRICS = ("cd", "hd", "mad", "rmse", "hd95", "completeness")
+
+#: Robustness conditions: the default dataset and two perturbed re-simulations of L3.
+DEFAULT, ANNOTATION, POSE = "default", "annotation errors", "pose misalignment"
+CONDITION_TAGS = {DEFAULT: "", ANNOTATION: "annot", POSE: "pose"}
+ROBUSTNESS_PHANTOM = "L3"
+SOURCE_PHANTOM, TARGET_PHANTOM = "L3", "L2"  # Table 2: train on L3, apply to L2
+
+
+@dataclass(frozen=True)
+class Row:
+    """A table row: how each of its cells is computed (``method`` "finetune" for Table 2)."""
+
+    name: str
+    slug: str
+    method: str
+    label_fraction: float
+    finetune_iters: int | None = None
+
+
+TABLE1_ROWS = (
+    Row("RoCoSDF (100%)", "rocosdf-100", "rocosdf", 1.0),
+    Row("ON (100%)", "on-100", "on", 1.0),
+    Row("UltrON w/o loss (10%)", "ultron-noloss-10", "ultron-noloss", 0.1),
+    Row("UltrON (10%)", "ultron-10", "ultron", 0.1),
+    Row("UltrON (5%)", "ultron-5", "ultron", 0.05),
+    Row("compounding (10%)", "compounding-10", "compounding", 0.1),
+    Row("compounding (100%)", "compounding-100", "compounding", 1.0),
+)
+ROW = {row.name: row for row in TABLE1_ROWS}
+ULTRON_10, ROCOSDF_100 = ROW["UltrON (10%)"], ROW["RoCoSDF (100%)"]
+TABLE2_ROWS = (
+    Row("w/o fine-tuning", "finetune-direct", "finetune", 0.01, 0),
+    Row("1% + 100 iter", "finetune-1pct-100", "finetune", 0.01, 100),
+    Row("full training", ULTRON_10.slug, ULTRON_10.method, ULTRON_10.label_fraction),
+)
+ROBUSTNESS_METHODS = (ULTRON_10, ROCOSDF_100)
+
+
+def robustness_row(method_row: Row, condition: str) -> str:
+    """The robustness table's row name, e.g. ``"UltrON (10%), annotation errors"``."""
+    return f"{method_row.name}, {condition}"
+
+
+def _robust_annotation() -> AnnotationConfig:
+    return AnnotationConfig(jitter_mm=1.0, error_rate=0.10, error_shift_mm=4.0)
+
+
+def _robust_tracking() -> TrackingNoise:
+    return TrackingNoise(translation_mm=1.5, rotation_deg=1.0)
+
+
+@dataclass(frozen=True)
+class BenchmarkConfig:
+    """Every setting of a benchmark (immutable; derive variants with ``dataclasses.replace``).
+
+    ``simulation`` and ``field_fit`` are templates: each dataset replaces their phantom and seed.
+    ``ultron``, ``on`` and ``metrics`` go into every cell's ``ReconstructionRequest`` (the
+    fine-tuning cells mesh with ``ultron`` and measure with ``metrics`` too). ``threads`` is
+    torch's thread count per task (default: cores // jobs, at least 1). ``robust_annotation``
+    and ``robust_tracking`` are the robustness study's perturbed annotation and tracking.
+    """
+
+    phantoms: tuple[str, ...] = tuple(PHANTOMS)
+    seeds: int = 3
+    jobs: int = 1
+    threads: int | None = None
+    robustness: bool = False
+    generalisation: bool = True
+    quick: bool = False
+    rocosdf_preset: str = "fast"
+    simulation: SimulationConfig = field(default_factory=SimulationConfig)
+    field_fit: FieldTrainConfig = field(default_factory=FieldTrainConfig)
+    ultron: UltronConfig = field(default_factory=UltronConfig)
+    on: ONConfig = field(default_factory=ONConfig)
+    metrics: MetricsConfig = field(default_factory=MetricsConfig)
+    robust_annotation: AnnotationConfig = field(default_factory=_robust_annotation)
+    robust_tracking: TrackingNoise = field(default_factory=_robust_tracking)
+
+    def __post_init__(self) -> None:
+        phantoms = self.phantoms
+        if isinstance(phantoms, str) or not phantoms:
+            raise argument_error(
+                "phantoms", f"expected a non-empty list of names, got {phantoms!r}"
+            )
+        unknown = [p for p in phantoms if p not in PHANTOMS]
+        if unknown:
+            raise argument_error(
+                "phantoms", f"unknown phantom(s) {unknown}; expected some of {list(PHANTOMS)}"
+            )
+        if len(set(phantoms)) != len(phantoms):
+            raise argument_error("phantoms", f"phantoms must be unique, got {list(phantoms)}")
+        object.__setattr__(self, "phantoms", tuple(phantoms))
+        for name in ("seeds", "jobs"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise argument_error(name, f"expected an integer ≥ 1, got {value!r}")
+        threads = self.threads
+        if threads is not None and (
+            isinstance(threads, bool) or not isinstance(threads, int) or threads < 1
+        ):
+            raise argument_error("threads", f"expected an integer ≥ 1 or None, got {threads!r}")
+        if self.rocosdf_preset not in ROCOSDF_PRESETS:
+            raise argument_error(
+                "preset", f"expected one of {ROCOSDF_PRESETS}, got {self.rocosdf_preset!r}"
+            )
+
+    def settings(self) -> dict[str, Any]:
+        """The settings that shape a cell's result (a resumed DIR must have been made with
+        the same ones); phantoms, seeds, jobs and the tables chosen only add or drop cells."""
+        keep = ("rocosdf_preset", "simulation", "field_fit", "ultron", "on", "metrics")
+        data = {name: _plain(getattr(self, name)) for name in keep}
+        if self.robustness:
+            data["robust_annotation"] = _plain(self.robust_annotation)
+            data["robust_tracking"] = _plain(self.robust_tracking)
+        return data
+
+    def to_dict(self) -> dict[str, Any]:
+        """Every setting as plain JSON-able data."""
+        return _plain(self)
+
+
+def _plain(value: Any) -> Any:
+    """Nested dataclasses / tuples → JSON-able dicts / lists."""
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return {f.name: _plain(getattr(value, f.name)) for f in dataclasses.fields(value)}
+    if isinstance(value, tuple | list):
+        return [_plain(v) for v in value]
+    if isinstance(value, dict):
+        return {str(k): _plain(v) for k, v in value.items()}
+    return value
+
+
+#: ``--quick``'s reductions (see :func:`quick_config`).
+QUICK_FIELD_ITERATIONS = 2000
+QUICK_OCCUPANCY_ITERS = 1000
+QUICK_METRIC_POINTS, QUICK_METRIC_REPEATS = 50_000, 2
+
+
+def quick_config(**changes: Any) -> BenchmarkConfig:
+    """``--quick``: L3 (+ L2 for Table 2), one seed, 2000 field iterations (default 3000),
+    1000 occupancy iterations for UltrON and ON (default 1500), metrics on 50k points × 2
+    repeats (default 100k × 3). RoCoSDF keeps its ``fast`` preset (a ``ReconstructionRequest``
+    carries only the preset name). ``changes`` override any field.
+
+    Estimated from measured stage times on 2 idle cores, jobs 1: simulation ≈ 5 s and field
+    ≈ 37 s per dataset (L3, L2), RoCoSDF ≈ 175 s, ON ≈ 37 s, each UltrON cell ≈ 43 s (four),
+    compounding ≈ 5 s (two), fine-tuning ≈ 22 s (two): ≈ 9 min in all."""
+    on = ONConfig()
+    base = BenchmarkConfig(
+        phantoms=("L3",),
+        seeds=1,
+        quick=True,
+        field_fit=FieldTrainConfig(iterations=QUICK_FIELD_ITERATIONS),
+        ultron=UltronConfig(occupancy=OccupancyTrainConfig(iters=QUICK_OCCUPANCY_ITERS)),
+        on=replace(on, occupancy=replace(on.occupancy, iters=QUICK_OCCUPANCY_ITERS)),
+        metrics=MetricsConfig(n_points=QUICK_METRIC_POINTS, repeats=QUICK_METRIC_REPEATS),
+    )
+    return replace(base, **changes)
+
+
+# ---------------------------------------------------------------------------------- tasks
+@dataclass(frozen=True)
+class DatasetSpec:
+    """One simulated dataset: phantom, seed and robustness condition."""
+
+    phantom: str
+    seed: int
+    condition: str = DEFAULT
+
+    @property
+    def name(self) -> str:
+        tag = CONDITION_TAGS[self.condition]
+        return f"{self.phantom}-{tag}-s{self.seed}" if tag else f"{self.phantom}-s{self.seed}"
+
+    def dataset_dir(self, out: Path) -> Path:
+        return out / "data" / self.name / "dataset"
+
+    def field_dir(self, out: Path) -> Path:
+        return out / "data" / self.name / "field"
+
+
+@dataclass(frozen=True)
+class SimulateJob:
+    config: SimulationConfig
+    out: str
+
+
+@dataclass(frozen=True)
+class FieldJob:
+    dataset_dir: str
+    config: FieldTrainConfig
+    out: str
+
+
+@dataclass(frozen=True)
+class ReconstructJob:
+    dataset_dir: str
+    request: ReconstructionRequest
+    out: str
+    field_dir: str | None
+
+
+@dataclass(frozen=True)
+class FinetuneJob:
+    model_dir: str
+    dataset_dir: str
+    field_dir: str
+    label_fraction: float
+    iters: int
+    seed: int
+    out: str
+    meshing: UltronConfig
+    metrics: MetricsConfig
+
+
+@dataclass(frozen=True)
+class Task:
+    """A node of the task graph: ``job`` runs after every task in ``deps`` succeeded."""
+
+    id: str
+    deps: tuple[str, ...]
+    job: SimulateJob | FieldJob | ReconstructJob | FinetuneJob
+
+    @property
+    def is_cell(self) -> bool:
+        return isinstance(self.job, ReconstructJob | FinetuneJob)
+
+
+@dataclass(frozen=True)
+class CellEntry:
+    """A table cell: (table, row, phantom, seed) → the task whose run directory holds it.
+    ``primary`` is False where the run is another table's cell reused (runtime counted once)."""
+
+    table: str
+    row: str
+    phantom: str
+    seed: int
+    task_id: str
+    run_dir: str  # relative to DIR
+    primary: bool
+
+    @property
+    def id(self) -> str:
+        return f"{self.table}/{self.row}/{self.phantom}-s{self.seed}"
+
+
+@dataclass
+class Plan:
+    """Tasks in a runnable order, the cells of each table, notes for the user."""
+
+    tasks: dict[str, Task] = field(default_factory=dict)
+    cells: list[CellEntry] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+    tables: list[str] = field(default_factory=list)
+
+
+def plan_benchmark(config: BenchmarkConfig, out: str | Path) -> Plan:
+    """The task graph and cells of ``config`` with outputs under ``out``."""
+    planner = _Planner(config, Path(out))
+    return planner.build()
+
+
+class _Planner:
+    def __init__(self, config: BenchmarkConfig, out: Path) -> None:
+        self.config, self.out, self.plan = config, out, Plan()
+
+    def build(self) -> Plan:
+        config, plan = self.config, self.plan
+        seeds = range(config.seeds)
+        plan.tables.append(TABLE1)
+        for phantom in config.phantoms:
+            for seed in seeds:
+                for row in TABLE1_ROWS:
+                    self.cell(TABLE1, row.name, DatasetSpec(phantom, seed), row)
+        if config.generalisation:
+            plan.tables.append(TABLE2)
+            missing = [p for p in (SOURCE_PHANTOM, TARGET_PHANTOM) if p not in config.phantoms]
+            if missing:
+                plan.notes.append(
+                    f"Table 2 (train on {SOURCE_PHANTOM}, apply to {TARGET_PHANTOM}) needs"
+                    f" {' and '.join(missing)}, not in --phantoms: simulated for Table 2 only"
+                )
+            for seed in seeds:
+                self.table2(seed)
+        else:
+            plan.notes.append("Table 2 skipped (--no-generalisation)")
+        if config.robustness:
+            plan.tables.append(ROBUSTNESS)
+            for seed in seeds:
+                for condition in (DEFAULT, ANNOTATION, POSE):
+                    spec = DatasetSpec(ROBUSTNESS_PHANTOM, seed, condition)
+                    for row in ROBUSTNESS_METHODS:
+                        self.cell(ROBUSTNESS, robustness_row(row, condition), spec, row)
+        return plan
+
+    def table2(self, seed: int) -> None:
+        source, target = DatasetSpec(SOURCE_PHANTOM, seed), DatasetSpec(TARGET_PHANTOM, seed)
+        model = self.run(source, ULTRON_10)
+        self.register(TABLE2, f"source model: {ULTRON_10.name} on {SOURCE_PHANTOM}", source, model)
+        for row in TABLE2_ROWS:
+            self.cell(TABLE2, row.name, target, row, model_task=model)
+
+    def dataset(self, spec: DatasetSpec) -> tuple[str, str]:
+        """Ids of the dataset's simulate and field tasks (added on first use)."""
+        sim_id, field_id = f"simulate:{spec.name}", f"field:{spec.name}"
+        if sim_id not in self.plan.tasks:
+            config = self.config
+            simulation = config.simulation.replace(phantom=spec.phantom, seed=spec.seed)
+            if spec.condition == ANNOTATION:
+                simulation = simulation.replace(annotation=config.robust_annotation)
+            elif spec.condition == POSE:
+                simulation = simulation.replace(tracking=config.robust_tracking)
+            dataset_dir = str(spec.dataset_dir(self.out))
+            self.plan.tasks[sim_id] = Task(sim_id, (), SimulateJob(simulation, dataset_dir))
+            job = FieldJob(
+                dataset_dir,
+                replace(config.field_fit, seed=spec.seed),
+                str(spec.field_dir(self.out)),
+            )
+            self.plan.tasks[field_id] = Task(field_id, (sim_id,), job)
+        return sim_id, field_id
+
+    def run(self, spec: DatasetSpec, row: Row, model_task: str | None = None) -> str:
+        """Id of the task computing ``row`` on ``spec`` (added on first use)."""
+        task_id = f"run:{spec.name}/{row.slug}"
+        if task_id in self.plan.tasks:
+            return task_id
+        sim_id, field_id = self.dataset(spec)
+        config, out = self.config, str(self.out / "runs" / spec.name / row.slug)
+        dataset_dir, field_dir = str(spec.dataset_dir(self.out)), str(spec.field_dir(self.out))
+        if row.method == "finetune":
+            if model_task is None:
+                raise argument_error("model_task", "a fine-tuning row needs its model's task")
+            model_dir = self.plan.tasks[model_task].job.out
+            job: Any = FinetuneJob(
+                model_dir, dataset_dir, field_dir, row.label_fraction, int(row.finetune_iters or 0),
+                spec.seed, out, config.ultron, config.metrics,
+            )  # fmt: skip
+            deps: tuple[str, ...] = (field_id, model_task)
+        else:
+            request = ReconstructionRequest(
+                method=row.method,
+                label_fraction=row.label_fraction,
+                seed=spec.seed,
+                ultron=config.ultron,
+                on=config.on,
+                rocosdf_preset=config.rocosdf_preset,
+                metrics=config.metrics,
+            )
+            needs_field = row.method in ("ultron", "ultron-noloss")
+            job = ReconstructJob(dataset_dir, request, out, field_dir if needs_field else None)
+            deps = (field_id,) if needs_field else (sim_id,)
+        self.plan.tasks[task_id] = Task(task_id, deps, job)
+        return task_id
+
+    def cell(
+        self, table: str, row_name: str, spec: DatasetSpec, row: Row, model_task: str | None = None
+    ) -> None:
+        self.register(table, row_name, spec, self.run(spec, row, model_task))
+
+    def register(self, table: str, row_name: str, spec: DatasetSpec, task_id: str) -> None:
+        primary = not any(c.task_id == task_id for c in self.plan.cells)
+        run_dir = Path(self.plan.tasks[task_id].job.out).relative_to(self.out).as_posix()
+        self.plan.cells.append(
+            CellEntry(table, row_name, spec.phantom, spec.seed, task_id, run_dir, primary)
+        )

@@ -1,0 +1,291 @@
+"""Running the benchmark's task graph: one task per process call, resumable, failures recorded.
+
+:func:`execute` runs one task (simulate a dataset, fit its field, reconstruct a cell, fine-tune
+a cell) and never raises: it returns an outcome dict ``{"status": "ok" | "skipped" | "failed",
+"error": str | None, "runtime_s": float, "cd": float | None}``. Work already done is skipped:
+a dataset whose ``dataset.json`` exists (its ``phantom.json`` must hold the same settings), a
+field marked ``done`` (as :func:`ultron.methods.field_cache.get_or_fit_field` marks it) whose
+``field.json`` holds the same training settings, a cell whose ``metrics.json`` exists. A
+failure's traceback goes to ``error.log`` in the task's output directory.
+
+:func:`run_tasks` runs a graph: in this process with ``jobs == 1``, otherwise in a
+``ProcessPoolExecutor`` of ``jobs`` spawned workers, each on ``threads`` torch threads. A task
+whose dependency failed is not run and fails with the reason.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+import traceback
+from collections.abc import Callable, Mapping, Sequence
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from pathlib import Path
+from typing import Any
+
+from ultron import atomic
+from ultron.benchmark.plan import FieldJob, FinetuneJob, ReconstructJob, SimulateJob, Task
+from ultron.errors import UltronInputError
+
+Outcome = dict[str, Any]
+#: Called with (task, outcome, tasks finished, tasks in total) as each task ends.
+Report = Callable[[Task, Outcome, int, int], None]
+
+FIELD_DONE = "done"  # the completion marker of ultron.methods.field_cache
+
+
+def default_threads(jobs: int) -> int:
+    """torch threads per task: the machine's cores shared among ``jobs`` workers, ≥ 1."""
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        cores = os.cpu_count() or 1
+    return max(1, cores // max(1, jobs))
+
+
+def _normalised(data: Any) -> Any:
+    return json.loads(json.dumps(data, default=str))
+
+
+def _previous_runtime(out: Path) -> float:
+    try:
+        run = json.loads((out / "run.json").read_text(encoding="utf-8"))
+        return float(run.get("timings_s", {}).get("total", 0.0))
+    except (OSError, ValueError, TypeError, AttributeError):
+        return 0.0
+
+
+def _cd(out: Path) -> float | None:
+    try:
+        metrics = json.loads((out / "metrics.json").read_text(encoding="utf-8"))
+        return float(metrics["mean"]["cd"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+
+
+def simulate(job: SimulateJob) -> bool:
+    """Simulate the dataset unless it exists; True when skipped."""
+    from ultron.phantom.dataset import simulate_dataset
+
+    out = Path(job.out)
+    if (out / "dataset.json").is_file():
+        saved = out / "phantom.json"
+        try:
+            previous = json.loads(saved.read_text(encoding="utf-8")).get("config")
+        except (OSError, ValueError) as exc:
+            raise UltronInputError(saved, "config", f"cannot be read ({exc})") from None
+        if _normalised(previous) != _normalised(job.config.to_dict()):
+            raise UltronInputError(
+                saved, "config", "simulated with other settings; use another --out directory"
+            )
+        return True
+    simulate_dataset(job.config, out=out)
+    return False
+
+
+def fit(job: FieldJob) -> bool:
+    """Fit the dataset's field unless it is done with the same settings; True when skipped."""
+    from ultron.data.dataset import SweepDataset
+    from ultron.fields.fitted import CHECKPOINT, FIELD_JSON, read_field_json
+    from ultron.train.field_fit import fit_field
+
+    out = Path(job.out)
+    done = all((out / name).is_file() for name in (FIELD_DONE, FIELD_JSON, CHECKPOINT))
+    if done and _normalised(read_field_json(out).get("train")) == _normalised(job.config.to_dict()):
+        return True
+    # resumes a checkpoint (also a larger iteration count); other settings are an error
+    fit_field(SweepDataset.load(job.dataset_dir), job.config, out, resume=True)
+    atomic.write_text(out / FIELD_DONE, "ok\n")
+    return False
+
+
+def reconstruct_cell(job: ReconstructJob) -> bool:
+    """One ``reconstruct`` cell unless its metrics.json exists; True when skipped."""
+    from ultron.methods.run import reconstruct
+
+    if (Path(job.out) / "metrics.json").is_file():
+        return True
+    reconstruct(job.dataset_dir, job.request, job.out, field_dir=job.field_dir)
+    return False
+
+
+def finetune_cell(job: FinetuneJob) -> bool:
+    """One Table 2 fine-tuning cell unless its metrics.json exists; True when skipped."""
+    if (Path(job.out) / "metrics.json").is_file():
+        return True
+    from ultron.methods.finetune import FinetuneConfig, finetune
+
+    config = FinetuneConfig(
+        label_fraction=job.label_fraction,
+        iters=job.iters,
+        seed=job.seed,
+        meshing=job.meshing,  # the benchmark's meshing and metrics
+        metrics=job.metrics,
+    )
+    finetune(job.model_dir, job.dataset_dir, config, job.out, field_dir=job.field_dir)
+    return False
+
+
+_HANDLERS: dict[type, Callable[[Any], bool]] = {
+    SimulateJob: simulate,
+    FieldJob: fit,
+    ReconstructJob: reconstruct_cell,
+    FinetuneJob: finetune_cell,
+}
+
+
+def execute(task: Task) -> Outcome:
+    """Run ``task`` (see the module doc); never raises."""
+    start = time.perf_counter()
+    out = Path(task.job.out)
+    try:
+        skipped = _HANDLERS[type(task.job)](task.job)
+    except Exception as exc:
+        message = f"{type(exc).__name__}: {exc}"
+        try:
+            atomic.write_text(out / "error.log", traceback.format_exc())
+        except OSError:
+            pass
+        return {"status": "failed", "error": message, "runtime_s": _elapsed(start), "cd": None}
+    (out / "error.log").unlink(missing_ok=True)
+    runtime = _previous_runtime(out) if skipped and task.is_cell else _elapsed(start)
+    return {
+        "status": "skipped" if skipped else "ok",
+        "error": None,
+        "runtime_s": runtime,
+        "cd": _cd(out) if task.is_cell else None,
+    }
+
+
+def _elapsed(start: float) -> float:
+    return round(time.perf_counter() - start, 3)
+
+
+def _init_worker(threads: int) -> None:
+    import torch
+
+    torch.set_num_threads(threads)
+
+
+def _blocked(task: Task, outcomes: Mapping[str, Outcome]) -> Outcome | None:
+    """The failed outcome of a task whose dependency failed, else None."""
+    for dep in task.deps:
+        if outcomes[dep]["status"] == "failed":
+            reason = outcomes[dep]["error"] or "failed"
+            if reason.startswith("not run: "):
+                reason = reason.removeprefix("not run: ")
+            else:
+                reason = f"{dep} failed ({reason})"
+            return {"status": "failed", "error": f"not run: {reason}", "runtime_s": 0.0, "cd": None}
+    return None
+
+
+class _Graph:
+    """Pending tasks and outcomes: hands out tasks whose dependencies have finished."""
+
+    def __init__(self, tasks: Sequence[Task], report: Report | None) -> None:
+        self.total, self.report = len(tasks), report
+        self.pending = list(tasks)
+        self.outcomes: dict[str, Outcome] = {}
+
+    def finish(self, task: Task, outcome: Outcome) -> None:
+        self.outcomes[task.id] = outcome
+        if self.report is not None:
+            self.report(task, outcome, len(self.outcomes), self.total)
+
+    def take_ready(self) -> list[Task]:
+        """Tasks now runnable; those blocked by a failed dependency are finished as failed."""
+        runnable: list[Task] = []
+        blocked_any = True
+        while blocked_any:  # a blocked task may unblock (as failed) the tasks after it
+            blocked_any = False
+            ready = [t for t in self.pending if all(d in self.outcomes for d in t.deps)]
+            for task in ready:
+                self.pending.remove(task)
+                blocked = _blocked(task, self.outcomes)
+                if blocked is None:
+                    runnable.append(task)
+                else:
+                    self.finish(task, blocked)
+                    blocked_any = True
+        return runnable
+
+
+def run_tasks(
+    tasks: Sequence[Task],
+    jobs: int = 1,
+    threads: int | None = None,
+    report: Report | None = None,
+    worker: Callable[[Task], Outcome] = execute,
+) -> dict[str, Outcome]:
+    """Run every task after its dependencies (module doc); outcomes by task id.
+
+    ``worker`` (a module-level function, picklable for the pool) runs one task.
+    """
+    ids = {t.id for t in tasks}
+    for task in tasks:
+        unknown = [d for d in task.deps if d not in ids]
+        if unknown:
+            raise UltronInputError("argument", "tasks", f"{task.id} depends on unknown {unknown}")
+    graph = _Graph(tasks, report)
+    threads = threads or default_threads(jobs)
+    if jobs == 1:
+        _run_serial(graph, threads, worker)
+    else:
+        _run_pool(graph, jobs, threads, worker)
+    for task in list(graph.pending):  # only reachable with a dependency cycle
+        graph.finish(task, {"status": "failed", "error": "dependency cycle", "runtime_s": 0.0})
+    return graph.outcomes
+
+
+def _run_serial(graph: _Graph, threads: int, worker: Callable[[Task], Outcome]) -> None:
+    import torch
+
+    previous = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    order = {task.id: i for i, task in enumerate(graph.pending)}
+    queue: list[Task] = []
+    try:  # always the earliest runnable task of the plan: a dataset's cells before the next's
+        while queue := sorted(queue + graph.take_ready(), key=lambda t: order[t.id]):
+            task = queue.pop(0)
+            graph.finish(task, worker(task))
+    finally:
+        torch.set_num_threads(previous)
+
+
+def _run_pool(graph: _Graph, jobs: int, threads: int, worker: Callable[[Task], Outcome]) -> None:
+    import multiprocessing
+
+    context = multiprocessing.get_context("spawn")
+    running: dict[Future, Task] = {}
+    with ProcessPoolExecutor(
+        max_workers=jobs, mp_context=context, initializer=_init_worker, initargs=(threads,)
+    ) as pool:
+
+        def submit_ready() -> None:
+            while ready := graph.take_ready():
+                for task in ready:
+                    try:
+                        running[pool.submit(worker, task)] = task
+                    except Exception as exc:  # e.g. a broken pool after a worker died
+                        graph.finish(task, _crash(exc))
+                if running:
+                    return
+
+        submit_ready()
+        while running:
+            done, _ = wait(list(running), return_when=FIRST_COMPLETED)
+            for future in done:
+                task = running.pop(future)
+                try:
+                    outcome = future.result()
+                except Exception as exc:  # the worker process died (e.g. out of memory)
+                    outcome = _crash(exc)
+                graph.finish(task, outcome)
+            submit_ready()
+
+
+def _crash(exc: BaseException) -> Outcome:
+    message = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
+    return {"status": "failed", "error": message, "runtime_s": 0.0, "cd": None}

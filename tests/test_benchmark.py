@@ -1,0 +1,317 @@
+"""``ultron benchmark``: the whole pipeline end to end on a tiny configuration, resume, failed
+cells, the task graph (also in spawned worker processes), aggregation, targets and the CLI."""
+
+from __future__ import annotations
+
+import json
+import math
+import pickle
+from dataclasses import replace
+from pathlib import Path
+
+import pytest
+from typer.testing import CliRunner
+
+from ultron.benchmark import (
+    BENCHMARK_JSON,
+    TABLE1_ROWS,
+    TABLE2_ROWS,
+    BenchmarkConfig,
+    Task,
+    plan_benchmark,
+    quick_config,
+    run_benchmark,
+    run_tasks,
+)
+from ultron.benchmark.plan import CellEntry, robustness_row
+from ultron.benchmark.tables import aggregate, table1_targets, table2_targets
+from ultron.errors import UltronInputError
+from ultron.fields.sdf import SDFNetworkConfig
+from ultron.methods import finetune as _finetune_module
+from ultron.methods.on_method import ONConfig
+from ultron.methods.rocosdf import RoCoSDFConfig
+from ultron.methods.ultron_method import UltronConfig
+from ultron.metrics.surface import MetricsConfig
+from ultron.phantom import ScanConfig, SimulationConfig
+from ultron.train.field_fit import FieldTrainConfig
+from ultron.train.neural_pull import RefineConfig, ResampleConfig, ViewFitConfig
+from ultron.train.occupancy import OccupancyTrainConfig
+
+TINY_SDF = SDFNetworkConfig(hidden=32, layers=4, skip_at=2)
+TINY_ROCOSDF = RoCoSDFConfig(
+    view_fit=ViewFitConfig(
+        network=TINY_SDF, iterations=100, batch_size=256, warmup=10, grid_queries=1000,
+        discriminator_hidden=32,
+    ),
+    resample=ResampleConfig(
+        grid_samples=5000, surface_samples=3000, grid_resolution=40, candidate_batch=20_000
+    ),
+    refine=RefineConfig(network=TINY_SDF, iterations=100, batch_size=256, warmup=10),
+    mesh_resolution=48,
+)  # fmt: skip
+
+
+def tiny_config(**changes) -> BenchmarkConfig:
+    """L3 (+ L2 for Table 2), one seed, row + column sweeps of 12 frames of 64 × 48 pixels,
+    60 field iterations, 300 occupancy iterations, 2 mm meshing voxels, 2000 metric points."""
+    occupancy = OccupancyTrainConfig(iters=300, batch_size=1024, lr=1e-3)
+    ultron = UltronConfig(occupancy=occupancy, voxel_mm=1.5)
+    on = ONConfig()
+    on = replace(on, occupancy=replace(on.occupancy, iters=300, batch_size=1024, lr=1e-3))
+    settings = {
+        "phantoms": ("L3",),
+        "seeds": 1,
+        "threads": 1,
+        "simulation": SimulationConfig(
+            sweeps=("row", "column"),
+            scan=ScanConfig(frames_per_sweep=12),
+            height_px=64,
+            width_px=48,
+            voxel_mm=0.6,
+        ),
+        "field_fit": FieldTrainConfig(
+            iterations=60, check_every=1000, checkpoint_every=1000, holdout_every=0,
+            max_check_frames=4,
+        ),
+        "ultron": ultron,
+        "on": replace(on, meshing=ultron),
+        "metrics": MetricsConfig(n_points=2000, repeats=1),
+    }  # fmt: skip
+    settings.update(changes)
+    return BenchmarkConfig(**settings)
+
+
+REAL_FINETUNE = _finetune_module.finetune
+
+
+def failing_finetune(monkeypatch, fail_iters: int | None) -> None:
+    """The real ``finetune``, except that it raises for ``iters == fail_iters``."""
+    from ultron.methods import finetune as module
+
+    def finetune(model_dir, dataset_dir, config, out_dir, field_dir=None) -> dict:
+        if config.iters == fail_iters:
+            raise RuntimeError("fine-tuning exploded")
+        return REAL_FINETUNE(model_dir, dataset_dir, config, out_dir, field_dir=field_dir)
+
+    monkeypatch.setattr(module, "finetune", finetune)
+
+
+@pytest.fixture
+def tiny_rocosdf(monkeypatch):
+    """RoCoSDF's ``fast`` preset shrunk to seconds (cells run in this process with jobs 1)."""
+    import ultron.methods.rocosdf as rocosdf
+
+    monkeypatch.setattr(rocosdf, "PRESETS", {"fast": TINY_ROCOSDF, "paper": TINY_ROCOSDF})
+
+
+@pytest.mark.slow
+def test_end_to_end_resume_and_failed_cells(tmp_path: Path, monkeypatch, tiny_rocosdf):
+    out = tmp_path / "bench"
+    failing_finetune(monkeypatch, 100)
+    lines: list[str] = []
+    first = run_benchmark(tiny_config(), out, log=lines.append)
+    assert any("L2, not in --phantoms" in line for line in lines)
+
+    payload = json.loads((out / BENCHMARK_JSON).read_text())
+    assert set(payload) == {"config", "markdown", "tables", "targets", "cells"}
+    assert set(payload["markdown"]) == set(payload["tables"]) == {"table1", "table2"}
+    markdown = (out / "tables.md").read_text()
+    for table, rows in (("table1", TABLE1_ROWS), ("table2", TABLE2_ROWS)):
+        assert [r["row"] for r in payload["tables"][table]] == [row.name for row in rows]
+        for row in rows:
+            assert f"| {row.name} |" in payload["markdown"][table]
+            assert f"| {row.name} |" in markdown
+    table1 = {r["row"]: r for r in payload["tables"]["table1"]}
+    ultron10 = table1["UltrON (10%)"]
+    assert ultron10["n"] == 1 and ultron10["std"]["cd"] == 0.0
+    assert ultron10["paper"] == {"cd": 2.22, "hd": 7.98, "mad": 1.67, "rmse": 2.69}
+    assert table1["compounding (100%)"]["paper"] is None
+    assert all(r["n"] == 1 and math.isfinite(r["mean"]["cd"]) for r in table1.values())
+    assert "↳ *paper*" in payload["markdown"]["table1"]
+
+    # the failed fine-tuning cell is recorded; the rest went on
+    cells = {c["id"]: c for c in payload["cells"]}
+    failed = cells["table2/1% + 100 iter/L2-s0"]
+    assert failed["status"] == "failed" and "fine-tuning exploded" in failed["error"]
+    assert (out / failed["run_dir"] / "error.log").is_file()
+    assert [c["id"] for c in first.failed_cells] == [failed["id"]]
+    table2 = {r["row"]: r for r in payload["tables"]["table2"]}
+    assert table2["1% + 100 iter"]["n"] == 0 and table2["1% + 100 iter"]["mean"]["cd"] is None
+    assert table2["w/o fine-tuning"]["n"] == 1 and table2["full training"]["n"] == 1
+    recovery = [t for t in payload["targets"] if "recovers" in t["name"]]
+    assert recovery[0]["met"] is None and "not measured" in recovery[0]["detail"]
+    assert "Failed cells (1)" in markdown
+    for cell in payload["cells"]:
+        assert set(cell) == {
+            "id", "table", "row", "phantom", "seed", "run_dir", "status", "error", "runtime_s",
+        }  # fmt: skip
+        assert not Path(cell["run_dir"]).is_absolute()
+        if cell["status"] == "ok" and cell["table"] == "table1":
+            assert cell["runtime_s"] > 0 and (out / cell["run_dir"] / "metrics.json").is_file()
+    assert {t["name"].split(" ")[0] for t in payload["targets"]} >= {"UltrON", "fine-tuning"}
+    assert all(t["met"] in (True, False, None) and t["detail"] for t in payload["targets"])
+
+    # resume: everything done is skipped; only the failed cell runs again (and now succeeds)
+    done = out / "runs" / "L3-s0" / "ultron-10" / "metrics.json"
+    stamp = done.stat().st_mtime_ns
+    failing_finetune(monkeypatch, None)
+    second = run_benchmark(tiny_config(), out)
+    assert second.executed == ["run:L2-s0/finetune-1pct-100"]
+    assert second.failed == [] and second.failed_cells == []
+    assert len(second.skipped) == len(first.executed) + len(first.failed) - 1
+    assert done.stat().st_mtime_ns == stamp
+    table2 = {r["row"]: r for r in second.payload["tables"]["table2"]}
+    assert table2["1% + 100 iter"]["n"] == 1
+    recovery = next(t for t in second.payload["targets"] if "recovers" in t["name"])
+    assert recovery["met"] is True and "recovered" in recovery["detail"]
+    reused = {c["id"]: c for c in second.payload["cells"]}["table1/UltrON (10%)/L3-s0"]
+    assert reused["runtime_s"] > 0  # a skipped cell reports its earlier run's time
+
+    # other result-shaping settings into the same DIR are refused
+    with pytest.raises(UltronInputError, match="metrics"):
+        run_benchmark(tiny_config(metrics=MetricsConfig(n_points=999, repeats=1)), out)
+
+
+def test_config_validation_names_the_argument():
+    with pytest.raises(UltronInputError, match=r"phantoms.*L9"):
+        BenchmarkConfig(phantoms=("L3", "L9"))
+    with pytest.raises(UltronInputError, match="seeds"):
+        BenchmarkConfig(seeds=0)
+    with pytest.raises(UltronInputError, match="jobs"):
+        BenchmarkConfig(jobs=0)
+    with pytest.raises(UltronInputError, match="threads"):
+        BenchmarkConfig(threads=0)
+    with pytest.raises(UltronInputError, match="preset"):
+        BenchmarkConfig(rocosdf_preset="slow")
+    with pytest.raises(UltronInputError, match="phantoms"):
+        BenchmarkConfig(phantoms=())
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--phantoms", "L3,L9"], "phantoms"),
+        (["--seeds", "0"], "seeds"),
+        (["--jobs", "0"], "jobs"),
+        (["--preset", "slow"], "preset"),
+    ],
+)
+def test_cli_rejects_bad_arguments(tmp_path: Path, args: list[str], message: str):
+    from ultron.cli.main import app
+
+    result = CliRunner().invoke(app, ["benchmark", "--out", str(tmp_path / "b"), *args])
+    assert result.exit_code == 2
+    assert "error:" in result.output and message in result.output
+    assert not (tmp_path / "b").exists()
+
+
+def test_cli_exits_non_zero_when_a_cell_failed(tmp_path: Path, monkeypatch):
+    import ultron.benchmark as benchmark
+    from ultron.benchmark.pipeline import BenchmarkResult
+    from ultron.cli.main import app
+
+    seen = {}
+
+    def fake_run(config, out, log=None):
+        seen["config"] = config
+        payload = {
+            "markdown": {"table1": "| UltrON (10%) | 1 |"},
+            "targets": [{"name": "t", "met": False, "detail": "d"}],
+            "cells": [{"id": "x", "run_dir": "runs/x", "status": "failed", "error": "boom"}],
+        }
+        return BenchmarkResult(out=Path(out), payload=payload, failed=["run:x"])
+
+    monkeypatch.setattr(benchmark, "run_benchmark", fake_run)
+    args = ["benchmark", "--quick", "--out", str(tmp_path), "--jobs", "2", "--robustness"]
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 1, result.output
+    assert "MISSED: t — d" in result.output and "boom" in result.output
+    config = seen["config"]
+    assert config.quick and config.phantoms == ("L3",) and config.seeds == 1
+    assert config.jobs == 2 and config.robustness and config.generalisation
+
+
+def test_plan_shares_runs_and_builds_robustness_datasets(tmp_path: Path):
+    config = BenchmarkConfig(phantoms=("L2", "L3"), seeds=2, robustness=True)
+    plan = plan_benchmark(config, tmp_path)
+    assert plan.tables == ["table1", "table2", "robustness"] and plan.notes == []
+    cells = {c.id: c for c in plan.cells}
+    full = cells["table2/full training/L2-s1"]
+    assert full.task_id == cells["table1/UltrON (10%)/L2-s1"].task_id and not full.primary
+    default = cells[f"robustness/{robustness_row(TABLE1_ROWS[0], 'default')}/L3-s0"]
+    assert default.run_dir == "runs/L3-s0/rocosdf-100" and not default.primary
+    annot = plan.tasks["simulate:L3-annot-s1"].job.config
+    assert annot.annotation == config.robust_annotation and annot.seed == 1
+    assert plan.tasks["simulate:L3-pose-s0"].job.config.tracking == config.robust_tracking
+    tuned = plan.tasks["run:L2-s0/finetune-1pct-100"]
+    assert set(tuned.deps) == {"field:L2-s0", "run:L3-s0/ultron-10"}
+    assert plan.tasks["run:L3-s0/rocosdf-100"].deps == ("simulate:L3-s0",)
+    assert plan.tasks["field:L2-s1"].job.config.seed == 1
+    for task in plan.tasks.values():  # tasks travel to spawned workers
+        assert pickle.loads(pickle.dumps(task)) == task
+    quiet = plan_benchmark(replace(config, generalisation=False, robustness=False), tmp_path)
+    assert quiet.tables == ["table1"] and "skipped" in quiet.notes[0]
+    quick = plan_benchmark(quick_config(), tmp_path)
+    assert {t.split(":")[1].split("/")[0] for t in quick.tasks} == {"L3-s0", "L2-s0"}
+
+
+def toy_worker(task: Task) -> dict:
+    """Fails the task called ``bad``; reports the worker's torch thread count."""
+    import torch
+
+    if task.id == "bad":
+        return {"status": "failed", "error": "bad task", "runtime_s": 0.0, "cd": None}
+    return {"status": "ok", "error": None, "runtime_s": float(torch.get_num_threads()), "cd": None}
+
+
+@pytest.mark.parametrize("jobs", [1, 2])
+def test_run_tasks_dependencies_and_failures(jobs: int):
+    tasks = [
+        Task("a", (), None),
+        Task("bad", ("a",), None),
+        Task("after-bad", ("bad",), None),
+        Task("after-after", ("after-bad",), None),
+        Task("c", ("a",), None),
+    ]
+    order: list[str] = []
+    outcomes = run_tasks(tasks, jobs, 1, lambda t, o, done, total: order.append(t.id), toy_worker)
+    assert set(outcomes) == {t.id for t in tasks} and len(order) == len(tasks)
+    assert order[0] == "a" and order.index("bad") < order.index("after-bad")
+    assert outcomes["c"]["status"] == "ok" and outcomes["c"]["runtime_s"] == 1.0
+    assert outcomes["bad"]["status"] == "failed"
+    assert outcomes["after-after"]["error"] == "not run: bad failed (bad task)"
+
+
+def _cell(table: str, row: str, seed: int, run_dir: str) -> CellEntry:
+    return CellEntry(table, row, "L3", seed, f"run:{run_dir}", run_dir, True)
+
+
+def test_aggregate_mean_std_and_targets(tmp_path: Path):
+    cells = []
+    for seed, cd in enumerate((2.0, 4.0)):
+        run_dir = f"runs/s{seed}/u"
+        (tmp_path / run_dir).mkdir(parents=True)
+        metrics = {"mean": dict.fromkeys(("cd", "hd", "mad", "rmse", "hd95", "completeness"), cd)}
+        (tmp_path / run_dir / "metrics.json").write_text(json.dumps(metrics))
+        cells.append(_cell("table1", "UltrON (10%)", seed, run_dir))
+    cells.append(_cell("table1", "ON (100%)", 0, "runs/missing"))
+    status = {c.task_id: "ok" for c in cells} | {"run:runs/missing": "failed"}
+    rows = {r["row"]: r for r in aggregate("table1", cells, status, tmp_path)}
+    assert rows["UltrON (10%)"]["n"] == 2 and rows["UltrON (10%)"]["mean"]["cd"] == 3.0
+    assert rows["UltrON (10%)"]["std"]["cd"] == pytest.approx(math.sqrt(2))
+    assert rows["ON (100%)"]["n"] == 0 and math.isnan(rows["ON (100%)"]["mean"]["cd"])
+
+    def row(name: str, cd: float) -> dict:
+        return {"row": name, "n": 1, "mean": {"cd": cd}}
+
+    measured = [
+        row("RoCoSDF (100%)", 3.0), row("ON (100%)", 2.9), row("UltrON w/o loss (10%)", 3.2),
+        row("UltrON (10%)", 2.1), row("UltrON (5%)", 2.4), row("compounding (10%)", 5.0),
+    ]  # fmt: skip
+    verdicts = [t["met"] for t in table1_targets(measured)]
+    assert verdicts == [True, True, True, True, False]  # 5%: +14% > +10%
+    assert "27.6% below" in table1_targets(measured)[1]["detail"]
+    gap = [row("w/o fine-tuning", 4.0), row("1% + 100 iter", 2.8), row("full training", 2.0)]
+    assert table2_targets(gap)[0]["met"] is True and "60%" in table2_targets(gap)[0]["detail"]
+    no_gap = [row("w/o fine-tuning", 2.0), row("1% + 100 iter", 2.0), row("full training", 2.5)]
+    assert table2_targets(no_gap)[0]["met"] is None

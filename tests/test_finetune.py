@@ -1,0 +1,178 @@
+"""Fine-tuning a trained UltrON network to a new shape, and the saved network files."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from ultron.data.dataset import SweepDataset
+from ultron.errors import UltronInputError
+from ultron.fields.fitted import load_field
+from ultron.fields.occupancy import OccupancyNetwork, OccupancyNetworkConfig
+from ultron.fields.sdf import SDFNetwork, SDFNetworkConfig
+from ultron.methods.finetune import FinetuneConfig, finetune, finetune_ultron, freeze_last_layers
+from ultron.methods.model_io import NETWORK_FILE, load_network, save_network
+from ultron.methods.run import ReconstructionRequest, reconstruct
+from ultron.methods.runinfo import StageTimer
+from ultron.methods.ultron_method import UltronConfig, mesh_occupancy, occupancy_function
+from ultron.metrics.surface import MetricsConfig
+from ultron.phantom import SimulationConfig, simulate_dataset
+from ultron.phantom.protocols import ScanConfig
+from ultron.train.field_fit import FieldTrainConfig, fit_field
+from ultron.train.occupancy import OccupancyTrainConfig
+
+FAST_METRICS = MetricsConfig(n_points=3_000, repeats=1)
+TINY_FIELD = FieldTrainConfig(iterations=400, check_every=1000, checkpoint_every=1000)
+
+
+def _tiny(root: Path) -> tuple[Path, Path]:
+    config = SimulationConfig(
+        sweeps=("row", "column"),
+        scan=ScanConfig(frames_per_sweep=12),
+        height_px=64,
+        width_px=48,
+    )
+    dataset_dir = root / "dataset"
+    simulate_dataset(config, out=dataset_dir)
+    field_dir = root / "field"
+    fit_field(SweepDataset.load(dataset_dir), TINY_FIELD, field_dir)
+    return dataset_dir, field_dir
+
+
+@pytest.fixture(scope="module")
+def shapes(tmp_path_factory) -> dict[str, Path]:
+    """A tiny L3 with its field and an UltrON model trained on it.
+
+    The "new shape" is the same tiny dataset: what is tested here is the mechanics (copying,
+    freezing, direct application, outputs); generalisation L3 → L2 is measured by
+    ``ultron benchmark``. A second simulation and field fit would double the test's cost.
+    """
+    root = tmp_path_factory.mktemp("finetune")
+    l3, l3_field = _tiny(root)
+    request = ReconstructionRequest(
+        method="ultron",
+        label_fraction=0.5,
+        ultron=UltronConfig(occupancy=OccupancyTrainConfig(iters=600, batch_size=1024, lr=1e-3)),
+        metrics=FAST_METRICS,
+    )
+    reconstruct(l3, request, root / "model", field_dir=l3_field)
+    return {"model": root / "model", "new": l3, "field": l3_field, "l3": l3}
+
+
+def _config(**changes) -> FinetuneConfig:
+    base = FinetuneConfig(label_fraction=0.2, iters=20, batch_size=1024, lr=1e-3,
+                          metrics=FAST_METRICS)  # fmt: skip
+    return replace(base, **changes)
+
+
+def test_reconstruct_saves_a_loadable_network(shapes):
+    network, meta = load_network(shapes["model"])
+    assert isinstance(network, OccupancyNetwork)
+    assert meta["method"] == "ultron" and meta["input"] == "theta" and meta["loss"] == "ultron"
+    assert meta["theta_channels"] == list(load_field(shapes["field"]).channels)
+    run = json.loads((shapes["model"] / "run.json").read_text())
+    assert Path(run["dataset_dir"]) == shapes["l3"].resolve()
+    assert "network" not in run and "model" not in run
+
+
+def test_freezing_keeps_last_two_layers_bit_identical(shapes):
+    network, _ = load_network(shapes["model"])
+    before = {k: v.clone() for k, v in network.state_dict().items()}
+    dataset, fitted = SweepDataset.load(shapes["new"]), load_field(shapes["field"])
+    result = finetune_ultron(dataset, fitted, network, "ultron", _config())
+    tuned = result.info["network"].state_dict()
+    frozen = {f"trunk.output.{p}" for p in ("weight", "bias")}
+    frozen |= {f"trunk.hidden.{len(network.trunk.hidden) - 1}.{p}" for p in ("weight", "bias")}
+    for name, value in before.items():
+        if name in frozen:
+            assert torch.equal(tuned[name], value), name
+        else:
+            assert not torch.equal(tuned[name], value), f"{name} did not change"
+    # the loaded model itself is a copy source: untouched
+    for name, value in network.state_dict().items():
+        assert torch.equal(value, before[name])
+    assert all(p.requires_grad for p in result.info["network"].parameters())
+    assert result.info["n_label_frames"] == 5  # ⌈0.2 × 24⌉
+    assert len(result.info["occupancy_log"]) >= 1
+
+
+def test_iters_zero_equals_direct_application(shapes, tmp_path):
+    config = _config(iters=0)
+    summary = finetune(shapes["model"], shapes["new"], config, tmp_path / "direct",
+                       field_dir=shapes["field"])  # fmt: skip
+    network, _ = load_network(shapes["model"])
+    dataset, fitted = SweepDataset.load(shapes["new"]), load_field(shapes["field"])
+    _, volume, _ = mesh_occupancy(
+        occupancy_function(fitted, network), dataset, config.meshing, StageTimer()
+    )
+    import nibabel
+
+    written = np.asarray(nibabel.load(tmp_path / "direct" / "occupancy.nii.gz").dataobj)
+    np.testing.assert_array_equal(written, volume.astype(written.dtype))
+    run = json.loads((tmp_path / "direct" / "run.json").read_text())
+    assert run["method"] == "ultron-finetune" and run["label_fraction"] == 0.0
+    assert "selection" not in run and summary["metrics"] is not None
+    direct, _ = load_network(tmp_path / "direct")  # the output is itself a MODEL_DIR
+    for name, value in network.state_dict().items():
+        assert torch.equal(direct.state_dict()[name], value)
+
+
+def test_finetune_cli_writes_reconstruct_outputs(shapes, tmp_path):
+    from typer.testing import CliRunner
+
+    from ultron.cli.main import app
+
+    out = tmp_path / "tuned"
+    result = CliRunner().invoke(
+        app,
+        ["finetune", str(shapes["model"]), str(shapes["new"]), "--out", str(out),
+         "--field", str(shapes["field"]), "--label-fraction", "0.1", "--iters", "5",
+         "--points", "2000"],
+    )  # fmt: skip
+    assert result.exit_code == 0, result.output
+    for name in ("mesh.ply", "occupancy.nii.gz", "metrics.json", "run.json", NETWORK_FILE):
+        assert (out / name).is_file(), name
+    run = json.loads((out / "run.json").read_text())
+    assert run["finetune_config"]["iters"] == 5 and run["n_label_frames"] == 3
+    assert Path(run["model_dir"]) == shapes["model"].resolve()
+
+
+def test_finetune_rejects_wrong_models(shapes, tmp_path):
+    with pytest.raises(UltronInputError, match=NETWORK_FILE):
+        finetune(tmp_path, shapes["new"], _config(), tmp_path / "x", shapes["field"])
+    save_network(tmp_path / "on", OccupancyNetwork(OccupancyNetworkConfig()), {"method": "on",
+                 "input": "unit_cube"})  # fmt: skip
+    with pytest.raises(UltronInputError, match="UltrON network"):
+        finetune(tmp_path / "on", shapes["new"], _config(), tmp_path / "x", shapes["field"])
+    (tmp_path / "bad").mkdir()
+    (tmp_path / "bad" / NETWORK_FILE).write_bytes(b"not a torch file")
+    with pytest.raises(UltronInputError, match="unreadable"):
+        load_network(tmp_path / "bad")
+    assert not (tmp_path / "x").exists()
+
+
+def test_finetune_config_validation():
+    with pytest.raises(ValueError, match="label_fraction"):
+        FinetuneConfig(label_fraction=0)
+    with pytest.raises(ValueError, match="iters"):
+        FinetuneConfig(iters=-1)
+    with pytest.raises(ValueError, match="frozen_layers"):
+        freeze_last_layers(OccupancyNetwork(), 10)
+
+
+def test_network_round_trip(tmp_path):
+    torch.manual_seed(0)
+    points = torch.rand(50, 3)
+    for network in (
+        OccupancyNetwork(),
+        SDFNetwork(SDFNetworkConfig(hidden=32, layers=4, skip_at=2)),
+    ):
+        save_network(tmp_path / type(network).__name__, network, {"input": "x"})
+        loaded, meta = load_network(tmp_path / type(network).__name__)
+        assert meta == {"input": "x"}
+        torch.testing.assert_close(loaded(points), network(points), rtol=0, atol=0)

@@ -1,0 +1,269 @@
+"""HTML reports: a tiny simulated run → run report and benchmark report; figure input checks."""
+
+from __future__ import annotations
+
+import base64
+import json
+import re
+import shutil
+from html.parser import HTMLParser
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from ultron.data.dataset import SweepDataset
+from ultron.errors import UltronInputError
+from ultron.report import write_benchmark_report, write_run_report
+from ultron.report.figures import (
+    frames_figure,
+    label_masks_figure,
+    loss_curves_figure,
+    mesh_distance_figure,
+)
+from ultron.report.html import PNG_SIGNATURE, image_html, markdown_table_html, table_html
+from ultron.report.sections import final_loss_rows, run_loss_curves
+
+VOID = {"area", "base", "br", "col", "embed", "hr", "img", "input", "link", "meta", "source",
+        "track", "wbr"}  # fmt: skip
+
+
+class _Checker(HTMLParser):
+    """Records the doctype, <img> sources, <figure> attributes; checks that tags balance."""
+
+    def __init__(self) -> None:
+        super().__init__(convert_charrefs=True)
+        self.doctype = ""
+        self.stack: list[str] = []
+        self.errors: list[str] = []
+        self.images: list[str] = []
+        self.figures: list[dict[str, str]] = []
+        self.tags: set[str] = set()
+
+    def handle_decl(self, decl: str) -> None:
+        self.doctype = decl
+
+    def handle_starttag(self, tag, attrs):
+        self.tags.add(tag)
+        attributes = {k: v or "" for k, v in attrs}
+        if tag == "img":
+            self.images.append(attributes.get("src", ""))
+        if tag == "figure":
+            self.figures.append(attributes)
+        if tag not in VOID:
+            self.stack.append(tag)
+
+    def handle_endtag(self, tag):
+        if tag in VOID:
+            return
+        if not self.stack or self.stack[-1] != tag:
+            self.errors.append(f"unexpected </{tag}> (open: {self.stack[-3:]})")
+        else:
+            self.stack.pop()
+
+
+def check_html(text: str) -> _Checker:
+    """Parse ``text``; assert valid structure and that it is self-contained."""
+    checker = _Checker()
+    checker.feed(text)
+    checker.close()
+    assert checker.doctype.lower() == "doctype html"
+    assert not checker.errors, checker.errors
+    assert not checker.stack, f"unclosed tags: {checker.stack}"
+    assert {"html", "head", "meta", "title", "body"} <= checker.tags
+    assert re.search(r'<html lang="[a-z]+">', text) and '<meta charset="utf-8">' in text
+    assert not re.search(r'(src|href)\s*=\s*"(https?:)?//', text)
+    assert "<script" not in text and "<link" not in text
+    for src in checker.images:
+        assert src.startswith("data:image/png;base64,")
+        assert base64.b64decode(src.split(",", 1)[1])[:8] == PNG_SIGNATURE
+    return checker
+
+
+def kinds(checker: _Checker) -> list[str]:
+    return [f.get("data-kind", "") for f in checker.figures]
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory) -> dict[str, Path]:
+    """A tiny L3 dataset (row + column sweeps, 12 frames of 64 × 48), a 4-step field and a
+    compounding run whose run.json names them (dataset_dir, field_dir)."""
+    from ultron.methods.run import ReconstructionRequest, reconstruct
+    from ultron.metrics.surface import MetricsConfig
+    from ultron.phantom import SimulationConfig, simulate_dataset
+    from ultron.phantom.protocols import ScanConfig
+    from ultron.train.field_fit import FieldTrainConfig, fit_field
+
+    root = tmp_path_factory.mktemp("report")
+    config = SimulationConfig(
+        sweeps=("row", "column"), scan=ScanConfig(frames_per_sweep=12), height_px=64, width_px=48
+    )
+    simulate_dataset(config, out=root / "dataset")
+    dataset = SweepDataset.load(root / "dataset")
+    fit_field(
+        dataset,
+        FieldTrainConfig(iterations=4, check_every=1000, checkpoint_every=1000, log_every=1),
+        root / "field",
+    )
+    request = ReconstructionRequest(
+        method="compounding", label_fraction=0.5, metrics=MetricsConfig(n_points=2000, repeats=1)
+    )
+    reconstruct(root / "dataset", request, root / "run")
+    run = json.loads((root / "run" / "run.json").read_text())
+    run.setdefault("dataset_dir", str(root / "dataset"))
+    run["field_dir"] = str(root / "field")
+    (root / "run" / "run.json").write_text(json.dumps(run))
+    return {"root": root, "dataset": root / "dataset", "field": root / "field", "run": root / "run"}
+
+
+def test_run_report_is_valid_self_contained_html(tiny_run):
+    path = write_run_report(tiny_run["run"])
+    assert path == tiny_run["run"] / "report.html"
+    assert not list(tiny_run["run"].glob(".*.tmp"))
+    text = path.read_text(encoding="utf-8")
+    checker = check_html(text)
+    # one image per section: mesh vs reference, frames with θ / T maps, label masks, losses
+    assert sorted(kinds(checker)) == ["frames", "labels", "losses", "mesh"]
+    assert len(checker.images) == 4
+    metrics = json.loads((tiny_run["run"] / "metrics.json").read_text())
+    assert f"{metrics['mean']['mad']:.3f}" in text and ">MAD<" in text
+    assert "compounding" in text and "Timings" in text and "peak memory" in text
+    assert "acoustic field" in text  # the field's train log is a loss curve
+
+
+def test_run_report_without_dataset_dir_skips_dataset_sections(tiny_run, tmp_path):
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    for name in ("mesh.ply", "metrics.json"):
+        shutil.copy(tiny_run["run"] / name, run_dir / name)
+    run = json.loads((tiny_run["run"] / "run.json").read_text())
+    run.pop("dataset_dir")
+    run.pop("field_dir")
+    (run_dir / "run.json").write_text(json.dumps(run))
+    text = write_run_report(run_dir).read_text(encoding="utf-8")
+    checker = check_html(text)
+    assert kinds(checker) == ["mesh"]
+    assert "no dataset_dir" in text and "No training logs" in text
+
+    dataset = SweepDataset.load(tiny_run["dataset"])  # given explicitly: B-mode frames only
+    checker = check_html(write_run_report(run_dir, dataset=dataset).read_text(encoding="utf-8"))
+    assert sorted(kinds(checker)) == ["frames", "labels", "mesh"]
+
+
+def test_run_report_rejects_bad_input(tmp_path):
+    with pytest.raises(UltronInputError, match="run_dir"):
+        write_run_report(tmp_path / "missing")
+    with pytest.raises(UltronInputError, match=r"run.json"):
+        write_run_report(tmp_path)
+    (tmp_path / "run.json").write_text("{}")
+    with pytest.raises(UltronInputError, match="dataset"):
+        write_run_report(tmp_path, dataset="not a dataset")
+
+
+def _bench_cell(cell_id: str, row: str, run_dir: str, status: str = "ok") -> dict:
+    error = None if status == "ok" else "boom"
+    return {
+        **{"id": cell_id, "table": "table1", "row": row, "phantom": "L3", "seed": 0},
+        **{"run_dir": run_dir, "status": status, "error": error},
+    }
+
+
+def test_benchmark_report_has_one_mesh_per_method(tiny_run, tmp_path):
+    bench = tmp_path / "bench"
+    for name, method in (("comp", "compounding"), ("ultron-a", "ultron"), ("ultron-b", "ultron")):
+        skip = shutil.ignore_patterns("*.stl", "*.obj", "*.nii.gz", "report.html")
+        shutil.copytree(tiny_run["run"], bench / "runs" / name, ignore=skip)
+        run = json.loads((bench / "runs" / name / "run.json").read_text())
+        run["method"] = method
+        run["occupancy_log"] = [{"step": s, "loss": 1.0 / (s + 1)} for s in range(0, 100, 10)]
+        if method != "ultron":
+            run.pop("field_dir")
+        (bench / "runs" / name / "run.json").write_text(json.dumps(run))
+    markdown = "| method | CD |\n|---|---:|\n| UltrON | 1.00 ± 0.10 |\n| Compounding <x> | 2.00 |"
+    benchmark = {
+        "config": {"phantoms": ["L3"]},
+        "markdown": {"table1": markdown},
+        "targets": [{"name": "UltrON beats compounding", "met": True, "detail": "1.0 < 2.0"}],
+        "cells": [
+            _bench_cell("a", "Compounding", "runs/comp"),
+            _bench_cell("b", "UltrON", "runs/missing", status="failed"),
+            _bench_cell("c", "UltrON", "runs/ultron-a"),
+            _bench_cell("d", "UltrON", "runs/ultron-b"),
+        ],
+    }
+    (bench / "benchmark.json").write_text(json.dumps(benchmark))
+    text = write_benchmark_report(bench).read_text(encoding="utf-8")
+    checker = check_html(text)
+    meshes = [f for f in checker.figures if f.get("data-kind") == "mesh"]
+    assert sorted(f["data-method"] for f in meshes) == ["Compounding", "UltrON"]
+    assert {f["data-method"]: f["data-cell"] for f in meshes}["UltrON"] == "c"
+    assert sorted(kinds(checker)) == ["frames", "labels", "losses", "mesh", "mesh"]
+    assert "<th>CD</th>" in text and "Compounding &lt;x&gt;" in text and "|---" not in text
+    assert "UltrON beats compounding" in text and "boom" in text
+
+
+def test_figures_reject_bad_input(tiny_run):
+    import trimesh
+
+    dataset = SweepDataset.load(tiny_run["dataset"])
+    box = trimesh.creation.box()
+    with pytest.raises(UltronInputError, match=r"mesh.*empty"):
+        mesh_distance_figure(trimesh.Trimesh(), box, "t")
+    with pytest.raises(UltronInputError, match=r"reference.*empty"):
+        mesh_distance_figure(box, trimesh.Trimesh(), "t")
+    with pytest.raises(UltronInputError, match="n_points"):
+        mesh_distance_figure(box, None, "t", n_points=0)
+    with pytest.raises(UltronInputError, match="no sweep 'nope'"):
+        frames_figure(dataset, None, "nope", [0])
+    with pytest.raises(UltronInputError, match=r"frame_indices.*out of range"):
+        frames_figure(dataset, None, "row", [99])
+    with pytest.raises(UltronInputError, match="frame_indices"):
+        frames_figure(dataset, None, "row", [])
+    with pytest.raises(UltronInputError, match="no sweep 'tilt'"):
+        label_masks_figure(dataset, {"tilt": [0]})
+    with pytest.raises(UltronInputError, match="max_frames"):
+        label_masks_figure(dataset, {"row": [0]}, max_frames=0)
+    with pytest.raises(UltronInputError, match="curves"):
+        loss_curves_figure({})
+    with pytest.raises(UltronInputError, match=r"'occupancy'.*loss"):
+        loss_curves_figure({"occupancy": [{"step": 0}]})
+    with pytest.raises(UltronInputError, match="png_bytes"):
+        image_html(b"GIF89a", "alt", "caption")
+    with pytest.raises(UltronInputError, match="markdown"):
+        markdown_table_html("no table here")
+
+
+def test_figures_make_pngs(tiny_run):
+    import trimesh
+
+    dataset = SweepDataset.load(tiny_run["dataset"])
+    box = trimesh.creation.box(extents=(10.0, 10.0, 10.0))
+    shifted = box.copy()
+    shifted.apply_translation((1.0, 0.0, 0.0))
+    for png in (
+        mesh_distance_figure(shifted, box, "box", n_points=2000),
+        mesh_distance_figure(box, None, "box alone", n_points=2000),
+        frames_figure(dataset, None, "column", [3, 8]),
+        label_masks_figure(dataset, {"row": [1, 5], "column": np.array([2])}, max_frames=2),
+        loss_curves_figure({"a": [{"step": 0, "loss": -1.0}, {"step": 1, "loss": float("nan")}]}),
+    ):
+        assert png[:8] == PNG_SIGNATURE
+
+
+def test_stage_logs_and_tables():
+    run = {
+        "occupancy_log": [{"step": 0, "loss": 0.5}],
+        "stage1": {"row": {"final_losses": {"loss": 0.02}, "history": [{"step": 1, "loss": 0.1}]}},
+        "stage3": {"final_losses": {"loss": 0.1, "zero": 0.05}},
+    }
+    curves = run_loss_curves(run, None)
+    assert list(curves) == ["occupancy", "stage1/row/history"]
+    assert final_loss_rows(run) == [
+        ("stage1/row", "loss", "0.0200"), ("stage3", "loss", "0.1000"), ("stage3", "zero", "0.0500")
+    ]  # fmt: skip
+    table = table_html(["a", "b"], [["<i>", 1.5]])
+    assert "&lt;i&gt;" in table and '<td class="num">1.5</td>' in table
+    with pytest.raises(UltronInputError, match="rows"):
+        table_html(["a", "b"], [["only one"]])
+    html = markdown_table_html("Caption\n| a | b \\| c |\n|:--|--:|\n| 1 | x |")
+    assert "<p>Caption</p>" in html and "<th>b | c</th>" in html and "<td>x</td>" in html
