@@ -45,6 +45,11 @@ class GridSpec:
         shape = np.ceil((box[1] - box[0]) / voxel_mm).astype(int) + 1 + 2 * pad_voxels
         return cls(tuple(float(o) for o in origin), float(voxel_mm), tuple(int(s) for s in shape))
 
+    def to_dict(self) -> dict[str, object]:
+        """JSON-able ``{"origin_mm": [...], "voxel_mm": v, "shape": [...]}`` (for run.json)."""
+        return {"origin_mm": list(self.origin_mm), "voxel_mm": self.voxel_mm,
+                "shape": list(self.shape)}  # fmt: skip
+
     @property
     def n_voxels(self) -> int:
         return int(np.prod(self.shape))

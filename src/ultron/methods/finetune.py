@@ -153,11 +153,7 @@ def finetune_ultron(
     mesh, volume, grid = mesh_occupancy(
         occupancy_function(fitted, model), dataset, config.meshing, timer
     )
-    info["grid"] = {
-        "origin_mm": list(grid.origin_mm),
-        "voxel_mm": grid.voxel_mm,
-        "shape": list(grid.shape),
-    }
+    info["grid"] = grid.to_dict()
     meta = {"input": "theta", "theta_channels": list(fitted.channels), "loss": loss}
     return Reconstruction(
         mesh=mesh, volume=volume, grid=grid, info=info | {"network": model, "model": meta}

@@ -89,8 +89,7 @@ def reconstruct_on(
         "unit_cube": cube.to_dict(),
         "occupancy_config": occupancy.to_dict(),
         "occupancy_log": log,
-        "grid": {"origin_mm": list(grid.origin_mm), "voxel_mm": grid.voxel_mm,
-                 "shape": list(grid.shape)},
+        "grid": grid.to_dict(),
     }  # fmt: skip
     model = {"input": "unit_cube", "unit_cube": cube.to_dict()}
     return Reconstruction(

@@ -431,11 +431,7 @@ def reconstruct_rocosdf(
     with stage("mesh"):
         grid = mesh_grid(frame_unit, normalisation, config)
         mesh, volume = mesh_sdf(network, normalisation, grid, config)
-    info["grid"] = {
-        "origin_mm": list(grid.origin_mm),
-        "voxel_mm": grid.voxel_mm,
-        "shape": list(grid.shape),
-    }
+    info["grid"] = grid.to_dict()
     info["volume"] = "sigmoid(-f / voxel): inside indicator, 0.5 on the zero level"
     model = {"input": "normalised_mm", "normalisation": info["normalisation"]}
     return Reconstruction(

@@ -163,11 +163,7 @@ def reconstruct_ultron(
         "n_bone_pixels": int(data.labels.sum()),
         "occupancy_config": occupancy_config.to_dict(),
         "occupancy_log": log,
-        "grid": {
-            "origin_mm": list(grid.origin_mm),
-            "voxel_mm": grid.voxel_mm,
-            "shape": list(grid.shape),
-        },
+        "grid": grid.to_dict(),
     }
     model = {
         "input": "theta",
