@@ -5,7 +5,8 @@ a cell) and never raises: it returns an outcome dict ``{"status": "ok" | "skippe
 "error": str | None, "runtime_s": float, "cd": float | None}``. Work already done is skipped:
 a dataset whose ``dataset.json`` exists (its ``phantom.json`` must hold the same settings), a
 field marked ``done`` (as :func:`ultron.methods.field_cache.get_or_fit_field` marks it) whose
-``field.json`` holds the same training settings, a cell whose ``metrics.json`` exists. A
+``field.json`` holds the same training settings, a cell whose ``run.json`` exists (written
+last by ``reconstruct`` and ``finetune``, after the mesh, network and metrics). A
 failure's traceback goes to ``error.log`` in the task's output directory.
 
 :func:`run_tasks` runs a graph: in this process with ``jobs == 1``, otherwise in a
@@ -101,18 +102,18 @@ def fit(job: FieldJob) -> bool:
 
 
 def reconstruct_cell(job: ReconstructJob) -> bool:
-    """One ``reconstruct`` cell unless its metrics.json exists; True when skipped."""
+    """One ``reconstruct`` cell unless its run.json exists; True when skipped."""
     from ultron.methods.run import reconstruct
 
-    if (Path(job.out) / "metrics.json").is_file():
+    if (Path(job.out) / "run.json").is_file():
         return True
     reconstruct(job.dataset_dir, job.request, job.out, field_dir=job.field_dir)
     return False
 
 
 def finetune_cell(job: FinetuneJob) -> bool:
-    """One Table 2 fine-tuning cell unless its metrics.json exists; True when skipped."""
-    if (Path(job.out) / "metrics.json").is_file():
+    """One Table 2 fine-tuning cell unless its run.json exists; True when skipped."""
+    if (Path(job.out) / "run.json").is_file():
         return True
     from ultron.methods.finetune import FinetuneConfig, finetune
 

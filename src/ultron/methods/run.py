@@ -115,8 +115,9 @@ def write_outputs(
     extra: dict[str, Any] | None = None,
     report: bool = True,
 ) -> dict[str, Any]:
-    """Write the mesh, volume, metrics (with a reference), the occupancy network (when the
-    method has one, ``network.pt``, see :mod:`ultron.methods.model_io`) and run.json; return the summary.
+    """Write the mesh, volume, the trained network (``network.pt`` when the method has one, see
+    :mod:`ultron.methods.model_io`), metrics (with a reference) and, last, run.json; return the
+    summary. run.json therefore marks a finished run (the report aside).
 
     ``identity`` (method, label_fraction, seed, …) heads run.json and tags metrics.json.
     With ``report``, ``report.html`` follows run.json (:mod:`ultron.report.run_report`); its
@@ -128,6 +129,9 @@ def write_outputs(
         for suffix in (".ply", ".stl", ".obj"):
             save_mesh(result.mesh, out / f"mesh{suffix}")
         save_volume_nifti(result.volume, result.grid, out / "occupancy.nii.gz")
+        if "network" in result.info:
+            meta = {"method": identity["method"], **result.info.get("model", {})}
+            save_network(out, result.info["network"], meta)
     metrics = None
     if dataset.reference is not None:
         with timer.stage("metrics"):
@@ -136,10 +140,6 @@ def write_outputs(
         metrics["label_fraction"] = identity.get("label_fraction")
         atomic.write_json(out / "metrics.json", metrics)
     info = {k: v for k, v in result.info.items() if k not in ("network", "model")}
-    if "network" in result.info:
-        with timer.stage("write"):
-            meta = {"method": identity["method"], **result.info.get("model", {})}
-            save_network(out, result.info["network"], meta)
     payload = {
         **identity,
         "mesh": {"vertices": len(result.mesh.vertices), "faces": len(result.mesh.faces),
