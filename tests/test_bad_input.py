@@ -52,6 +52,11 @@ def _truncate(root: Path) -> None:
     path.write_bytes(path.read_bytes()[:100])
 
 
+def _not_a_mesh(root: Path) -> None:
+    (root / "reference_visible.ply").write_text("this is not a mesh\n")
+    _edit_json(root, lambda m: m.update(reference_visible="reference_visible.ply"))
+
+
 # case name → (mutation, file expected in the message, field expected in the message)
 CASES: dict[str, tuple[Callable[[Path], None], str, str]] = {
     "missing_dataset_json": (
@@ -157,6 +162,26 @@ CASES: dict[str, tuple[Callable[[Path], None], str, str]] = {
         lambda r: _edit_json(r, lambda m: m.update(reference="reference.ply")),
         "reference.ply",
         "missing",
+    ),
+    "reference_visible_file_missing": (
+        lambda r: _edit_json(r, lambda m: m.update(reference_visible="reference_visible.ply")),
+        "reference_visible.ply",
+        "missing",
+    ),
+    "reference_visible_not_a_mesh": (
+        _not_a_mesh,
+        "reference_visible.ply",
+        "not a readable PLY",
+    ),
+    "transmission_wrong_dtype": (
+        lambda r: np.save(r / "row" / "transmission.npy", np.ones((3, 8, 6), np.float32)),
+        "transmission.npy",
+        "float16",
+    ),
+    "transmission_out_of_range": (
+        lambda r: np.save(r / "row" / "transmission.npy", np.full((3, 8, 6), 2.0, np.float16)),
+        "transmission.npy",
+        "[0, 1]",
     ),
 }
 

@@ -33,6 +33,7 @@ from ultron.methods.rocosdf import RoCoSDFConfig
 from ultron.methods.ultron_method import UltronConfig
 from ultron.metrics.surface import MetricsConfig
 from ultron.phantom import ScanConfig, SimulationConfig
+from ultron.report.tables import LABELS
 from ultron.train.field_fit import FieldTrainConfig
 from ultron.train.neural_pull import RefineConfig, ResampleConfig, ViewFitConfig
 from ultron.train.occupancy import OccupancyTrainConfig
@@ -116,6 +117,12 @@ def test_end_to_end_resume_and_failed_cells(tmp_path: Path, monkeypatch, tiny_ro
     assert set(payload) == {"config", "markdown", "tables", "targets", "cells"}
     assert set(payload["markdown"]) == set(payload["tables"]) == {"table1", "table2"}
     markdown = (out / "tables.md").read_text()
+    # The visible-reference figures lead the tables (the tiny phantom has a visible reference).
+    header = next(line for line in markdown.splitlines() if line.startswith("| row |"))
+    assert header.split("|")[3:5] == [
+        f" {LABELS['cd_visible']} (mm) ",
+        f" {LABELS['completeness_visible']} (mm) ",
+    ]
     for table, rows in (("table1", TABLE1_ROWS), ("table2", TABLE2_ROWS)):
         assert [r["row"] for r in payload["tables"][table]] == [row.name for row in rows]
         for row in rows:
@@ -127,6 +134,7 @@ def test_end_to_end_resume_and_failed_cells(tmp_path: Path, monkeypatch, tiny_ro
     assert ultron10["paper"] == {"cd": 2.22, "hd": 7.98, "mad": 1.67, "rmse": 2.69}
     assert table1["compounding (100%)"]["paper"] is None
     assert all(r["n"] == 1 and math.isfinite(r["mean"]["cd"]) for r in table1.values())
+    assert all(math.isfinite(r["mean"]["cd_visible"]) for r in table1.values())
     assert "↳ *paper*" in payload["markdown"]["table1"]
 
     # the failed fine-tuning cell is recorded; the rest went on

@@ -45,6 +45,8 @@ def test_saved_layout_matches_format(tiny_dataset_dir: Path):
     assert meta["probe"] == {"width_mm": 12.0, "depth_mm": 16.0}
     assert meta["sweeps"] == [{"name": "row", "kind": "row"}, {"name": "column", "kind": "column"}]
     assert meta["reference"] is None
+    assert "reference_visible" not in meta  # optional: only when there is one
+    assert SweepDataset.load(tiny_dataset_dir).reference_visible_path is None
     assert np.load(tiny_dataset_dir / "row" / "images.npy").dtype == np.uint8
     assert np.load(tiny_dataset_dir / "column" / "labels.npy").shape == (4, 8, 6)
     assert not list(tiny_dataset_dir.rglob("*.tmp"))  # no temporary files left behind
@@ -58,6 +60,32 @@ def test_reference_is_copied_and_reloaded(tmp_path: Path, tiny_dataset: SweepDat
     loaded = SweepDataset.load(tmp_path / "ds")
     assert loaded.reference == tmp_path / "ds" / "reference.ply"
     assert loaded.reference.read_bytes() == mesh.read_bytes()
+
+
+def test_ground_truth_files_round_trip(tmp_path: Path, tiny_dataset: SweepDataset):
+    """transmission.npy (per sweep) and reference_visible.ply: optional, kept by save/load."""
+    mesh = tmp_path / "seen.ply"
+    mesh.write_text("ply\nformat ascii 1.0\nelement vertex 0\nend_header\n")
+    row = tiny_dataset.sweep("row")
+    row.true_transmission = np.linspace(1, 0, row.images.size).reshape(row.images.shape)
+    row.true_transmission = row.true_transmission.astype(np.float16)
+    tiny_dataset.reference_visible_path = mesh
+    tiny_dataset.save(tmp_path / "ds")
+    meta = json.loads((tmp_path / "ds" / "dataset.json").read_text())
+    assert meta["reference_visible"] == "reference_visible.ply" and meta["reference"] is None
+    loaded = SweepDataset.load(tmp_path / "ds")
+    assert loaded.reference_visible_path == tmp_path / "ds" / "reference_visible.ply"
+    assert loaded.reference_visible_path.read_bytes() == mesh.read_bytes()
+    got = loaded.sweep("row").true_transmission
+    assert got.dtype == np.float16 and got.tobytes() == row.true_transmission.tobytes()
+    assert loaded.sweep("column").true_transmission is None
+    assert not (tmp_path / "ds" / "column" / "transmission.npy").exists()
+    with pytest.raises(UltronInputError, match=r"transmission.*float16"):
+        row.true_transmission = row.true_transmission.astype(np.float32)
+        row.__post_init__()
+    with pytest.raises(UltronInputError, match=r"transmission.*\[0, 1\]"):
+        row.true_transmission = np.full(row.images.shape, 1.5, np.float16)
+        row.__post_init__()
 
 
 def test_reference_key_may_be_absent(tiny_dataset_dir: Path):

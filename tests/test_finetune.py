@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 from dataclasses import replace
 from pathlib import Path
 
@@ -75,6 +76,7 @@ def test_reconstruct_saves_a_loadable_network(shapes):
     assert isinstance(network, OccupancyNetwork)
     assert meta["method"] == "ultron" and meta["input"] == "theta" and meta["loss"] == "ultron"
     assert meta["theta_channels"] == list(load_field(shapes["field"]).channels)
+    assert meta["transmission_source"] == "field" and meta["diagnostic"] is False
     run = json.loads((shapes["model"] / "run.json").read_text())
     assert Path(run["dataset_dir"]) == shapes["l3"].resolve()
     assert "network" not in run and "model" not in run
@@ -139,6 +141,7 @@ def test_finetune_cli_writes_reconstruct_outputs(shapes, tmp_path):
         assert (out / name).is_file(), name
     run = json.loads((out / "run.json").read_text())
     assert run["finetune_config"]["iters"] == 5 and run["n_label_frames"] == 3
+    assert run["transmission_source"] == "field"  # the model's own source
     assert Path(run["model_dir"]) == shapes["model"].resolve()
 
 
@@ -154,6 +157,40 @@ def test_finetune_rejects_wrong_models(shapes, tmp_path):
     with pytest.raises(UltronInputError, match="unreadable"):
         load_network(tmp_path / "bad")
     assert not (tmp_path / "x").exists()
+
+
+def test_finetune_uses_the_given_or_the_models_transmission_source(shapes, tmp_path):
+    from ultron.train.visibility import VisibilityConfig
+
+    network, _ = load_network(shapes["model"])
+    dataset, fitted = SweepDataset.load(shapes["new"]), load_field(shapes["field"])
+    labels = VisibilityConfig("labels")
+    config = _config(iters=5, visibility=labels, meshing=UltronConfig(voxel_mm=2.0))
+    result = finetune_ultron(dataset, fitted, network, "ultron", config)
+    assert result.info["transmission_source"] == "labels"
+    assert result.info["model"]["transmission_source"] == "labels"
+    assert result.info["model"]["transmission_parameters"] == {"margin_mm": 0.0, "decay_mm": 1.0}
+    assert result.info["transmission_stats"]["bone_mean"] == 1.0  # T = 1 through the band
+    # a model trained with the oracle keeps it: the new dataset's true T must exist, checked
+    # before any work (no field fitted, nothing written)
+    save_network(tmp_path / "oracle", network, {"method": "ultron", "input": "theta",
+                 "loss": "ultron", "theta_channels": list(fitted.channels),
+                 "transmission_source": "oracle"})  # fmt: skip
+    plain = tmp_path / "plain"  # the new dataset without the simulator's transmission.npy
+    shutil.copytree(shapes["new"], plain)
+    for path in plain.glob("*/transmission.npy"):
+        path.unlink()
+    with pytest.raises(UltronInputError, match=r"transmission\.npy.*ultron simulate"):
+        finetune(tmp_path / "oracle", plain, _config(), tmp_path / "x", shapes["field"])
+    assert not (tmp_path / "x").exists()
+    from typer.testing import CliRunner
+
+    from ultron.cli.main import app
+
+    result = CliRunner().invoke(app, ["finetune", str(shapes["model"]), str(shapes["new"]),
+                                      "--out", str(tmp_path / "y"), "--visibility", "magic"])  # fmt: skip
+    assert result.exit_code == 2 and "visibility" in result.stderr
+    assert not (tmp_path / "y").exists()
 
 
 def test_finetune_config_validation():

@@ -142,6 +142,67 @@ def test_labels_only_on_visible_bone(small):
         assert not (bone & below_band).any()
 
 
+def test_true_transmission_is_one_above_bone_and_dark_in_its_shadow(small):
+    _config, _data, out = small
+    phantom = get_phantom("L3")
+    loaded = SweepDataset.load(out)
+    probe = loaded.probe
+    step = probe.axial_spacing_mm
+    for sweep in loaded.sweeps:
+        t = np.load(out / sweep.name / "transmission.npy")
+        assert t.dtype == np.float16 and t.shape == sweep.images.shape
+        assert t.min() >= 0 and t.max() <= 1 and (t[:, 0] == 1).all()
+        np.testing.assert_array_equal(sweep.true_transmission, t)
+    sweep = loaded.sweep("row")
+    t = sweep.true_transmission.astype(np.float64)
+    shadow, lit = [], []
+    for frame in range(sweep.n_frames):
+        pose = sweep.true_probe_to_world[frame]
+        depth, _ = first_bone_depth(phantom, pose, probe)
+        for col in np.flatnonzero(np.isfinite(depth) & (depth > 15) & (depth < 55)):
+            # a shadow column: the beam stays in bone for 2 mm past the surface
+            x = (col - probe.width_px / 2) * probe.lateral_spacing_mm
+            below = depth[col] + np.array([0.5, 1.0, 1.5, 2.0])
+            world = pose[:3, 3] + x * pose[:3, 0] + below[:, None] * pose[:3, 1]
+            r = int(depth[col] / step)
+            lit.append(t[frame, : r - 2, col].min())
+            if (phantom.sdf(torch.as_tensor(world)) < 0).all():
+                shadow.append(t[frame, r + int(4 / step) :, col].max())
+    assert len(shadow) > 50
+    assert max(shadow) < 0.1
+    # gel only above the bone, compensated by the TGC (but where the beam grazes bone within
+    # half a pixel: the simulator's partial-volume occupancy attenuates there)
+    assert np.median(lit) == 1.0 and np.mean(np.array(lit) > 0.99) > 0.95
+
+
+def test_visible_reference_is_a_subset_seen_from_the_probe(small):
+    config, data, out = small
+    import json
+
+    import trimesh
+
+    loaded = SweepDataset.load(out)
+    assert loaded.reference_visible_path == out / "reference_visible.ply"
+    assert data.reference_visible_path is not None
+    assert json.loads((out / "dataset.json").read_text())["reference_visible"] == (
+        "reference_visible.ply"
+    )
+    reference = trimesh.load(loaded.reference, process=False)
+    visible = trimesh.load(loaded.reference_visible_path, process=False)
+    assert 0 < len(visible.faces) < 0.5 * len(reference.faces)
+    # a sub-mesh of the reference: its vertices are reference vertices
+    known = {tuple(v) for v in np.asarray(reference.vertices)}
+    assert all(tuple(v) in known for v in np.asarray(visible.vertices))
+    # faces the probe (beam +y): outward normals point back at it
+    assert (visible.face_normals[:, 1] < 0).mean() > 0.95
+    criterion = json.loads((out / "phantom.json").read_text())["reference_visible"]
+    assert criterion["max_incidence_deg"] == 70.0 and criterion["min_transmission"] == 0.3
+    slabs = criterion["slab_half_thickness_mm"]
+    assert set(slabs) == {"row", "column"}
+    assert min(slabs.values()) >= config.bmode.elevation_span_mm
+    assert criterion["faces_visible"] == len(visible.faces)
+
+
 def test_labels_follow_visibility_threshold(small):
     _config, data, _ = small
     phantom = get_phantom("L3")
@@ -265,6 +326,8 @@ def test_same_seed_same_bytes_other_seed_other_images(tmp_path):
         "tilt_m10/labels.npy",
         "tilt_m10/poses.npy",
         "tilt_m10/true_poses.npy",
+        "tilt_m10/transmission.npy",
+        "reference_visible.ply",
     }
     for f in files:
         assert (tmp_path / "a" / f).read_bytes() == (tmp_path / "b" / f).read_bytes(), f

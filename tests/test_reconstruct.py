@@ -79,6 +79,8 @@ def test_ultron_end_to_end(tiny: Path, tmp_path: Path, monkeypatch):
     run = _check_outputs(tmp_path / "out", with_metrics=True)
     assert run["field_cached"] is False
     assert run["n_bone_pixels"] > 0
+    assert run["transmission_source"] == "field" and run["diagnostic"] is False
+    assert 0 <= run["transmission_stats"]["background_mean"] <= 1
     mesh = load_mesh(tmp_path / "out" / "mesh.ply")
     assert len(mesh.faces) > 100
     # a smoke test of the whole pipeline on a 64 × 48-pixel, 24-frame phantom: the surface must

@@ -22,7 +22,7 @@ from ultron.report.figures import (
     mesh_distance_figure,
 )
 from ultron.report.html import PNG_SIGNATURE, image_html, markdown_table_html, table_html
-from ultron.report.sections import final_loss_rows, run_loss_curves
+from ultron.report.sections import final_loss_rows, metrics_html, run_loss_curves
 
 VOID = {"area", "base", "br", "col", "embed", "hr", "img", "input", "link", "meta", "source",
         "track", "wbr"}  # fmt: skip
@@ -127,6 +127,9 @@ def test_run_report_is_valid_self_contained_html(tiny_run):
     assert len(checker.images) == 4
     metrics = json.loads((tiny_run["run"] / "metrics.json").read_text())
     assert f"{metrics['mean']['mad']:.3f}" in text and ">MAD<" in text
+    # the simulated dataset's visible reference: the visible figures are measured and shown
+    assert metrics["mean"]["cd_visible"] is not None and ">CD vis.<" in text
+    assert f"{metrics['mean']['cd_visible']:.3f}" in text and "one-sided" in text
     assert "compounding" in text and "Timings" in text and "peak memory" in text
     assert "acoustic field" in text  # the field's train log is a loss curve
 
@@ -267,3 +270,14 @@ def test_stage_logs_and_tables():
         table_html(["a", "b"], [["only one"]])
     html = markdown_table_html("Caption\n| a | b \\| c |\n|:--|--:|\n| 1 | x |")
     assert "<p>Caption</p>" in html and "<th>b | c</th>" in html and "<td>x</td>" in html
+
+
+def test_metrics_html_shows_unmeasured_as_na():
+    metrics = {
+        "mean": {"cd_visible": None, "cd": 1.25, "hd": float("inf")},
+        "std": {"cd_visible": None, "cd": 0.5, "hd": float("nan")},
+        "config": {"repeats": 2, "n_points": 100},
+    }
+    text = metrics_html(metrics)
+    assert "<td>cd_visible</td><td>n/a</td>" in text
+    assert "1.250 ± 0.500" in text and "inf" in text and "None" not in text

@@ -3,7 +3,11 @@ that names the file or argument and says what was expected; the CLI prints it an
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from pathlib import Path
+from typing import Any, TypeVar
+
+_Config = TypeVar("_Config")
 
 
 class UltronError(Exception):
@@ -27,3 +31,12 @@ class UltronInputError(UltronError, ValueError):
 def argument_error(name: str, problem: str) -> UltronInputError:
     """An :class:`UltronInputError` about a function or CLI argument called ``name``."""
     return UltronInputError("argument", name, problem)
+
+
+def config_from_dict(cls: type[_Config], data: Mapping[str, Any], name: str) -> _Config:
+    """``cls(**data)`` for a config dataclass read from JSON; unknown or missing entries become
+    an :func:`argument_error` naming ``name`` instead of a TypeError."""
+    try:
+        return cls(**data)
+    except TypeError as exc:
+        raise argument_error(name, f"unexpected entries ({exc})") from None

@@ -126,6 +126,8 @@ def _reporter(say: Log) -> Callable[[Task, Outcome, int, int], None]:
         line = f"[{done}/{total}] {task.id}: {status}"
         if status == "ok":
             line += f" in {outcome['runtime_s']:.1f} s"
+        if outcome.get("cd_visible") is not None:
+            line += f", CD vis. {outcome['cd_visible']:.3f} mm"
         if outcome.get("cd") is not None:
             line += f", CD {outcome['cd']:.3f} mm"
         if status == "failed":

@@ -2,7 +2,8 @@
 
 :func:`execute` runs one task (simulate a dataset, fit its field, reconstruct a cell, fine-tune
 a cell) and never raises: it returns an outcome dict ``{"status": "ok" | "skipped" | "failed",
-"error": str | None, "runtime_s": float, "cd": float | None}``. Work already done is skipped:
+"error": str | None, "runtime_s": float, "cd": float | None}`` (a cell's outcome also holds
+``"cd_visible"``, None without a visible reference). Work already done is skipped:
 a dataset whose ``dataset.json`` exists (its ``phantom.json`` must hold the same settings), a
 field marked ``done`` (as :func:`ultron.methods.field_cache.get_or_fit_field` marks it) whose
 ``field.json`` holds the same training settings, a cell whose ``run.json`` exists (written
@@ -57,10 +58,11 @@ def _previous_runtime(out: Path) -> float:
         return 0.0
 
 
-def _cd(out: Path) -> float | None:
+def _cd(out: Path, name: str = "cd") -> float | None:
+    """Metric ``name``'s mean in ``out/metrics.json`` (None when missing, unreadable or null)."""
     try:
         metrics = json.loads((out / "metrics.json").read_text(encoding="utf-8"))
-        return float(metrics["mean"]["cd"])
+        return float(metrics["mean"][name])
     except (OSError, ValueError, KeyError, TypeError):
         return None
 
@@ -156,6 +158,7 @@ def execute(task: Task) -> Outcome:
         "error": None,
         "runtime_s": runtime,
         "cd": _cd(out) if task.is_cell else None,
+        "cd_visible": _cd(out, "cd_visible") if task.is_cell else None,
     }
 
 

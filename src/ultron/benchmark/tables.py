@@ -1,7 +1,9 @@
 """Aggregating the benchmark's cells into tables, markdown next to the paper, and targets.
 
 A row's figure is the mean ± standard deviation (ddof 1; 0 for a single cell) over its cells
-(phantoms × seeds) of each cell's metric means; ``n`` counts the cells that succeeded. Only the
+(phantoms × seeds) of each cell's metric means; ``n`` counts the cells that succeeded. A metric
+no cell measured (the visible-reference figures of datasets without ``reference_visible``, or
+of ``metrics.json`` files written before they existed) is None and shows as "n/a". Only the
 measured ``metrics.json`` files are read: nothing here is hard-coded but the paper's figures.
 """
 
@@ -63,12 +65,15 @@ def row_names(table: str) -> list[str]:
     raise KeyError(table)
 
 
-def read_cell_metrics(out: Path, run_dir: str) -> dict[str, float] | None:
-    """The metric means of one cell's ``metrics.json`` (None when missing or unreadable)."""
+def read_cell_metrics(out: Path, run_dir: str) -> dict[str, float | None] | None:
+    """The metric means of one cell's ``metrics.json`` (None when missing or unreadable; a
+    metric it does not hold, or holds as null, is None)."""
     try:
         data = json.loads((out / run_dir / "metrics.json").read_text(encoding="utf-8"))
-        return {m: float(data["mean"][m]) for m in METRICS}
-    except (OSError, ValueError, KeyError, TypeError):
+        means = data["mean"]
+        float(means["cd"])
+        return {m: None if means.get(m) is None else float(means[m]) for m in METRICS}
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
         return None
 
 
@@ -80,16 +85,21 @@ def aggregate(
     rows = []
     for name in row_names(table):
         values: dict[str, list[float]] = {m: [] for m in METRICS}
+        n = 0
         for cell in cells:
             if cell.table != table or cell.row != name or status[cell.task_id] == "failed":
                 continue
             metrics = read_cell_metrics(out, cell.run_dir)
             if metrics is not None:
+                n += 1
                 for m in METRICS:
-                    values[m].append(metrics[m])
-        n = len(values[METRICS[0]])
-        mean = {m: float(np.mean(v)) if v else math.nan for m, v in values.items()}
-        std = {m: _std(v) for m, v in values.items()}
+                    if metrics[m] is not None:
+                        values[m].append(metrics[m])
+        # no cell: NaN (the row shows "—"); cells that did not measure the metric: None ("n/a")
+        mean = {
+            m: float(np.mean(v)) if v else math.nan if n == 0 else None for m, v in values.items()
+        }
+        std = {m: _std(v) if v or n == 0 else None for m, v in values.items()}
         rows.append(
             {"row": name, "n": n, "mean": mean, "std": std, "paper": paper_means(table, name)}
         )
@@ -135,6 +145,9 @@ def markdown_table(table: str, rows: Sequence[Mapping[str, Any]]) -> str:
     lines.append("")
     lines.append(
         "mean ± std over phantoms × seeds of each cell's mean; n = cells that succeeded;"
+        f" {LABELS['cd_visible']} and {LABELS['completeness_visible']}: against the part of the"
+        " reference the sweeps could see (n/a without one), accuracy against the whole"
+        " reference; HD and HD95 are one-sided (reconstruction → reference);"
         f" paper: its figures ({', '.join(LABELS[m] for m in PAPER_METRICS)} only)"
     )
     return "\n".join(lines)

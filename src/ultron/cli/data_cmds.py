@@ -96,7 +96,12 @@ def info(
         + "  ".join(
             f"{axis} [{lo:.2f}, {hi:.2f}]" for axis, lo, hi in zip("xyz", *bounds, strict=True)
         ),
-        f"reference: {data.reference.name if data.reference else 'none'}",
+        f"reference: {data.reference.name if data.reference else 'none'}"
+        + (
+            f" (visible part: {data.reference_visible_path.name})"
+            if data.reference_visible_path
+            else ""
+        ),
     ]
     for line in lines:
         console.print(line, highlight=False)

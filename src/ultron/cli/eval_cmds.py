@@ -14,6 +14,14 @@ from ultron.cli.common import console, user_errors
 def evaluate(
     mesh: Annotated[Path, typer.Argument(help="Reconstructed mesh (.ply, .stl, .obj), world mm.")],
     reference: Annotated[Path, typer.Argument(help="Reference mesh, world mm.")],
+    reference_visible: Annotated[
+        Path | None,
+        typer.Option(
+            "--reference-visible",
+            help="The part of the reference the sweeps could see (e.g. a simulated dataset's "
+            "reference_visible.ply): adds CD vis. and Comp. vis. [default: n/a].",
+        ),
+    ] = None,
     points: Annotated[int, typer.Option("--points", help="Points sampled per surface.")] = 100_000,
     repeats: Annotated[int, typer.Option("--repeats", help="Repeats with different seeds.")] = 3,
     seed: Annotated[int, typer.Option("--seed", help="First sampling seed.")] = 0,
@@ -21,18 +29,22 @@ def evaluate(
         Path | None, typer.Option("--out", help="JSON output [default: MESH with .metrics.json].")
     ] = None,
 ) -> None:
-    """Compare MESH with REFERENCE: CD, HD, MAD, RMSE, HD95, completeness, F-scores (mean ± std)."""
+    """Compare MESH with REFERENCE: CD, HD, MAD, RMSE, HD95 (one-sided and symmetric),
+    completeness, F-scores and, with --reference-visible, CD and completeness against the
+    visible part (mean ± std)."""
     from ultron import atomic
     from ultron.mesh.export import load_mesh
     from ultron.metrics.surface import MetricsConfig, evaluate_meshes
-    from ultron.report.tables import metrics_table
+    from ultron.report.tables import metrics_column_table
 
     config = MetricsConfig(n_points=points, repeats=repeats, seed=seed)
     recon = load_mesh(mesh, allow_empty=True)
     ref = load_mesh(reference)
-    result = evaluate_meshes(recon, ref, config)
+    visible = None if reference_visible is None else load_mesh(reference_visible)
+    result = evaluate_meshes(recon, ref, config, reference_visible=visible)
     result["mesh"], result["reference"] = str(mesh), str(reference)
-    console.print(metrics_table({mesh.name: result}, title=f"{mesh.name} vs {reference.name} (mm)"))
+    result["reference_visible"] = None if reference_visible is None else str(reference_visible)
+    console.print(metrics_column_table(result, title=f"{mesh.name} vs {reference.name} (mm)"))
     target = out or mesh.with_name(mesh.stem + ".metrics.json")
     atomic.write_json(target, result)
     console.print(f"wrote {target}")

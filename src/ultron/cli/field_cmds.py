@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 from typing import Annotated
 
@@ -24,10 +25,39 @@ def _parse_shape(text: str | None) -> tuple[int, int] | None:
 def fit_field_command(
     dataset: Annotated[Path, typer.Argument(help="Dataset directory (ultron-sweeps/1).")],
     out: Annotated[Path, typer.Option("--out", help="FIELD_DIR to write (resumed if it exists).")],
+    preset: Annotated[
+        str,
+        typer.Option(
+            "--preset",
+            help="default (grid, Ultra-NeRF's heads), shadow (grid, φ floor 0.1 and a 500-step"
+            " φ warm-up: the shadow goes into T) or paper (Ultra-NeRF as published: 8 × 128"
+            " MLP, 75k iterations).",
+        ),
+    ] = "default",
     backend: Annotated[
-        str, typer.Option("--backend", help="grid (fast, default) or mlp (the paper's network).")
-    ] = "grid",
-    iters: Annotated[int, typer.Option("--iters", help="Training iterations.")] = 3000,
+        str | None,
+        typer.Option(
+            "--backend", help="grid (fast) or mlp (the paper's network); default: preset's."
+        ),
+    ] = None,
+    iters: Annotated[
+        int | None, typer.Option("--iters", help="Training iterations (default: preset's).")
+    ] = None,
+    scattering_floor: Annotated[
+        float | None,
+        typer.Option(
+            "--scattering-floor",
+            help="Lower bound φ_min of the scattering amplitude (0: allow anechoic regions);"
+            " default: preset's (shadow 0.1, else 0).",
+        ),
+    ] = None,
+    scattering_warmup: Annotated[
+        int | None,
+        typer.Option(
+            "--scattering-warmup",
+            help="Steps with φ held constant before it is learned (default: preset's).",
+        ),
+    ] = None,
     seed: Annotated[int, typer.Option("--seed", help="Seed of initialisation and batches.")] = 0,
     holdout_every: Annotated[
         int,
@@ -61,17 +91,24 @@ def fit_field_command(
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
     from ultron.data.dataset import SweepDataset
-    from ultron.fields import FieldConfig
-    from ultron.train import FieldTrainConfig, fit_field
+    from ultron.train import field_preset, fit_field
 
     if threads is not None:
         if threads < 1:
             raise argument_error("--threads", f"expected ≥ 1, got {threads}")
         torch.set_num_threads(threads)
     data = SweepDataset.load(dataset)
-    config = FieldTrainConfig(
-        field=FieldConfig(backend=backend),
-        iterations=iters,
+    changes = {
+        "backend": backend,
+        "iterations": iters,
+        "scattering_warmup_iters": scattering_warmup,
+    }
+    if scattering_floor is not None:
+        base = field_preset(preset).field.heads
+        changes["heads"] = replace(base, scattering_floor=scattering_floor)
+    config = field_preset(
+        preset,
+        **{k: v for k, v in changes.items() if v is not None},
         seed=seed,
         holdout_every=holdout_every,
         fit_shape=_parse_shape(fit_shape),
@@ -87,7 +124,7 @@ def fit_field_command(
         TimeElapsedColumn(),
     )
     with Progress(*columns, console=console, transient=False) as bar:
-        task = bar.add_task("fit", total=iters, loss=0.0, psnr=0.0, holdout="—")
+        task = bar.add_task("fit", total=config.iterations, loss=0.0, psnr=0.0, holdout="—")
 
         def progress(entry: dict) -> None:
             extra = {}
@@ -103,7 +140,7 @@ def fit_field_command(
     stats = fitted.theta_stats
     console.print(
         f"wrote {out}: field.json, checkpoint.pt, theta_stats.json, train_log.jsonl"
-        f" ({backend}, fitted at {fitted.probe.height_px}×{fitted.probe.width_px} px)",
+        f" ({config.field.backend}, fitted at {fitted.probe.height_px}×{fitted.probe.width_px} px)",
         highlight=False,
     )
     if stats is not None:

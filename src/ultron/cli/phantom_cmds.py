@@ -130,8 +130,11 @@ def simulate(
         highlight=False,
         soft_wrap=True,
     )
+    visible = dataset.reference_visible_path
     console.print(
-        f"wrote {out / 'dataset.json'}, {out / 'reference.ply'}, {out / 'phantom.json'}",
+        f"wrote {out / 'dataset.json'}, {out / 'reference.ply'}, {out / 'phantom.json'}"
+        + (f", {visible}" if visible is not None else "")
+        + " and each sweep's transmission.npy (ground truth for diagnosis)",
         highlight=False,
         soft_wrap=True,
     )

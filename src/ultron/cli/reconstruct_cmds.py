@@ -46,14 +46,19 @@ def _request(
     occupancy_iters: int | None,
     points: int,
     preset: str = "fast",
+    visibility: str = "field",
+    oracle: bool = False,
+    surface: str = "observed",
 ):
     from dataclasses import replace
 
+    from ultron.mesh.observed import ObservedSurfaceConfig
     from ultron.methods.on_method import ONConfig
     from ultron.methods.run import ReconstructionRequest
     from ultron.methods.ultron_method import UltronConfig
     from ultron.metrics.surface import MetricsConfig
     from ultron.train.occupancy import OccupancyTrainConfig
+    from ultron.train.visibility import visibility_config
 
     occupancy = (
         OccupancyTrainConfig(seed=seed)
@@ -67,7 +72,11 @@ def _request(
         method=method,
         label_fraction=label_fraction,
         seed=seed,
-        ultron=UltronConfig(occupancy=occupancy),
+        ultron=UltronConfig(
+            occupancy=occupancy,
+            visibility=visibility_config(visibility, oracle),
+            observed=ObservedSurfaceConfig(surface=surface),
+        ),
         on=on,
         rocosdf_preset=preset,
         metrics=MetricsConfig(n_points=points),
@@ -117,11 +126,39 @@ def reconstruct(
     preset: Annotated[
         str, typer.Option("--preset", help="RoCoSDF/UNSR settings: fast or paper.")
     ] = "fast",
+    visibility: Annotated[
+        str,
+        typer.Option(
+            "--visibility",
+            help="Source of the loss's transmission T (ultron*): field (the fitted acoustic "
+            "field), confidence (the frame's ultrasound confidence map) or labels (the "
+            "annotation's first bone run per scanline).",
+        ),
+    ] = "field",
+    oracle_transmission: Annotated[
+        bool,
+        typer.Option(
+            "--oracle-transmission",
+            help="Diagnostic (ultron*): train with the simulator's true T "
+            "(<sweep>/transmission.npy of a simulated dataset).",
+        ),
+    ] = False,
+    surface: Annotated[
+        str,
+        typer.Option(
+            "--surface",
+            help="ultron*: observed (keep the faces some frame saw facing the probe with"
+            " T ≥ 0.3 above them, default) or all (the closed iso-surface).",
+        ),
+    ] = "observed",
 ) -> None:
     """Reconstruct a bone surface: mesh.ply/.stl/.obj, occupancy.nii.gz, metrics.json, run.json."""
     from ultron.methods.run import reconstruct as run
 
-    request = _request(method, label_fraction, seed, occupancy_iters, points, preset)
+    request = _request(
+        method, label_fraction, seed, occupancy_iters, points, preset, visibility,
+        oracle_transmission, surface,
+    )  # fmt: skip
     bar, update = _field_progress()
     with bar:
         summary = run(
@@ -211,18 +248,27 @@ def finetune(
     points: Annotated[
         int, typer.Option("--points", help="Points per surface for metrics.")
     ] = 100_000,
+    visibility: Annotated[
+        str | None,
+        typer.Option(
+            "--visibility",
+            help="Source of the loss's T: field, confidence or labels [default: the model's].",
+        ),
+    ] = None,
 ) -> None:
     """Adapt a trained UltrON network to a new shape: freeze its last two layers, train the rest
     on a few labelled frames through the new dataset's own acoustic field, mesh, evaluate."""
     from ultron.methods.finetune import FinetuneConfig
     from ultron.methods.finetune import finetune as run
     from ultron.metrics.surface import MetricsConfig
+    from ultron.train.visibility import visibility_config
 
     config = FinetuneConfig(
         label_fraction=label_fraction,
         iters=iters,
         seed=seed,
         metrics=MetricsConfig(n_points=points),
+        visibility=None if visibility is None else visibility_config(visibility),
     )
     bar, update = _field_progress()
     with bar:

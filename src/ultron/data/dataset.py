@@ -13,7 +13,15 @@ A dataset is a directory::
 
 Optional additions of ultron (readers of the plain format may ignore them): a top-level
 ``"metadata"`` object, and per sweep an optional ``"true_poses"`` file name
-(``<sweep>/true_poses.npy``) holding the untracked-error poses of simulated data.
+(``<sweep>/true_poses.npy``) holding the untracked-error poses of simulated data. Ground truth
+of simulated data, for diagnosis only (never read by a reconstruction):
+
+    <sweep>/transmission.npy  float16 (N, H, W) in [0, 1]: the true transmission reaching every
+                              pixel (exclusive, row 0 = 1, TGC-compensated; see
+                              :mod:`ultron.phantom.simulator`), read when present
+    reference_visible.ply     the part of the reference some frame could image (see
+                              :mod:`ultron.phantom.visibility`), named by the optional
+                              top-level key ``"reference_visible"``
 """
 
 from __future__ import annotations
@@ -35,8 +43,10 @@ from ultron.data.validation import (
     load_npy,
     validate_images,
     validate_labels,
+    validate_mesh_file,
     validate_poses,
     validate_positive,
+    validate_transmission,
 )
 from ultron.errors import UltronInputError, argument_error
 
@@ -44,6 +54,7 @@ FORMAT = "ultron-sweeps/1"
 SWEEP_KINDS = ("row", "column", "tilted", "other")
 _NAME_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
 _REFERENCE_SUFFIXES = (".ply", ".stl", ".obj", ".off")
+TRANSMISSION_FILE = "transmission.npy"
 
 
 @dataclass(frozen=True)
@@ -86,7 +97,9 @@ class ProbeGeometry:
 
 @dataclass
 class Sweep:
-    """One tracked sweep: frames, their probe-to-world poses and optional labels."""
+    """One tracked sweep: frames, their probe-to-world poses and optional labels; for simulated
+    data optionally the true poses and the true transmission (N, H, W) float16 (diagnosis only,
+    ``<sweep>/transmission.npy``)."""
 
     name: str
     kind: str
@@ -94,6 +107,7 @@ class Sweep:
     probe_to_world: np.ndarray
     labels: np.ndarray | None = None
     true_probe_to_world: np.ndarray | None = None
+    true_transmission: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         where = f"sweep {self.name!r}"
@@ -121,6 +135,8 @@ class Sweep:
             validate_poses(self.true_probe_to_world, where, "true_poses")
             self.true_probe_to_world = np.asarray(self.true_probe_to_world, dtype=np.float64)
             _check_count(self.true_probe_to_world, n, where, "true_poses")
+        if self.true_transmission is not None:
+            _check_transmission(self.true_transmission, self.images.shape, where)
 
     @property
     def n_frames(self) -> int:
@@ -135,6 +151,18 @@ class Sweep:
         return np.flatnonzero(annotated)
 
 
+def _check_transmission(
+    transmission: np.ndarray, image_shape: tuple[int, ...], where: str | Path
+) -> None:
+    validate_transmission(transmission, where, "transmission")
+    if transmission.shape != image_shape:
+        raise UltronInputError(
+            where,
+            "transmission",
+            f"shape {transmission.shape} differs from images {tuple(image_shape)}",
+        )
+
+
 def _check_count(array: np.ndarray, n: int, where: str | Path, field_name: str) -> None:
     if array.shape[0] != n:
         raise UltronInputError(
@@ -144,12 +172,15 @@ def _check_count(array: np.ndarray, n: int, where: str | Path, field_name: str) 
 
 @dataclass
 class SweepDataset:
-    """A set of tracked sweeps sharing one probe geometry, with an optional reference surface."""
+    """A set of tracked sweeps sharing one probe geometry, with an optional reference surface
+    and, for simulated data, its visible part (``reference_visible_path``: the faces some frame
+    could image; for metrics only, never read by a reconstruction)."""
 
     probe: ProbeGeometry
     sweeps: list[Sweep]
     reference: Path | None = None
     metadata: dict[str, Any] = field(default_factory=dict)
+    reference_visible_path: Path | None = None
 
     def __post_init__(self) -> None:
         if not self.sweeps:
@@ -221,22 +252,22 @@ class SweepDataset:
                 )
         probe = ProbeGeometry(width_mm, depth_mm, int(shape[0]), int(shape[1]))
 
-        reference = meta.get("reference")
-        reference_path: Path | None = None
-        if reference is not None:
-            if not isinstance(reference, str) or not reference:
-                raise UltronInputError(
-                    meta_path, "reference", f"expected a file name or null, got {reference!r}"
-                )
-            reference_path = root / reference
-            if not reference_path.is_file():
-                raise UltronInputError(
-                    reference_path, "reference", "reference mesh file is missing"
-                )
+        reference_path = _reference_path(root, meta_path, meta, "reference")
+        if reference_path is not None and not reference_path.is_file():
+            raise UltronInputError(reference_path, "reference", "reference mesh file is missing")
+        visible_path = _reference_path(root, meta_path, meta, "reference_visible")
+        if visible_path is not None:
+            validate_mesh_file(visible_path, "reference_visible")
         metadata = meta.get("metadata", {})
         if not isinstance(metadata, dict):
             raise UltronInputError(meta_path, "metadata", "expected an object")
-        return cls(probe=probe, sweeps=sweeps, reference=reference_path, metadata=metadata)
+        return cls(
+            probe=probe,
+            sweeps=sweeps,
+            reference=reference_path,
+            metadata=metadata,
+            reference_visible_path=visible_path,
+        )
 
     def save(self, path: str | Path, only_sweeps: Collection[str] | None = None) -> None:
         """Write the dataset to directory ``path`` atomically.
@@ -267,13 +298,17 @@ class SweepDataset:
         for sweep in self.sweeps:
             if only_sweeps is None or sweep.name in only_sweeps:
                 self._save_sweep(root, sweep)
-        reference_name = None
+        reference_name = visible_name = None
         if self.reference is not None:
-            reference_name = self._save_reference(root)
-        atomic.write_json(root / "dataset.json", self.to_json(reference_name))
+            reference_name = _copy_mesh(root, self.reference, "reference")
+        if self.reference_visible_path is not None:
+            visible_name = _copy_mesh(root, self.reference_visible_path, "reference_visible")
+        atomic.write_json(root / "dataset.json", self.to_json(reference_name, visible_name))
 
-    def to_json(self, reference_name: str | None) -> dict[str, Any]:
-        """The ``dataset.json`` content."""
+    def to_json(
+        self, reference_name: str | None, reference_visible_name: str | None = None
+    ) -> dict[str, Any]:
+        """The ``dataset.json`` content (``"reference_visible"`` only when there is one)."""
         sweeps = []
         for sweep in self.sweeps:
             entry: dict[str, Any] = {"name": sweep.name, "kind": sweep.kind}
@@ -287,6 +322,8 @@ class SweepDataset:
             "sweeps": sweeps,
             "reference": reference_name,
         }
+        if reference_visible_name is not None:
+            meta["reference_visible"] = reference_visible_name
         if self.metadata:
             meta["metadata"] = self.metadata
         return meta
@@ -296,28 +333,44 @@ class SweepDataset:
         folder = root / sweep.name
         atomic.save_npy(folder / "images.npy", sweep.images)
         atomic.save_npy(folder / "poses.npy", sweep.probe_to_world)
-        optional = {"labels.npy": sweep.labels, "true_poses.npy": sweep.true_probe_to_world}
+        optional = {
+            "labels.npy": sweep.labels,
+            "true_poses.npy": sweep.true_probe_to_world,
+            TRANSMISSION_FILE: sweep.true_transmission,
+        }
         for name, array in optional.items():
             if array is not None:
                 atomic.save_npy(folder / name, array)
             else:  # a replaced sweep must not inherit its predecessor's files
                 (folder / name).unlink(missing_ok=True)
 
-    def _save_reference(self, root: Path) -> str:
-        assert self.reference is not None
-        source = Path(self.reference)
-        suffix = source.suffix.lower()
-        if suffix not in _REFERENCE_SUFFIXES:
-            raise UltronInputError(source, "reference", f"expected one of {_REFERENCE_SUFFIXES}")
-        name = f"reference{suffix}"
-        target = root / name
-        if not source.is_file():
-            raise UltronInputError(source, "reference", "reference mesh file is missing")
-        if not (target.exists() and target.resolve() == source.resolve()):
-            tmp = target.with_name(f".{name}.tmp")
-            shutil.copyfile(source, tmp)
-            tmp.replace(target)
-        return name
+
+def _reference_path(root: Path, meta_path: Path, meta: dict[str, Any], key: str) -> Path | None:
+    """``root / meta[key]`` for a file name, None for an absent key or null."""
+    name = meta.get(key)
+    if name is None:
+        return None
+    if not isinstance(name, str) or not name:
+        raise UltronInputError(meta_path, key, f"expected a file name or null, got {name!r}")
+    return root / name
+
+
+def _copy_mesh(root: Path, source: str | Path, stem: str) -> str:
+    """Copy the mesh ``source`` to ``root/<stem><suffix>`` atomically (unless it is that file);
+    returns the file name."""
+    source = Path(source)
+    suffix = source.suffix.lower()
+    if suffix not in _REFERENCE_SUFFIXES:
+        raise UltronInputError(source, stem, f"expected one of {_REFERENCE_SUFFIXES}")
+    name = f"{stem}{suffix}"
+    target = root / name
+    if not source.is_file():
+        raise UltronInputError(source, stem, f"{stem.replace('_', ' ')} mesh file is missing")
+    if not (target.exists() and target.resolve() == source.resolve()):
+        tmp = target.with_name(f".{name}.tmp")
+        shutil.copyfile(source, tmp)
+        tmp.replace(target)
+    return name
 
 
 def _read_json(path: Path) -> dict[str, Any]:
@@ -373,6 +426,11 @@ def _load_sweep(root: Path, meta_path: Path, index: int, entry: Any) -> Sweep:
         true_poses = load_npy(true_path, "true_poses")
         validate_poses(true_poses, true_path, "true_poses")
         _check_count(true_poses, images.shape[0], true_path, "true_poses")
+    transmission = None
+    transmission_path = folder / TRANSMISSION_FILE
+    if transmission_path.exists():
+        transmission = load_npy(transmission_path, "transmission")
+        _check_transmission(transmission, images.shape, transmission_path)
     return Sweep(
         name=name,
         kind=kind,
@@ -380,4 +438,5 @@ def _load_sweep(root: Path, meta_path: Path, index: int, entry: Any) -> Sweep:
         probe_to_world=poses,
         labels=labels,
         true_probe_to_world=true_poses,
+        true_transmission=transmission,
     )

@@ -117,6 +117,48 @@ def validate_labels(labels: np.ndarray, where: str | Path, field: str = "labels"
         )
 
 
+def validate_transmission(
+    transmission: np.ndarray, where: str | Path, field: str = "transmission"
+) -> None:
+    """A true transmission map (``<sweep>/transmission.npy``): float16 (N, H, W), finite, every
+    value in [0, 1]."""
+    if not isinstance(transmission, np.ndarray):
+        raise UltronInputError(
+            where, field, f"expected a numpy array, got {type(transmission).__name__}"
+        )
+    if transmission.dtype != np.float16:
+        raise UltronInputError(where, field, f"expected dtype float16, got {transmission.dtype}")
+    if transmission.ndim != 3 or min(transmission.shape) < 1:
+        raise UltronInputError(
+            where, field, f"expected a non-empty (N, H, W) array, got {transmission.shape}"
+        )
+    finite = np.isfinite(transmission)
+    if not finite.all():
+        frame = int(np.flatnonzero(~finite.all(axis=(1, 2)))[0])
+        raise UltronInputError(where, field, f"frame {frame} contains NaN or inf")
+    low, high = float(transmission.min()), float(transmission.max())
+    if low < 0.0 or high > 1.0:
+        raise UltronInputError(
+            where, field, f"values span [{low:g}, {high:g}], expected transmissions in [0, 1]"
+        )
+
+
+def validate_mesh_file(path: Path, field: str) -> None:
+    """A mesh file that exists, can be opened and is not empty (a PLY must start with ``ply``);
+    its triangles are read only where it is used."""
+    if not path.is_file():
+        raise UltronInputError(path, field, "mesh file is missing")
+    try:
+        with path.open("rb") as handle:
+            head = handle.read(3)
+    except OSError as exc:
+        raise UltronInputError(path, field, f"mesh file cannot be read ({exc})") from None
+    if not head:
+        raise UltronInputError(path, field, "mesh file is empty")
+    if path.suffix.lower() == ".ply" and head != b"ply":
+        raise UltronInputError(path, field, "not a readable PLY mesh (no 'ply' header)")
+
+
 def validate_positive(value: object, where: str | Path, field: str) -> float:
     """A finite, strictly positive number (bools are rejected)."""
     if isinstance(value, bool) or not isinstance(value, int | float):

@@ -5,26 +5,27 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from ultron.fields.properties import AcousticProperties, properties_from_raw
+from ultron.fields.properties import AcousticProperties, HeadConfig, properties_from_raw
 
 
 class AcousticField(nn.Module):
     """Base class of field backends.
 
     A backend maps points in the normalised unit cube (…, 3) to raw outputs (…, 3|4) with
-    :meth:`raw`; :meth:`forward` applies the named heads (α = softplus, β, φ, p = sigmoid).
+    :meth:`raw`; :meth:`forward` applies the named heads (:class:`~ultron.fields.properties.HeadConfig`).
     :meth:`regularization` is the backend's own smoothness prior (0 when it has none).
     """
 
-    def __init__(self, learn_density: bool = False) -> None:
+    def __init__(self, learn_density: bool = False, heads: HeadConfig | None = None) -> None:
         super().__init__()
         self.learn_density = bool(learn_density)
+        self.head_config = heads or HeadConfig.paper()
 
     def raw(self, points_unit: torch.Tensor) -> torch.Tensor:  # pragma: no cover - abstract
         raise NotImplementedError
 
     def heads(self, raw: torch.Tensor) -> AcousticProperties:
-        return properties_from_raw(raw, self.learn_density)
+        return properties_from_raw(raw, self.learn_density, self.head_config)
 
     def forward(self, points_unit: torch.Tensor) -> AcousticProperties:
         return self.heads(self.raw(points_unit))

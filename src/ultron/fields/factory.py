@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from typing import Any
 
 import torch
@@ -11,6 +11,7 @@ from ultron.errors import argument_error
 from ultron.fields.base import AcousticField
 from ultron.fields.grid import GridField, GridFieldConfig
 from ultron.fields.mlp import MLPField, MLPFieldConfig
+from ultron.fields.properties import HeadConfig
 
 BACKENDS = ("grid", "mlp")
 
@@ -23,6 +24,7 @@ class FieldConfig:
     learn_density: bool = False
     grid: GridFieldConfig = field(default_factory=GridFieldConfig)
     mlp: MLPFieldConfig = field(default_factory=MLPFieldConfig)
+    heads: HeadConfig = field(default_factory=HeadConfig)
 
     def __post_init__(self) -> None:
         if self.backend not in BACKENDS:
@@ -45,6 +47,10 @@ class FieldConfig:
                 learn_density=bool(data.get("learn_density", False)),
                 grid=GridFieldConfig(**grid),
                 mlp=MLPFieldConfig(**data.get("mlp", {})),
+                # Fields saved before the heads were configurable used the paper's heads.
+                heads=HeadConfig.from_dict(data["heads"])
+                if "heads" in data
+                else HeadConfig.paper(),
             )
         except TypeError as exc:
             raise argument_error("field config", f"unexpected or missing entries ({exc})") from None
@@ -61,12 +67,14 @@ def build_field(
     generator = torch.Generator().manual_seed(int(seed))
     if config.backend == "grid":
         grid_config = config.grid.resolved(half_extent_mm, pixel_mm)
-        resolved = FieldConfig(config.backend, config.learn_density, grid_config, config.mlp)
+        resolved = replace(config, grid=grid_config)
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(int(seed))
-            module: AcousticField = GridField(grid_config, config.learn_density, generator)
+            module: AcousticField = GridField(
+                grid_config, config.learn_density, generator, config.heads
+            )
         return module, resolved
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(int(seed))
-        module = MLPField(config.mlp, config.learn_density)
+        module = MLPField(config.mlp, config.learn_density, config.heads)
     return module, config

@@ -34,7 +34,7 @@ from torch import nn
 
 from ultron.errors import argument_error
 from ultron.fields.base import AcousticField
-from ultron.fields.properties import initial_raw_bias, n_raw_channels
+from ultron.fields.properties import HeadConfig, initial_raw_bias, n_raw_channels
 
 #: Upper bound on a plane's side (memory guard: 3 planes × C × R² floats per level).
 MAX_RESOLUTION = 2048
@@ -109,8 +109,9 @@ class GridField(AcousticField):
         config: GridFieldConfig,
         learn_density: bool = False,
         generator: torch.Generator | None = None,
+        heads: HeadConfig | None = None,
     ) -> None:
-        super().__init__(learn_density)
+        super().__init__(learn_density, heads)
         if config.resolutions is None:
             raise argument_error("config", "call GridFieldConfig.resolved(...) first")
         self.config = config
@@ -127,7 +128,7 @@ class GridField(AcousticField):
         last = nn.Linear(fan_in, n_raw_channels(learn_density))
         with torch.no_grad():
             last.weight.mul_(0.1)
-            last.bias.copy_(initial_raw_bias(learn_density))
+            last.bias.copy_(initial_raw_bias(learn_density, self.head_config))
         self.decoder = nn.Sequential(*layers, last)
 
     def features(self, points_unit: torch.Tensor) -> torch.Tensor:

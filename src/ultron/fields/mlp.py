@@ -9,7 +9,7 @@ import torch
 from ultron.errors import argument_error
 from ultron.fields.base import AcousticField
 from ultron.fields.networks import PositionalEncoding, SkipMLP
-from ultron.fields.properties import initial_raw_bias, n_raw_channels
+from ultron.fields.properties import HeadConfig, initial_raw_bias, n_raw_channels
 
 
 @dataclass(frozen=True)
@@ -31,8 +31,10 @@ class MLPFieldConfig:
 class MLPField(AcousticField):
     """θ(u) = heads(SkipMLP(γ(u))) on unit-cube coordinates u ∈ [−1, 1]³."""
 
-    def __init__(self, config: MLPFieldConfig, learn_density: bool = False) -> None:
-        super().__init__(learn_density)
+    def __init__(
+        self, config: MLPFieldConfig, learn_density: bool = False, heads: HeadConfig | None = None
+    ) -> None:
+        super().__init__(learn_density, heads)
         self.config = config
         self.encoding = PositionalEncoding(config.n_frequencies, include_input=True)
         self.trunk = SkipMLP(
@@ -43,7 +45,7 @@ class MLPField(AcousticField):
             skip_at=config.skip_at,
         )
         with torch.no_grad():
-            self.trunk.output.bias.copy_(initial_raw_bias(learn_density))
+            self.trunk.output.bias.copy_(initial_raw_bias(learn_density, self.head_config))
 
     def raw(self, points_unit: torch.Tensor) -> torch.Tensor:
         return self.trunk(self.encoding(points_unit.to(torch.float32)))

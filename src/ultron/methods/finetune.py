@@ -8,6 +8,13 @@ on 1 % of the new shape's annotated frames for 100 iterations with the loss the 
 trained with (the attenuation-compensated BCE for ``ultron``). ``iters = 0`` is the paper's
 "w/o fine-tuning" row: the trained network applied as it is.
 
+The loss's transmission T comes from the same source as the model's training (``field``,
+``confidence``, ``labels`` or the diagnostic ``oracle``, recorded in its ``network.pt``; a model
+saved before sources were recorded used ``field``), computed on the new dataset, unless
+``FinetuneConfig.visibility`` (``finetune --visibility``) overrides it. An oracle-trained model
+therefore needs the new dataset's true ``transmission.npy`` (checked before any work) unless
+another source is given.
+
 Meshing and metrics are exactly those of ``reconstruct``; the outputs are the same files, plus
 the fine-tuned ``network.pt`` (itself a valid MODEL_DIR).
 """
@@ -16,7 +23,7 @@ from __future__ import annotations
 
 import copy
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -31,12 +38,14 @@ from ultron.methods.runinfo import StageTimer
 from ultron.methods.ultron_method import (
     Reconstruction,
     UltronConfig,
+    keep_observed_surface,
     mesh_occupancy,
     occupancy_function,
     occupancy_training_data,
 )
 from ultron.metrics.surface import MetricsConfig
 from ultron.train.occupancy import OccupancyTrainConfig, fit_occupancy
+from ultron.train.visibility import VisibilityConfig, load_oracle_truth, transmission_summary
 
 
 @dataclass(frozen=True)
@@ -61,6 +70,7 @@ class FinetuneConfig:
     batch_size: int = 1024
     meshing: UltronConfig = field(default_factory=UltronConfig)
     metrics: MetricsConfig = field(default_factory=MetricsConfig)
+    visibility: VisibilityConfig | None = None  # None: the model's own source
 
     def __post_init__(self) -> None:
         if isinstance(self.label_fraction, bool) or not 0 < self.label_fraction <= 1:
@@ -114,6 +124,11 @@ def check_theta_model(network: nn.Module, meta: dict[str, Any], fitted, where: s
     return meta.get("loss", "ultron")
 
 
+def model_visibility(meta: dict[str, Any], where: str) -> VisibilityConfig:
+    """The transmission source a saved model was trained with (``field`` if not recorded)."""
+    return VisibilityConfig.from_dict(meta, where)
+
+
 def finetune_ultron(
     dataset: SweepDataset,
     fitted,
@@ -122,19 +137,25 @@ def finetune_ultron(
     config: FinetuneConfig,
     timer: StageTimer | None = None,
     progress: Callable[[int, float], None] | None = None,
+    visibility: VisibilityConfig | None = None,
+    truth: dict[str, Any] | None = None,
 ) -> Reconstruction:
     """Fine-tune a copy of ``network`` on ``dataset`` (θ from ``fitted``) and mesh it.
 
-    With ``config.iters == 0`` no label is read and the copy is applied unchanged.
+    T comes from ``visibility`` (default ``config.visibility``, else the fitted field);
+    ``truth`` holds the oracle's true T per sweep. With ``config.iters == 0`` no label is read
+    and the copy is applied unchanged.
     """
     timer = timer or StageTimer()
+    visibility = visibility or config.visibility or VisibilityConfig()
     model = copy.deepcopy(network)
     info: dict[str, Any] = {"finetune_config": {k: v for k, v in config.__dict__.items()
-                                                if k not in ("meshing", "metrics")}}  # fmt: skip
+                                                if k not in ("meshing", "metrics", "visibility")},
+                            **visibility.to_dict()}  # fmt: skip
     if config.iters > 0:
         with timer.stage("labels"):
             selection = select_label_frames(dataset, config.label_fraction, config.seed)
-            data = occupancy_training_data(dataset, fitted, selection)
+            data = occupancy_training_data(dataset, fitted, selection, visibility, truth)
         trainable = freeze_last_layers(model, config.frozen_layers)
         with timer.stage("finetune"):
             model, log = fit_occupancy(
@@ -147,14 +168,20 @@ def finetune_ultron(
             "n_label_frames": selection.n_frames,
             "n_labelled_pixels": len(data.labels),
             "n_bone_pixels": int(data.labels.sum()),
+            "transmission_stats": transmission_summary(data.transmission, data.labels),
             "occupancy_log": log,
         }
     model.eval()
     mesh, volume, grid = mesh_occupancy(
         occupancy_function(fitted, model), dataset, config.meshing, timer
     )
+    with timer.stage("mesh_observed"):
+        meshing = replace(config.meshing, visibility=visibility)
+        mesh, surface_info = keep_observed_surface(mesh, dataset, fitted, meshing, truth)
+    info |= surface_info
     info["grid"] = grid.to_dict()
-    meta = {"input": "theta", "theta_channels": list(fitted.channels), "loss": loss}
+    meta = {"input": "theta", "theta_channels": list(fitted.channels), "loss": loss,
+            **visibility.to_dict()}  # fmt: skip
     return Reconstruction(
         mesh=mesh, volume=volume, grid=grid, info=info | {"network": model, "model": meta}
     )
@@ -175,15 +202,20 @@ def finetune(
     from ultron.methods.run import load_or_fit_field, write_outputs
 
     timer = StageTimer()
+    where = str(Path(model_dir) / NETWORK_FILE)
     with timer.stage("load"):
         network, meta = load_network(model_dir)
         dataset = SweepDataset.load(dataset_dir)
+        visibility = config.visibility or model_visibility(meta, where)
+        truth = load_oracle_truth(visibility, dataset_dir, dataset) if config.iters > 0 else None
     with timer.stage("field"):
         fitted, used_dir, cached = load_or_fit_field(
             dataset_dir, dataset, field_dir, field_config, progress
         )
-    loss = check_theta_model(network, meta, fitted, str(Path(model_dir) / NETWORK_FILE))
-    result = finetune_ultron(dataset, fitted, network, loss, config, timer)
+    loss = check_theta_model(network, meta, fitted, where)
+    result = finetune_ultron(
+        dataset, fitted, network, loss, config, timer, visibility=visibility, truth=truth
+    )
     identity = {
         "method": "ultron-finetune",
         "label_fraction": config.label_fraction if config.iters > 0 else 0.0,

@@ -24,6 +24,7 @@ from ultron.methods.on_method import ONConfig, reconstruct_on
 from ultron.methods.runinfo import StageTimer, write_run_json
 from ultron.methods.ultron_method import Reconstruction, UltronConfig, reconstruct_ultron
 from ultron.metrics.surface import MetricsConfig, evaluate_meshes
+from ultron.train.visibility import load_oracle_truth
 
 FIELD_METHODS = ("ultron", "ultron-noloss")
 SDF_VIEWS = {"rocosdf": ("row", "column"), "unsr-row": ("row",), "unsr-col": ("column",)}
@@ -55,12 +56,24 @@ class ReconstructionRequest:
             raise argument_error(
                 "preset", f"expected one of {ROCOSDF_PRESETS}, got {self.rocosdf_preset!r}"
             )
+        source = self.ultron.visibility.source
+        if source != "field" and self.method not in FIELD_METHODS:
+            flag = "--oracle-transmission" if source == "oracle" else f"--visibility {source}"
+            raise argument_error(
+                "visibility", f"{flag} applies to --method ultron or ultron-noloss only, "
+                f"not {self.method!r}",
+            )  # fmt: skip
 
 
 def run_method(
-    dataset: SweepDataset, request: ReconstructionRequest, fitted, timer: StageTimer
+    dataset: SweepDataset,
+    request: ReconstructionRequest,
+    fitted,
+    timer: StageTimer,
+    truth: dict[str, Any] | None = None,
 ) -> Reconstruction:
-    """Reconstruct with ``request.method`` (``fitted`` is the acoustic field, for UltrON)."""
+    """Reconstruct with ``request.method`` (``fitted`` is the acoustic field, for UltrON;
+    ``truth`` the oracle's true transmission per sweep, see :mod:`ultron.train.visibility`)."""
     from ultron.data.labels import select_label_frames
 
     if request.method in FIELD_METHODS:
@@ -75,7 +88,7 @@ def run_method(
                 "seed": request.seed,
             }
         )
-        return reconstruct_ultron(dataset, fitted, request.method, config, timer)
+        return reconstruct_ultron(dataset, fitted, request.method, config, timer, truth)
     if request.method == "on":
         return reconstruct_on(dataset, request.label_fraction, request.seed, request.on, timer)
     if request.method in SDF_VIEWS:
@@ -135,7 +148,13 @@ def write_outputs(
     metrics = None
     if dataset.reference is not None:
         with timer.stage("metrics"):
-            metrics = evaluate_meshes(result.mesh, load_mesh(dataset.reference), metrics_config)
+            visible = dataset.reference_visible_path
+            metrics = evaluate_meshes(
+                result.mesh,
+                load_mesh(dataset.reference),
+                metrics_config,
+                reference_visible=None if visible is None else load_mesh(visible),
+            )
         metrics["method"] = identity["method"]
         metrics["label_fraction"] = identity.get("label_fraction")
         atomic.write_json(out / "metrics.json", metrics)
@@ -170,6 +189,8 @@ def reconstruct(
     timer = StageTimer()
     with timer.stage("load"):
         dataset = SweepDataset.load(dataset_dir)
+        # the oracle's files are checked before any work (field fit, outputs)
+        truth = load_oracle_truth(request.ultron.visibility, dataset_dir, dataset)
     fitted, extra = None, {}
     if request.method in FIELD_METHODS:
         with timer.stage("field"):
@@ -177,7 +198,7 @@ def reconstruct(
                 dataset_dir, dataset, field_dir, field_config, progress
             )
         extra = {"field_dir": str(Path(used_dir).resolve()), "field_cached": cached}
-    result = run_method(dataset, request, fitted, timer)
+    result = run_method(dataset, request, fitted, timer, truth)
     identity = {
         "method": request.method,
         "label_fraction": request.label_fraction,

@@ -2,16 +2,28 @@
 
 1. Choose the label fraction's frames (``select_label_frames``) and gather their annotated
    pixels. 2. For each pixel, θ from the fitted field (normalised with the field's saved
-   statistics) and T along that frame's own scanline (exclusive, detached). 3. Fit f_ω with the
-   attenuation-compensated BCE (``ultron``) or plain BCE (``ultron-noloss``). 4. Evaluate
+   statistics) and T along that frame's own scanline (exclusive, detached) from the configured
+   source (:mod:`ultron.train.visibility`: the fitted field by default, or the frame's confidence
+   map, the annotation, or — diagnostic only — the simulator's true T). 3. Fit f_ω with the
+   attenuation-compensated BCE (``ultron``) or plain BCE (``ultron-noloss``, which ignores T but
+   records its source). 4. Evaluate
    f(θ(x)) on a grid over the scanned region (voxel = the finer pixel spacing), zero outside
-   every frame's field of view, and mesh it.
+   every frame's field of view, and mesh it. 5. Keep the observed surface
+   (:mod:`ultron.mesh.observed`, ``surface="observed"``, the default): the faces that some frame
+   saw facing the probe with a transmission ≥ 0.3 above them. With a working T the
+   compensated loss leaves f unconstrained in deep shadow *by design* (the paper's Fig. 1c: the
+   shape is defined only where it was observed), so f(θ) may call a whole shadow column bone;
+   its walls and floors are surface nobody observed, and are dropped. The occupancy volume
+   (occupancy.nii.gz) is left whole. The observation's T is the oracle's with
+   ``--oracle-transmission`` and the fitted field's otherwise (the ``labels`` source has no T
+   for unannotated frames; confidence maps are not a transmission scale).
 
 Nothing here reads the reference mesh.
 """
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -25,15 +37,23 @@ from ultron.errors import UltronInputError, argument_error
 from ultron.fields.occupancy import OccupancyNetwork
 from ultron.mesh.extract import ExtractionConfig, extract_surface
 from ultron.mesh.grid import GridSpec, evaluate_coarse_to_fine, field_of_view_mask
+from ultron.mesh.observed import ObservedSurfaceConfig, observed_points, observed_submesh
 from ultron.methods.runinfo import StageTimer
 from ultron.train.occupancy import OccupancyTrainConfig, OccupancyTrainingData, fit_occupancy
+from ultron.train.visibility import (
+    VisibilityConfig,
+    field_theta_transmission,
+    frame_transmission,
+    pixel_transmission,
+    transmission_summary,
+)
 
 METHOD_LOSSES = {"ultron": "ultron", "ultron-noloss": "bce"}
 
 
 @dataclass(frozen=True)
 class UltronConfig:
-    """Settings of an UltrON reconstruction."""
+    """Settings of an UltrON reconstruction (``visibility``: the source of the loss's T)."""
 
     label_fraction: float = 0.1
     seed: int = 0
@@ -42,6 +62,8 @@ class UltronConfig:
     coarse_factor: int = 2
     chunk_points: int = 65_536
     extraction: ExtractionConfig = field(default_factory=ExtractionConfig)
+    visibility: VisibilityConfig = field(default_factory=VisibilityConfig)
+    observed: ObservedSurfaceConfig = field(default_factory=ObservedSurfaceConfig)
 
     def __post_init__(self) -> None:
         if not 0 < self.label_fraction <= 1:
@@ -82,23 +104,23 @@ def scan_grid(dataset: SweepDataset, voxel_mm: float | None) -> GridSpec:
 
 
 def occupancy_training_data(
-    dataset: SweepDataset, fitted, selection: FrameSelection
+    dataset: SweepDataset,
+    fitted,
+    selection: FrameSelection,
+    visibility: VisibilityConfig | None = None,
+    truth: Mapping[str, np.ndarray] | None = None,
 ) -> OccupancyTrainingData:
-    """Per labelled pixel: normalised θ, T along its frame's scanline (detached), label."""
+    """Per labelled pixel: normalised θ, T (detached) from ``visibility`` (default: the fitted
+    field, computed in the same rendering pass as θ), label. ``truth`` maps sweep names to the
+    true T for the oracle (:func:`~ultron.train.visibility.load_oracle_truth`)."""
     if fitted.theta_stats is None:
         raise UltronInputError("field", "theta_stats", "the field has no θ statistics (refit it)")
     fitted.check_probe(dataset.probe)
     pixels = gather_labelled_pixels(dataset, selection)
-    theta = torch.zeros(len(pixels), len(fitted.channels))
-    transmission = torch.zeros(len(pixels))
-    for sweep_index, sweep in enumerate(dataset.sweeps):
-        sel = np.flatnonzero(pixels.sweep_index == sweep_index)
-        if sel.size == 0:
-            continue
-        t, tr = fitted.pixel_theta_transmission(
-            sweep.probe_to_world, pixels.frame[sel], pixels.row[sel], pixels.col[sel]
-        )
-        theta[sel], transmission[sel] = t, tr
+    theta, field_t = field_theta_transmission(dataset, fitted, pixels)
+    transmission = pixel_transmission(
+        visibility or VisibilityConfig(), dataset, pixels, truth=truth, field_transmission=field_t
+    )
     inputs = fitted.theta_stats.normalise(theta)
     labels = torch.from_numpy(pixels.label.astype(np.uint8))
     return OccupancyTrainingData(inputs.float(), transmission.detach().float(), labels)
@@ -143,24 +165,78 @@ def mesh_occupancy(fn, dataset: SweepDataset, config: UltronConfig, timer: Stage
     return mesh, volume, grid
 
 
+def keep_observed_surface(
+    mesh,
+    dataset: SweepDataset,
+    fitted,
+    config: UltronConfig,
+    truth: Mapping[str, np.ndarray] | None = None,
+) -> tuple[Any, dict[str, Any]]:
+    """The part of ``mesh`` that some frame observed (module docstring, step 5) and counts.
+
+    Each frame's T comes from the oracle (diagnostic runs) or the fitted field; the elevational
+    slab is the one the field-of-view mask uses (0.75 × the frame gap, ≥ one voxel). When no
+    face is observed the whole iso-surface is kept and ``surface_fallback`` says so.
+    """
+    observed = config.observed
+    info: dict[str, Any] = {"surface": observed.to_dict(), "faces_extracted": len(mesh.faces)}
+    if observed.surface == "all" or len(mesh.faces) == 0:
+        return mesh, info | {"faces_kept": len(mesh.faces)}
+    source = "oracle" if config.visibility.source == "oracle" else "field"
+    visibility = replace(config.visibility, source=source)
+    maps = [
+        frame_transmission(visibility, dataset, sweep.name, fitted=fitted, truth=truth)
+        for sweep in dataset.sweeps
+    ]
+    voxel = config.voxel_mm or min(dataset.probe.lateral_spacing_mm, dataset.probe.axial_spacing_mm)
+    seen = observed_points(
+        np.asarray(mesh.vertices),
+        np.asarray(mesh.vertex_normals),
+        dataset.all_poses(),
+        dataset.probe,
+        maps,
+        elevation_half_thickness_mm(dataset, voxel),
+        observed.max_incidence_deg,
+        observed.min_transmission,
+    )
+    kept = observed_submesh(mesh, seen)
+    info |= {"observation_transmission": source}
+    if len(kept.faces) == 0:
+        # Nothing observed (a degenerate surface, e.g. from a barely trained network): keep the
+        # iso-surface rather than write no mesh, and say so in run.json.
+        return mesh, info | {"faces_kept": len(mesh.faces), "surface_fallback": "all"}
+    return kept, info | {"faces_kept": len(kept.faces)}
+
+
 def reconstruct_ultron(
-    dataset: SweepDataset, fitted, method: str, config: UltronConfig, timer: StageTimer
+    dataset: SweepDataset,
+    fitted,
+    method: str,
+    config: UltronConfig,
+    timer: StageTimer,
+    truth: Mapping[str, np.ndarray] | None = None,
 ) -> Reconstruction:
-    """Run stages 2 and 3 of UltrON (``method`` ``ultron`` or ``ultron-noloss``)."""
+    """Run stages 2 and 3 of UltrON (``method`` ``ultron`` or ``ultron-noloss``); ``truth``
+    is the oracle's true T per sweep (only for ``config.visibility.source == "oracle"``)."""
     if method not in METHOD_LOSSES:
         raise argument_error("method", f"expected one of {tuple(METHOD_LOSSES)}, got {method!r}")
     occupancy_config = replace(config.occupancy, loss=METHOD_LOSSES[method])
     with timer.stage("labels"):
         selection = select_label_frames(dataset, config.label_fraction, config.seed)
-        data = occupancy_training_data(dataset, fitted, selection)
+        data = occupancy_training_data(dataset, fitted, selection, config.visibility, truth)
     with timer.stage("occupancy_fit"):
         network, log = fit_occupancy(data, occupancy_config)
     mesh, volume, grid = mesh_occupancy(occupancy_function(fitted, network), dataset, config, timer)
+    with timer.stage("mesh_observed"):
+        mesh, surface_info = keep_observed_surface(mesh, dataset, fitted, config, truth)
     info = {
+        **surface_info,
         "selection": selection.to_dict(),
         "n_label_frames": selection.n_frames,
         "n_labelled_pixels": len(data.labels),
         "n_bone_pixels": int(data.labels.sum()),
+        **config.visibility.to_dict(),
+        "transmission_stats": transmission_summary(data.transmission, data.labels),
         "occupancy_config": occupancy_config.to_dict(),
         "occupancy_log": log,
         "grid": grid.to_dict(),
@@ -169,6 +245,7 @@ def reconstruct_ultron(
         "input": "theta",
         "theta_channels": list(fitted.channels),
         "loss": occupancy_config.loss,
+        **config.visibility.to_dict(),
     }
     return Reconstruction(
         mesh=mesh, volume=volume, grid=grid, info=info | {"network": network, "model": model}

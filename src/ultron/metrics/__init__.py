@@ -1,8 +1,18 @@
-"""Surface metrics: accuracy (MAD, RMSE, HD, HD95), completeness, Chamfer distance, F-score."""
+"""Surface metrics: accuracy (MAD, RMSE, HD, HD95; one-sided), completeness (also of the
+visible reference), Chamfer distances, symmetric Hausdorff distances, F-score; exact
+point-to-mesh distances."""
 
+from ultron.metrics.distance import (
+    MeshDistanceIndex,
+    build_distance_index,
+    mesh_distances,
+    point_triangle_distances,
+)
 from ultron.metrics.surface import (
     METRIC_NAMES,
+    VISIBLE_METRIC_NAMES,
     MetricsConfig,
+    distance_index,
     distance_metrics,
     evaluate_meshes,
     point_to_surface_distances,
@@ -11,9 +21,15 @@ from ultron.metrics.surface import (
 
 __all__ = [
     "METRIC_NAMES",
+    "VISIBLE_METRIC_NAMES",
+    "MeshDistanceIndex",
     "MetricsConfig",
+    "build_distance_index",
+    "distance_index",
     "distance_metrics",
     "evaluate_meshes",
+    "mesh_distances",
     "point_to_surface_distances",
+    "point_triangle_distances",
     "sample_surface",
 ]

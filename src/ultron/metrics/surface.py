@@ -1,25 +1,34 @@
 """Surface distance metrics between a reconstructed mesh and a reference mesh (METHOD.md §5).
 
-Both surfaces are sampled uniformly by area (``n_points`` each, seeded); nearest-neighbour
-distances are computed once per repeat with KD-trees (scipy) in both directions and reduced:
+Both surfaces are sampled uniformly by area (``n_points`` each, seeded) and every sample's
+exact point-to-surface distance to the other mesh is computed (:mod:`ultron.metrics.distance`:
+the exact minimum of the point-to-triangle distances over all triangles, KD-tree pruned), once
+per repeat in each direction, then reduced:
 
 * accuracy, reconstruction → reference distances d_acc: MAD = mean d_acc,
-  RMSE = sqrt(mean d_acc²), HD = max d_acc, HD95 = 95th percentile of d_acc;
-* completeness, reference → reconstruction distances d_comp: mean, HD95;
+  RMSE = sqrt(mean d_acc²), HD = max d_acc, HD95 = 95th percentile of d_acc. HD and HD95 are
+  therefore ONE-SIDED (how far the reconstruction strays from the reference, not how much of
+  the reference it misses);
+* completeness, reference → reconstruction distances d_comp: mean, HD95 (``completeness``,
+  ``completeness_hd95``);
+* symmetric Hausdorff distances ``hd_sym`` = max(max d_acc, max d_comp) and
+  ``hd95_sym`` = max(HD95 of d_acc, HD95 of d_comp);
 * Chamfer distance CD = (mean d_acc + mean d_comp) / 2;
 * F-score at τ: precision P = share of d_acc < τ, recall R = share of d_comp < τ,
-  F = 2PR / (P + R) (0 when P + R = 0), for τ = 1 mm and 2 mm.
+  F = 2PR / (P + R) (0 when P + R = 0), for τ = 1 mm and 2 mm;
+* with a visible reference (the part of the reference some frame could image, e.g. a
+  simulated dataset's ``reference_visible.ply``), d_vis from its samples to the
+  reconstruction: ``completeness_visible`` = mean d_vis, ``completeness_visible_hd95`` and
+  ``cd_visible`` = (mean d_acc + mean d_vis) / 2 (accuracy stays against the whole reference).
+  Without one these three are None (shown as "n/a", never 0).
 
 The paper's table samples points on the reconstruction and measures to the CAD model, so its
 MAD, RMSE and HD correspond to ultron's accuracy figures (``mad``, ``rmse``, ``hd``), and its
-CD to ``cd``. Each distance is point-to-surface: the k = 4 nearest samples of the other
-surface (KD-tree) nominate their triangles, and the exact point-to-triangle distance to the
-nearest of those is taken, which removes the bias of plain point-to-point distances (about half
-the sample spacing, ≈ 0.1–0.2 mm at 100k points on a vertebra).
+CD to ``cd``.
 
 Empty reconstruction (no triangles): accuracy figures are NaN (there is nothing to measure
-from), completeness and CD are +inf (nothing reaches the reference), F-scores are 0. An empty
-reference is an input error.
+from), completeness, CD, the symmetric HDs and the visible figures are +inf (nothing reaches
+the reference), F-scores are 0. An empty reference (or visible reference) is an input error.
 """
 
 from __future__ import annotations
@@ -30,18 +39,27 @@ from dataclasses import dataclass
 import numpy as np
 
 from ultron.errors import UltronInputError, argument_error
+from ultron.metrics.distance import MeshDistanceIndex, build_distance_index, mesh_distances
 
+#: Every metric, in display order (the visible-reference figures first).
 METRIC_NAMES = (
+    "cd_visible",
+    "completeness_visible",
     "cd",
+    "hd95",
     "hd",
     "mad",
     "rmse",
-    "hd95",
     "completeness",
     "completeness_hd95",
+    "completeness_visible_hd95",
+    "hd_sym",
+    "hd95_sym",
     "fscore_1mm",
     "fscore_2mm",
 )
+#: The metrics that need a visible reference (None without one).
+VISIBLE_METRIC_NAMES = ("cd_visible", "completeness_visible", "completeness_visible_hd95")
 
 
 @dataclass(frozen=True)
@@ -59,32 +77,47 @@ class MetricsConfig:
             raise argument_error("repeats", f"expected ≥ 1, got {self.repeats}")
 
 
-def distance_metrics(acc_mm: np.ndarray, comp_mm: np.ndarray) -> dict[str, float]:
-    """Reduce accuracy (recon → ref) and completeness (ref → recon) distances to the metrics."""
+def distance_metrics(
+    acc_mm: np.ndarray, comp_mm: np.ndarray, comp_visible_mm: np.ndarray | None = None
+) -> dict[str, float | None]:
+    """Reduce accuracy (recon → ref), completeness (ref → recon) and, optionally, visible
+    completeness (visible ref → recon) distances to :data:`METRIC_NAMES` (module doc)."""
     if comp_mm.size == 0:
         raise argument_error("comp_mm", "reference distances are empty")
+    if comp_visible_mm is not None and comp_visible_mm.size == 0:
+        raise argument_error("comp_visible_mm", "visible-reference distances are empty")
     if acc_mm.size == 0:
-        nan = float("nan")
-        return {
-            "cd": math.inf, "hd": nan, "mad": nan, "rmse": nan, "hd95": nan,
-            "completeness": math.inf, "completeness_hd95": math.inf,
+        nan, inf = float("nan"), math.inf
+        result = {
+            "cd": inf, "hd": nan, "mad": nan, "rmse": nan, "hd95": nan,
+            "completeness": inf, "completeness_hd95": inf, "hd_sym": inf, "hd95_sym": inf,
             "fscore_1mm": 0.0, "fscore_2mm": 0.0,
         }  # fmt: skip
-    result = {
+        visible = dict.fromkeys(VISIBLE_METRIC_NAMES, None if comp_visible_mm is None else inf)
+        return {name: {**result, **visible}[name] for name in METRIC_NAMES}
+    hd95, comp_hd95 = float(np.percentile(acc_mm, 95)), float(np.percentile(comp_mm, 95))
+    result: dict[str, float | None] = {
         "cd": float((acc_mm.mean() + comp_mm.mean()) / 2),
         "hd": float(acc_mm.max()),
         "mad": float(acc_mm.mean()),
         "rmse": float(np.sqrt(np.mean(acc_mm**2))),
-        "hd95": float(np.percentile(acc_mm, 95)),
+        "hd95": hd95,
         "completeness": float(comp_mm.mean()),
-        "completeness_hd95": float(np.percentile(comp_mm, 95)),
+        "completeness_hd95": comp_hd95,
+        "hd_sym": float(max(acc_mm.max(), comp_mm.max())),
+        "hd95_sym": max(hd95, comp_hd95),
     }
+    result.update(dict.fromkeys(VISIBLE_METRIC_NAMES))
+    if comp_visible_mm is not None:
+        result["completeness_visible"] = float(comp_visible_mm.mean())
+        result["completeness_visible_hd95"] = float(np.percentile(comp_visible_mm, 95))
+        result["cd_visible"] = float((acc_mm.mean() + comp_visible_mm.mean()) / 2)
     for tau in (1, 2):
         precision = float((acc_mm < tau).mean())
         recall = float((comp_mm < tau).mean())
         total = precision + recall
         result[f"fscore_{tau}mm"] = 0.0 if total == 0 else 2 * precision * recall / total
-    return result
+    return {name: result[name] for name in METRIC_NAMES}
 
 
 def sample_surface(mesh, n_points: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
@@ -96,48 +129,62 @@ def sample_surface(mesh, n_points: int, seed: int) -> tuple[np.ndarray, np.ndarr
     return np.asarray(points, dtype=np.float64), np.asarray(faces, dtype=np.int64)
 
 
+def distance_index(mesh) -> MeshDistanceIndex:
+    """The exact-distance search structure of a (non-empty) trimesh mesh, reusable."""
+    return build_distance_index(np.asarray(mesh.triangles, dtype=np.float64))
+
+
 def point_to_surface_distances(
-    points: np.ndarray, target_mesh, target_points: np.ndarray, target_faces: np.ndarray, k: int = 4
+    points: np.ndarray, target_mesh, index: MeshDistanceIndex | None = None
 ) -> np.ndarray:
-    """Distance (mm) from each point to ``target_mesh``, using its samples to find candidates.
-
-    The ``k`` nearest samples (KD-tree) nominate their faces; the exact point-to-triangle
-    distance to each candidate is computed and the minimum kept.
-    """
-    from scipy.spatial import cKDTree
-    from trimesh.triangles import closest_point
-
-    k = min(k, len(target_points))
-    _, index = cKDTree(target_points).query(points, k=k, workers=-1)
-    index = index.reshape(len(points), k)
-    triangles = np.asarray(target_mesh.triangles, dtype=np.float64)[target_faces[index]]
-    repeated = np.repeat(points, k, axis=0)
-    nearest = closest_point(triangles.reshape(-1, 3, 3), repeated)
-    distances = np.linalg.norm(nearest - repeated, axis=1).reshape(len(points), k)
-    return distances.min(axis=1)
+    """Exact distance (mm) from each of ``points`` (n, 3) to the surface of ``target_mesh``:
+    min over its triangles T of min_{q ∈ T} |p − q| (:mod:`ultron.metrics.distance`).
+    ``index`` (from :func:`distance_index` of the same mesh) saves rebuilding the search."""
+    if index is None:
+        if target_mesh is None or len(target_mesh.faces) == 0:
+            raise argument_error("target_mesh", "mesh is empty (no triangles)")
+        index = distance_index(target_mesh)
+    return mesh_distances(points, index)
 
 
-def evaluate_meshes(reconstruction, reference, config: MetricsConfig | None = None) -> dict:
-    """Metrics of ``reconstruction`` against ``reference`` (trimesh meshes in mm).
+def _check_reference(mesh, name: str) -> None:
+    if mesh is None or len(mesh.faces) == 0 or mesh.area <= 0:
+        raise UltronInputError(name, "mesh", f"{name} mesh is empty (no triangles)")
+
+
+def evaluate_meshes(
+    reconstruction, reference, config: MetricsConfig | None = None, reference_visible=None
+) -> dict:
+    """Metrics of ``reconstruction`` against ``reference`` (trimesh meshes in mm), and its
+    visible part ``reference_visible`` when given (module doc).
 
     Returns ``{"mean": {...}, "std": {...}, "repeats": [{...}, ...], "config": {...}}`` where
-    each inner dict maps every name of :data:`METRIC_NAMES` to a float.
+    each inner dict maps every name of :data:`METRIC_NAMES` to a float (None: not measured,
+    the visible figures without a visible reference).
     """
     config = config or MetricsConfig()
-    if reference is None or len(reference.faces) == 0 or reference.area <= 0:
-        raise UltronInputError("reference", "mesh", "reference mesh is empty (no triangles)")
+    _check_reference(reference, "reference")
+    if reference_visible is not None:
+        _check_reference(reference_visible, "reference_visible")
     empty = reconstruction is None or len(reconstruction.faces) == 0 or reconstruction.area <= 0
+    ref_index = None if empty else distance_index(reference)
+    rec_index = None if empty else distance_index(reconstruction)
     runs = []
     for k in range(config.repeats):
         seed = config.seed + k
-        ref_points, ref_faces = sample_surface(reference, config.n_points, seed=2 * seed + 1)
+        ref_points, _ = sample_surface(reference, config.n_points, seed=2 * seed + 1)
+        vis_points = None
+        if reference_visible is not None:
+            vis_points, _ = sample_surface(reference_visible, config.n_points, seed=2 * seed + 1)
         if empty:
             acc, comp = np.zeros(0), np.full(config.n_points, np.inf)
+            comp_vis = None if vis_points is None else np.full(config.n_points, np.inf)
         else:
-            rec_points, rec_faces = sample_surface(reconstruction, config.n_points, seed=2 * seed)
-            acc = point_to_surface_distances(rec_points, reference, ref_points, ref_faces)
-            comp = point_to_surface_distances(ref_points, reconstruction, rec_points, rec_faces)
-        runs.append(distance_metrics(acc, comp))
+            rec_points, _ = sample_surface(reconstruction, config.n_points, seed=2 * seed)
+            acc = mesh_distances(rec_points, ref_index)
+            comp = mesh_distances(ref_points, rec_index)
+            comp_vis = None if vis_points is None else mesh_distances(vis_points, rec_index)
+        runs.append(distance_metrics(acc, comp, comp_vis))
     mean = {name: _reduce(np.mean, [r[name] for r in runs]) for name in METRIC_NAMES}
     std = {name: _reduce(np.std, [r[name] for r in runs]) for name in METRIC_NAMES}
     return {
@@ -148,7 +195,9 @@ def evaluate_meshes(reconstruction, reference, config: MetricsConfig | None = No
     }
 
 
-def _reduce(fn, values: list[float]) -> float:
+def _reduce(fn, values: list[float | None]) -> float | None:
+    if any(v is None for v in values):
+        return None
     array = np.asarray(values, dtype=np.float64)
     if np.isnan(array).all():
         return float("nan")

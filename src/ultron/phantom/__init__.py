@@ -10,8 +10,9 @@ that surface on the posterior side and looks anteriorly: the beam, probe +y, poi
 Modules: ``primitives`` (SDF primitives, smooth union), ``shapes`` (vertebrae, ``PHANTOMS``),
 ``volume`` (SDF grid, reference mesh), ``tissue`` (acoustic parameters), ``speckle``
 (world-anchored scatterers), ``scanline`` (per-scanline physics), ``simulator`` (B-mode frames),
-``protocols`` (sweeps, tracking error), ``annotation`` (label simulator), ``dataset``
-(``SimulationConfig``, ``simulate_dataset``), ``preview`` (PNG montage).
+``protocols`` (sweeps, tracking error), ``annotation`` (label simulator), ``visibility`` (the
+visible part of the reference, ground truth for metrics), ``dataset`` (``SimulationConfig``,
+``simulate_dataset``), ``preview`` (PNG montage).
 """
 
 from ultron.phantom.annotation import AnnotationConfig, annotate
@@ -29,6 +30,12 @@ from ultron.phantom.shapes import PHANTOMS, Phantom, VertebraShape, get_phantom
 from ultron.phantom.simulator import BModeConfig, BoneInterfaces, SimulatedFrames, simulate_frames
 from ultron.phantom.speckle import ScattererField, scatterer_field
 from ultron.phantom.tissue import CORTICAL_BONE, GEL_PULP, Tissue, intensity_reflection
+from ultron.phantom.visibility import (
+    VisibilityConfig,
+    reference_visibility,
+    visible_submesh,
+    visible_vertices,
+)
 from ultron.phantom.volume import SdfVolume
 
 __all__ = [
@@ -49,14 +56,18 @@ __all__ = [
     "Tissue",
     "TrackingNoise",
     "VertebraShape",
+    "VisibilityConfig",
     "annotate",
     "get_phantom",
     "intensity_reflection",
     "perturb_poses",
     "phantom_json",
     "plan_sweep",
+    "reference_visibility",
     "scatterer_field",
     "simulate_dataset",
     "simulate_frames",
     "sweep_spec",
+    "visible_submesh",
+    "visible_vertices",
 ]

@@ -15,6 +15,10 @@ segmented by hand. Defaults (sized for CPU work, one L3):
   ``protocols.py``; images and labels come from the true poses, the dataset stores the
   tracked ones and keeps the true ones as ``true_probe_to_world``.
 * annotation noise: 0.3 mm edge jitter, 2 % coarse frames (``annotation.py``).
+* ground truth for diagnosis (never read by a reconstruction): per sweep the true
+  transmission of every pixel, ``<sweep>/transmission.npy`` (float16, see ``simulator.py``),
+  and ``reference_visible.ply``, the part of ``reference.ply`` some frame could image
+  (``visibility.py``; its criterion goes to ``phantom.json``'s ``"reference_visible"``).
 
 Every random draw comes from the seed: the scatterers from a hash of (seed, lattice node), the
 image noise, the tracking error and the annotation noise from independent streams spawned from
@@ -28,6 +32,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import io
 import math
 import tempfile
 from collections.abc import Callable, Iterator, Mapping
@@ -55,11 +60,13 @@ from ultron.phantom.shapes import DEFAULT_VOXEL_MM, get_phantom
 from ultron.phantom.simulator import BModeConfig, simulate_frames
 from ultron.phantom.speckle import scatterer_field
 from ultron.phantom.tissue import Tissue
+from ultron.phantom.visibility import VisibilityConfig, reference_visibility
 
 #: Progress callback: (what is being done, units done, units in total).
 Progress = Callable[[str, int, int], None]
 
 PHANTOM_JSON_FORMAT = "ultron-phantom/1"
+VISIBLE_REFERENCE = "reference_visible.ply"
 
 
 @dataclass(frozen=True)
@@ -171,9 +178,10 @@ def simulate_dataset(
 ) -> SweepDataset:
     """Simulate the whole ``ultron-sweeps/1`` dataset of ``config``.
 
-    With ``out``, the dataset, ``reference.ply`` and ``phantom.json`` (every parameter) are
-    written there atomically (``dataset.json`` last); without, the reference mesh goes to a
-    new temporary directory (the returned dataset points at it) and nothing else is written.
+    With ``out``, the dataset (with each sweep's ``transmission.npy``), ``reference.ply``,
+    ``reference_visible.ply`` and ``phantom.json`` (every parameter) are written there
+    atomically (``dataset.json`` last); without, the reference meshes go to a new temporary
+    directory (the returned dataset points at them) and nothing else is written.
     ``progress(what, done, total)`` is called as the work advances.
     """
     if not isinstance(config, SimulationConfig):
@@ -230,32 +238,75 @@ def _simulate(
                 probe_to_world=tracked,
                 labels=labels.numpy(),
                 true_probe_to_world=poses if config.tracking.enabled else None,
+                true_transmission=frames.transmission.numpy().astype(np.float16),
             )
         )
     report("reference mesh", 1 + len(specs) * n_frames, total)
-    mesh = volume.mesh()
+    reference_ply = volume.mesh().export(file_type="ply")
+    report("visible reference", 1 + len(specs) * n_frames, total)
     root = Path(out) if out is not None else Path(tempfile.mkdtemp(prefix="ultron-phantom-"))
     reference = root / "reference.ply"
-    atomic.write_bytes(reference, mesh.export(file_type="ply"))
+    atomic.write_bytes(reference, reference_ply)
+    visible_path, visibility = _write_visible_reference(
+        reference_ply, sweeps, true_poses, config, root
+    )
     metadata = {
         "generator": "ultron simulate",
         "phantom": phantom.name,
         "seed": config.seed,
         "world_frame": "x lateral (left-right), y posterior->anterior (beam), z caudal->cranial; mm",
     }
-    dataset = SweepDataset(probe=probe, sweeps=sweeps, reference=reference, metadata=metadata)
+    dataset = SweepDataset(
+        probe=probe,
+        sweeps=sweeps,
+        reference=reference,
+        metadata=metadata,
+        reference_visible_path=visible_path,
+    )
     if out is not None:
-        atomic.write_json(root / "phantom.json", phantom_json(config))
+        atomic.write_json(root / "phantom.json", phantom_json(config, visibility))
         dataset.save(root)
     report("done", total, total)
     return dataset
 
 
-def phantom_json(config: SimulationConfig) -> dict[str, Any]:
-    """The ``phantom.json`` content: the full configuration and the phantom's description."""
+def _write_visible_reference(
+    reference_ply: bytes,
+    sweeps: list[Sweep],
+    true_poses: list[np.ndarray],
+    config: SimulationConfig,
+    root: Path,
+) -> tuple[Path | None, dict[str, Any]]:
+    """Write ``root/reference_visible.ply`` (when some face is visible) from the reference as
+    stored (float32 vertices and normals, read back) and the sweeps' true poses and
+    transmission; returns its path and the criterion for ``phantom.json``."""
+    import trimesh
+
+    mesh = trimesh.load(io.BytesIO(reference_ply), file_type="ply", process=False)
+    visible, visibility = reference_visibility(
+        mesh,
+        [(s.name, poses, s.true_transmission) for s, poses in zip(sweeps, true_poses, strict=True)],
+        config.probe(),
+        config.bmode.elevation_span_mm,
+        VisibilityConfig(),
+    )
+    path = None
+    if visible is not None:
+        path = root / VISIBLE_REFERENCE
+        atomic.write_bytes(path, visible.export(file_type="ply"))
+    visibility["file"] = None if path is None else path.name
+    return path, visibility
+
+
+def phantom_json(
+    config: SimulationConfig, visibility: Mapping[str, Any] | None = None
+) -> dict[str, Any]:
+    """The ``phantom.json`` content: the full configuration and the phantom's description, and
+    with ``visibility`` the visible reference's criterion (:mod:`ultron.phantom.visibility`:
+    incidence limit, T threshold, slab half-thickness per sweep, counts, file)."""
     phantom = get_phantom(config.phantom)
     bmode = config.bmode
-    return {
+    content = {
         "format": PHANTOM_JSON_FORMAT,
         "config": config.to_dict(),
         "phantom": phantom.to_dict(),
@@ -276,3 +327,6 @@ def phantom_json(config: SimulationConfig) -> dict[str, Any]:
             "gel_surface_y_mm": phantom.surface_y_mm,
         },
     }
+    if visibility is not None:
+        content["reference_visible"] = dict(visibility)
+    return content

@@ -23,6 +23,17 @@ occupancy o = clamp(½ − d/Δ, 0, 1), along each scanline:
   round-trip loss, so gel brightness is flat with depth while shadows stay dark), envelope
   |·|, log compression to a dynamic range, uint8.
 
+True transmission (ground truth for diagnosis, ``SimulatedFrames.transmission``, saved as
+``<sweep>/transmission.npy``): on the centre elevation plane, per pixel, exclusive (row 0 = 1)
+and as the displayed image sees it, i.e. with the TGC's compensation of the gel taken out,
+
+    T_r = clip((1 − R)^{m_r} · 10^(−(A_r − A_gel,r)/20), 0, 1),   A_gel,r = c_TGC·2α_gel·f·z_r,
+
+from τ_r = (1 − R)^{m_r}·10^(−A_r/20) above (the round-trip amplitude, i.e. the one-way
+intensity transmission) times the TGC amplitude gain 10^(A_gel,r/20) (c_TGC =
+``tgc_compensation``): 1 in gel above the bone, (1 − R)·10^(−bone loss/20) ≈ 0 in its shadow.
+It comes from the same (true) poses and the same chunk computation as the images.
+
 Display scale: a normally incident, unattenuated gel/bone echo (amplitude √R) displays at
 ``gain_db`` below full scale; ``dynamic_range_db`` below that is black.
 
@@ -143,10 +154,12 @@ class BoneInterfaces:
 
 @dataclass
 class SimulatedFrames:
-    """B-mode images (N, H, W) uint8 and the centre-plane bone interfaces."""
+    """B-mode images (N, H, W) uint8, the centre-plane bone interfaces and the centre-plane
+    true transmission (N, H, W) float32 in [0, 1] (module doc)."""
 
     images: torch.Tensor
     interfaces: BoneInterfaces
+    transmission: torch.Tensor
 
 
 def gaussian_beam_sigma(
@@ -207,18 +220,19 @@ def simulate_frames(
     if poses.shape[0] == 0:
         raise argument_error("probe_to_world", "expected at least one pose")
     constants = _FrameConstants.build(probe, config)
-    images, parts = [], []
+    images, parts, transmissions = [], [], []
     for start in range(0, poses.shape[0], config.frames_per_chunk):
         chunk = poses[start : start + config.frames_per_chunk]
-        image, interfaces = _simulate_chunk(
+        image, interfaces, transmission = _simulate_chunk(
             chunk, probe, volume, scatterers, config, constants, generator
         )
         images.append(image)
         parts.append(interfaces)
+        transmissions.append(transmission)
     merged = BoneInterfaces(
         *(torch.cat([getattr(p, name) for p in parts]) for name in BoneInterfaces.__annotations__)
     )
-    return SimulatedFrames(torch.cat(images), merged)
+    return SimulatedFrames(torch.cat(images), merged, torch.cat(transmissions))
 
 
 @dataclass(frozen=True)
@@ -251,7 +265,7 @@ def _simulate_chunk(
     config: BModeConfig,
     constants: _FrameConstants,
     generator: torch.Generator,
-) -> tuple[torch.Tensor, BoneInterfaces]:
+) -> tuple[torch.Tensor, BoneInterfaces, torch.Tensor]:
     n, height, width = poses.shape[0], probe.height_px, probe.width_px
     step = probe.axial_spacing_mm
     offsets = config.elevation_offsets_mm()
@@ -305,6 +319,7 @@ def _simulate_chunk(
     images = log_compress(envelope, math.sqrt(reflection), config)
 
     centre_plane = config.elevation_planes // 2
+    true_transmission = (transmission[:, centre_plane] * constants.tgc[None, :, None]).clamp(0, 1)
     pad = torch.zeros((n, 1, width), dtype=torch.bool)
     enter_c = torch.cat([pad, crossings.entering[:, centre_plane]], 1)
     exit_c = torch.cat([pad, crossings.exiting[:, centre_plane]], 1)
@@ -322,4 +337,4 @@ def _simulate_chunk(
             has, 20.0 * torch.log10(echo_c.clamp(min=1e-30) / math.sqrt(reflection)), -math.inf
         ),
     )
-    return images, interfaces
+    return images, interfaces, true_transmission

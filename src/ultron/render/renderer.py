@@ -14,7 +14,7 @@ import torch
 
 from ultron.data.dataset import ProbeGeometry
 from ultron.data.geometry import UnitCube, apply_pose, as_pose_tensor, probe_points_mm
-from ultron.errors import argument_error
+from ultron.errors import argument_error, config_from_dict
 from ultron.fields.base import AcousticField
 from ultron.fields.properties import AcousticProperties
 from ultron.render import physics
@@ -68,10 +68,7 @@ class RenderConfig:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> RenderConfig:
-        try:
-            return cls(**data)
-        except TypeError as exc:
-            raise argument_error("render config", f"unexpected entries ({exc})") from None
+        return config_from_dict(cls, data, "render config")
 
 
 @dataclass(frozen=True)

@@ -106,7 +106,7 @@ def mesh_distance_figure(
     if reference is not None:
         ref_points, ref_faces = sample_surface(reference, n_points, seed=2 * seed + 1)
         ref_normals = np.asarray(reference.face_normals)[ref_faces]
-        distances = point_to_surface_distances(points, reference, ref_points, ref_faces)
+        distances = point_to_surface_distances(points, reference)
         columns.append(("reference", ref_points, ref_normals))
     columns.append(("reconstruction", points, normals))
 

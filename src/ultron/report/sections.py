@@ -130,8 +130,9 @@ def summary_html(run: Mapping[str, Any], run_dir: Path) -> str:
 
 
 def metrics_html(metrics: Mapping[str, Any]) -> str:
-    """The metrics.json table: metric, mean ± std over the sampling repeats."""
-    from ultron.report.tables import LABELS, format_mean_std
+    """The metrics.json table: metric, mean ± std over the sampling repeats ("n/a": not
+    measured, e.g. the visible-reference figures without a visible reference)."""
+    from ultron.report.tables import LABELS, NOT_AVAILABLE, format_mean_std
 
     mean, std = metrics.get("mean"), metrics.get("std", {})
     if not isinstance(mean, dict) or not mean:
@@ -139,10 +140,14 @@ def metrics_html(metrics: Mapping[str, Any]) -> str:
     std = std if isinstance(std, dict) else {}
     rows = []
     for name, value in mean.items():
+        spread = std.get(name)
         try:
-            text = format_mean_std(float(value), float(std.get(name, float("nan"))))
+            text = format_mean_std(
+                None if value is None else float(value),
+                None if spread is None else float(spread),
+            )
         except (TypeError, ValueError):
-            text = str(value)
+            text = NOT_AVAILABLE if value is None else str(value)
         rows.append((LABELS.get(name, name), name, text))
     config = metrics.get("config")
     note = ""
@@ -150,7 +155,10 @@ def metrics_html(metrics: Mapping[str, Any]) -> str:
         note = paragraph_html(
             "Distances in mm (F-scores are shares); mean ± std over "
             f"{config.get('repeats', '?')} repeats of {config.get('n_points', '?')} points per "
-            "surface."
+            "surface. HD and HD95 are one-sided (reconstruction → reference); HD sym. and HD95 "
+            "sym. take the larger of both directions. The 'vis.' figures measure completeness "
+            "against the visible part of the reference (what some frame could image); n/a "
+            "without one."
         )
     return table_html(["metric", "key", "mean ± std"], rows) + note
 

@@ -8,6 +8,11 @@ from collections.abc import Mapping, Sequence
 from ultron.metrics.surface import METRIC_NAMES
 
 LABELS = {
+    "cd_visible": "CD vis.",
+    "completeness_visible": "Comp. vis.",
+    "completeness_visible_hd95": "Comp. vis. HD95",
+    "hd_sym": "HD sym.",
+    "hd95_sym": "HD95 sym.",
     "cd": "CD",
     "hd": "HD",
     "mad": "MAD",
@@ -20,11 +25,17 @@ LABELS = {
 }
 
 
-def format_mean_std(mean: float, std: float) -> str:
-    """'1.23 ± 0.04' (or 'inf' / 'nan')."""
+#: How a metric that was not measured (None, e.g. no visible reference) is shown.
+NOT_AVAILABLE = "n/a"
+
+
+def format_mean_std(mean: float | None, std: float | None) -> str:
+    """'1.23 ± 0.04' (or 'inf' / 'nan'; 'n/a' when ``mean`` is None: not measured)."""
+    if mean is None:
+        return NOT_AVAILABLE
     if math.isnan(mean) or math.isinf(mean):
         return str(mean)
-    if math.isnan(std) or std == 0:
+    if std is None or math.isnan(std) or std == 0:
         return f"{mean:.3f}"
     return f"{mean:.3f} ± {std:.3f}"
 
@@ -41,7 +52,21 @@ def metrics_table(
         table.add_column(LABELS.get(name, name), justify="right")
     for row, result in results.items():
         mean, std = result["mean"], result["std"]
-        table.add_row(row, *(format_mean_std(mean[n], std[n]) for n in names))
+        table.add_row(row, *(format_mean_std(mean.get(n), std.get(n)) for n in names))
+    return table
+
+
+def metrics_column_table(result: Mapping, title: str = "", names: Sequence[str] = METRIC_NAMES):
+    """A rich Table of one ``evaluate_meshes`` result, one metric per row (metric, key,
+    mean ± std): readable in a narrow terminal."""
+    from rich.table import Table
+
+    table = Table(title=title or None)
+    for column, justify in (("metric", "left"), ("key", "left"), ("mean ± std", "right")):
+        table.add_column(column, justify=justify)
+    mean, std = result["mean"], result["std"]
+    for name in names:
+        table.add_row(LABELS.get(name, name), name, format_mean_std(mean.get(name), std.get(name)))
     return table
 
 
@@ -50,7 +75,9 @@ def metrics_markdown(results: Mapping[str, Mapping], names: Sequence[str] = METR
     header = "| method | " + " | ".join(LABELS.get(n, n) for n in names) + " |"
     rule = "|---|" + "---:|" * len(names)
     rows = [
-        f"| {row} | " + " | ".join(format_mean_std(r["mean"][n], r["std"][n]) for n in names) + " |"
+        f"| {row} | "
+        + " | ".join(format_mean_std(r["mean"].get(n), r["std"].get(n)) for n in names)
+        + " |"
         for row, r in results.items()
     ]
     return "\n".join([header, rule, *rows])

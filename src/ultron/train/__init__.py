@@ -1,13 +1,22 @@
 """Training: losses (SSIM, MSE, PSNR), frame preparation and field fitting with checkpoints."""
 
-from ultron.train.field_fit import FieldTrainConfig, evaluate_frames, fit_field, theta_statistics
+from ultron.train.field_fit import (
+    FIELD_PRESETS,
+    FieldTrainConfig,
+    evaluate_frames,
+    field_preset,
+    fit_field,
+    theta_statistics,
+)
 from ultron.train.frames import FrameSet, holdout_indices, resample_frames, resampled_probe
 from ultron.train.losses import psnr, ssim, ssim_map, ultranerf_loss, weighted_scattering_tv
 
 __all__ = [
+    "FIELD_PRESETS",
     "FieldTrainConfig",
     "FrameSet",
     "evaluate_frames",
+    "field_preset",
     "fit_field",
     "holdout_indices",
     "psnr",

@@ -1,0 +1,197 @@
+"""Which parts of a surface some frame actually observed.
+
+A point x of a surface with outward unit normal n is *observed* by frame k (probe-to-world
+pose P_k, beam direction b_k = P_k's probe +y in world) when, with p = P_k⁻¹ x its probe
+coordinates (lateral p_x, depth p_y, elevation p_z, mm):
+
+* it lies in the image: |p_x| ≤ W_mm/2 and 0 ≤ p_y < D_mm;
+* it lies in the frame's elevational slab: |p_z| ≤ ``slab_half_thickness_mm``;
+* it faces the transducer: −n·b_k ≥ cos(``max_incidence_deg``) (the beam meets it from the
+  outside at an incidence of at most that angle; a surface seen edge-on or from behind sends
+  no specular echo back);
+* the beam reaches it: the transmission T_k just above it — at the pixel row r = ⌊p_y/Δ⌋ of
+  the nearest scanline, T being exclusive — is ≥ ``min_transmission``.
+
+A point is observed when some frame observes it. This is the criterion the simulated labels
+follow (a visible echo under an unshadowed beam), so with the simulator's true T it gives the
+part of the reference that *can* be seen; with the transmission a reconstruction estimated,
+it gives the part of a reconstructed surface that is backed by evidence (everything else —
+walls along shadow columns, floors under them — was never observed; the paper's Fig. 1c).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import numpy as np
+import torch
+
+from ultron.data.dataset import ProbeGeometry
+from ultron.data.geometry import as_pose_tensor
+from ultron.errors import argument_error
+
+_FRAMES_PER_CHUNK = 8
+
+#: Defaults of the criterion: the simulated annotator's (incidence ≤ 70°, T ≥ 0.3).
+DEFAULT_MAX_INCIDENCE_DEG = 70.0
+DEFAULT_MIN_TRANSMISSION = 0.3
+#: What a reconstruction keeps of its surface: only the observed part, or all of it.
+SURFACES = ("observed", "all")
+
+
+@dataclass(frozen=True)
+class ObservedSurfaceConfig:
+    """Which part of a reconstructed surface is kept: ``observed`` (the faces whose vertices
+    some frame observes, by this criterion) or ``all`` (the closed iso-surface as extracted)."""
+
+    surface: str = "observed"
+    max_incidence_deg: float = DEFAULT_MAX_INCIDENCE_DEG
+    min_transmission: float = DEFAULT_MIN_TRANSMISSION
+
+    def __post_init__(self) -> None:
+        if self.surface not in SURFACES:
+            raise argument_error("surface", f"expected one of {SURFACES}, got {self.surface!r}")
+        if not (math.isfinite(self.max_incidence_deg) and 0 <= self.max_incidence_deg <= 90):
+            raise argument_error("max_incidence_deg", "expected an angle in [0, 90]")
+        if not (math.isfinite(self.min_transmission) and 0 <= self.min_transmission <= 1):
+            raise argument_error("min_transmission", "expected a value in [0, 1]")
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def observed_points(
+    points_mm: np.ndarray,
+    normals: np.ndarray,
+    probe_to_world: np.ndarray | torch.Tensor | Sequence[np.ndarray],
+    probe: ProbeGeometry,
+    transmission: np.ndarray | Sequence[np.ndarray],
+    slab_half_thickness_mm: float,
+    max_incidence_deg: float = DEFAULT_MAX_INCIDENCE_DEG,
+    min_transmission: float = DEFAULT_MIN_TRANSMISSION,
+) -> np.ndarray:
+    """Boolean (P,) mask of the points (P, 3) with outward ``normals`` (P, 3) that some frame
+    observes (module docstring). ``transmission`` is T per frame, (N, H, W) in [0, 1], in the
+    order of ``probe_to_world`` (N, 4, 4); a list of per-sweep arrays is concatenated."""
+    poses = as_pose_tensor(probe_to_world).to(torch.float64).numpy()
+    maps = _as_maps(transmission, poses.shape[0], probe)
+    points = np.asarray(points_mm, dtype=np.float64)
+    normal = np.asarray(normals, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise argument_error("points_mm", f"expected (P, 3), got {points.shape}")
+    if normal.shape != points.shape:
+        raise argument_error("normals", f"expected {points.shape}, got {normal.shape}")
+    if not (math.isfinite(slab_half_thickness_mm) and slab_half_thickness_mm >= 0):
+        raise argument_error("slab_half_thickness_mm", "expected a finite value ≥ 0")
+    if not 0 <= max_incidence_deg <= 90:
+        raise argument_error("max_incidence_deg", "expected an angle in [0, 90]")
+    if not 0 <= min_transmission <= 1:
+        raise argument_error("min_transmission", "expected a value in [0, 1]")
+    return _observed_vertices(
+        points, normal, poses, maps, probe, slab_half_thickness_mm, max_incidence_deg,
+        min_transmission,
+    )  # fmt: skip
+
+
+def _observed_vertices(
+    v: np.ndarray,
+    n: np.ndarray,
+    poses: np.ndarray,
+    t_maps: np.ndarray,
+    probe: ProbeGeometry,
+    half_thickness_mm: float,
+    max_incidence_deg: float,
+    min_transmission: float,
+) -> np.ndarray:
+    """The criterion, vectorised over points per chunk of frames (inputs validated)."""
+    cos_min = math.cos(math.radians(max_incidence_deg))
+    visible = np.zeros(len(v), dtype=bool)
+    # Candidates by a sorted projection on the sweep's mean elevation axis ē: a vertex in a
+    # frame's image slab has |(v − t)·ẑ| ≤ h and |v − t| ≤ reach, so
+    # |v·ē − t·ē| ≤ h + reach·|ẑ − ē| (exactly the vertices the full test would keep).
+    axis = poses[:, :3, 2].sum(axis=0)
+    axis /= max(float(np.linalg.norm(axis)), 1e-12)
+    along = _dot3(v, axis[None])[:, 0]
+    order = np.argsort(along, kind="stable")
+    along = along[order]
+    reach = math.sqrt((probe.width_mm / 2) ** 2 + probe.depth_mm**2 + half_thickness_mm**2)
+    for start in range(0, poses.shape[0], _FRAMES_PER_CHUNK):
+        chunk = poses[start : start + _FRAMES_PER_CHUNK]
+        axes, origin = chunk[:, :3, :3], chunk[:, :3, 3]
+        centre = _dot3(origin, axis[None])[:, 0]
+        tilt = float(np.abs(axes[:, :, 2] - axis).sum(axis=1).max())  # ≥ |ẑ − ē|
+        margin = half_thickness_mm + reach * tilt + 1e-6  # (+ rounding slack)
+        lo = np.searchsorted(along, centre.min() - margin, side="left")
+        hi = np.searchsorted(along, centre.max() + margin, side="right")
+        candidates = order[lo:hi]
+        z = _dot3(v[candidates], axes[:, :, 2]) - np.einsum("fi,fi->f", origin, axes[:, :, 2])
+        ci, fi = np.nonzero(np.abs(z) <= half_thickness_mm)
+        vi = candidates[ci]
+        keep = ~visible[vi]  # a vertex already seen needs no second frame
+        vi, fi = vi[keep], fi[keep]
+        d = v[vi] - origin[fi]
+        x = np.einsum("ki,ki->k", d, axes[fi, :, 0])
+        y = np.einsum("ki,ki->k", d, axes[fi, :, 1])
+        facing = -np.einsum("ki,ki->k", n[vi], axes[fi, :, 1])
+        ok = (np.abs(x) <= probe.width_mm / 2) & (y >= 0) & (y <= probe.depth_mm)
+        ok &= facing >= cos_min
+        vi, fi, x, y = vi[ok], fi[ok], x[ok], y[ok]
+        row = np.clip(np.floor(y / probe.axial_spacing_mm), 0, probe.height_px - 1).astype(int)
+        col = np.clip(np.rint(x / probe.lateral_spacing_mm + probe.width_px / 2), 0, None)
+        col = np.minimum(col, probe.width_px - 1).astype(int)
+        lit = t_maps[start + fi, row, col].astype(np.float64) >= min_transmission
+        visible[vi[lit]] = True
+    return visible
+
+
+def _dot3(points: np.ndarray, directions: np.ndarray) -> np.ndarray:
+    """(M, F) dot products of points (M, 3) with directions (F, 3), as explicit products (not
+    BLAS: the same bits whatever the machine's thread count)."""
+    return (
+        points[:, :1] * directions[:, 0]
+        + points[:, 1:2] * directions[:, 1]
+        + points[:, 2:] * directions[:, 2]
+    )
+
+
+def observed_faces(mesh, vertex_observed: np.ndarray) -> np.ndarray:
+    """Boolean (F,) mask of the faces of ``mesh`` whose three vertices are all observed."""
+    mask = np.asarray(vertex_observed, dtype=bool)
+    if mask.shape != (len(mesh.vertices),):
+        raise argument_error("vertex_observed", f"expected ({len(mesh.vertices)},) booleans")
+    if len(mesh.faces) == 0:
+        return np.zeros(0, dtype=bool)
+    return mask[np.asarray(mesh.faces)].all(axis=1)
+
+
+def observed_submesh(mesh, vertex_observed: np.ndarray):
+    """The sub-mesh of the observed faces (:func:`observed_faces`), unreferenced vertices
+    dropped and the order kept; an empty mesh when none is observed."""
+    import trimesh
+
+    keep = observed_faces(mesh, vertex_observed)
+    faces = np.asarray(mesh.faces, dtype=np.int64).reshape(-1, 3)[keep]
+    used = np.unique(faces)
+    remap = np.full(len(mesh.vertices), -1, dtype=np.int64)
+    remap[used] = np.arange(used.size)
+    vertices = np.asarray(mesh.vertices)[used]
+    return trimesh.Trimesh(vertices=vertices, faces=remap[faces], process=False)
+
+
+def _as_maps(
+    transmission: np.ndarray | Sequence[np.ndarray], n_frames: int, probe: ProbeGeometry
+) -> np.ndarray:
+    if isinstance(transmission, list | tuple):
+        transmission = np.concatenate([np.asarray(t) for t in transmission], axis=0)
+    maps = np.asarray(transmission)
+    if maps.shape != (n_frames, *probe.image_shape):
+        raise argument_error(
+            "transmission",
+            f"expected ({n_frames}, {probe.height_px}, {probe.width_px}), got {maps.shape}",
+        )
+    if not np.isfinite(maps).all():
+        raise argument_error("transmission", "expected finite values")
+    return maps
