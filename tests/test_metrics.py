@@ -183,7 +183,7 @@ def test_exact_distances_match_brute_force():
 
 
 def test_exact_distances_fast_enough():
-    """100k points 0.4 mm off a 328k-face sphere: seconds, not minutes (≈ 2 s of CPU; see
+    """100k points 0.4 mm off a 328k-face sphere: seconds, not minutes (≈ 1 s of CPU; see
     benchmarks/distances.py for the L3 reference)."""
     import time
 

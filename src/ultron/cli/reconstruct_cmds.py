@@ -173,11 +173,11 @@ def _print_summary(summaries: dict) -> None:
 
     with_metrics = {k: v["metrics"] for k, v in summaries.items() if v.get("metrics")}
     if with_metrics:
-        console.print(
-            metrics_table(
-                with_metrics, "surface distances to the reference (mm)", ("cd", "hd", "mad", "rmse")
-            )
-        )
+        # the visible-reference figures lead where the dataset has a visible reference
+        visible = all(m["mean"].get("cd_visible") is not None for m in with_metrics.values())
+        names = ("cd_visible", "completeness_visible") if visible else ()
+        title = "surface distances to the reference (mm)"
+        console.print(metrics_table(with_metrics, title, (*names, "cd", "hd95", "mad")))
     for name, summary in summaries.items():
         timings = ", ".join(f"{k} {v:.1f} s" for k, v in summary["timings_s"].items())
         console.print(f"{name}: {timings}")

@@ -6,7 +6,6 @@ from ultron.metrics.distance import (
     MeshDistanceIndex,
     build_distance_index,
     mesh_distances,
-    point_triangle_distances,
 )
 from ultron.metrics.surface import (
     METRIC_NAMES,
@@ -30,6 +29,5 @@ __all__ = [
     "evaluate_meshes",
     "mesh_distances",
     "point_to_surface_distances",
-    "point_triangle_distances",
     "sample_surface",
 ]

@@ -2,8 +2,8 @@
 
 Both surfaces are sampled uniformly by area (``n_points`` each, seeded) and every sample's
 exact point-to-surface distance to the other mesh is computed (:mod:`ultron.metrics.distance`:
-the exact minimum of the point-to-triangle distances over all triangles, KD-tree pruned), once
-per repeat in each direction, then reduced:
+the exact minimum of the point-to-triangle distances over all triangles, libigl's AABB tree),
+once per repeat in each direction, then reduced:
 
 * accuracy, reconstruction → reference distances d_acc: MAD = mean d_acc,
   RMSE = sqrt(mean d_acc²), HD = max d_acc, HD95 = 95th percentile of d_acc. HD and HD95 are
