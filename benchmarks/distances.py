@@ -32,12 +32,11 @@ def brute_force(points: np.ndarray, mesh) -> np.ndarray:
     """min over every triangle of trimesh's closest-point distance (an independent kernel)."""
     from trimesh.triangles import closest_point
 
-    triangles = np.asarray(mesh.triangles)
-    out = np.empty(len(points))
-    for i, p in enumerate(points):
-        nearest = closest_point(triangles, np.repeat(p[None], len(triangles), axis=0))
-        out[i] = np.linalg.norm(nearest - p, axis=1).min()
-    return out
+    tri = np.asarray(mesh.triangles)
+    nearest = (closest_point(tri, np.broadcast_to(p, (len(tri), 3))) for p in points)
+    return np.array(
+        [np.linalg.norm(q - p, axis=1).min() for q, p in zip(nearest, points, strict=True)]
+    )
 
 
 def main() -> None:
