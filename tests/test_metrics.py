@@ -240,14 +240,14 @@ def _looking_down(probe) -> tuple[np.ndarray, np.ndarray]:
 
 def test_visibility_of_a_plate_over_a_sphere():
     from ultron.data.dataset import ProbeGeometry
-    from ultron.phantom.visibility import visible_submesh, visible_vertices
+    from ultron.mesh.observed import observed_points, observed_submesh
 
     probe = ProbeGeometry(width_mm=80.0, depth_mm=40.0, height_px=160, width_px=160)
     plate, sphere = _plate_over_sphere()
     reference = trimesh.util.concatenate([plate, sphere])
     poses, t_maps = _looking_down(probe)
-    visible = visible_vertices(
-        reference.vertices, reference.vertex_normals, poses, t_maps, probe, half_thickness_mm=0.5
+    visible = observed_points(
+        reference.vertices, reference.vertex_normals, poses, probe, t_maps, 0.5
     )
     v = np.asarray(reference.vertices)
     on_sphere = np.arange(len(v)) >= len(plate.vertices)
@@ -258,7 +258,7 @@ def test_visibility_of_a_plate_over_a_sphere():
     assert visible[~on_sphere & (v[:, 2] > 9.99)].all()  # the plate's top face
     assert not visible[~on_sphere & (v[:, 2] < 8.01)].any()  # not its bottom face
 
-    visible_mesh = visible_submesh(reference, visible)
+    visible_mesh = observed_submesh(reference, visible)
     assert 0 < len(visible_mesh.faces) < len(reference.faces)
     # a reconstruction of what was seen: perfect on the visible part, nothing elsewhere
     result = evaluate_meshes(visible_mesh, reference, FAST, reference_visible=visible_mesh)["mean"]

@@ -58,13 +58,20 @@ def _previous_runtime(out: Path) -> float:
         return 0.0
 
 
-def _cd(out: Path, name: str = "cd") -> float | None:
-    """Metric ``name``'s mean in ``out/metrics.json`` (None when missing, unreadable or null)."""
+def _cell_cds(out: Path) -> dict[str, float | None]:
+    """``cd`` and ``cd_visible`` means of ``out/metrics.json``, read once (each None when
+    missing, unreadable or null)."""
     try:
-        metrics = json.loads((out / "metrics.json").read_text(encoding="utf-8"))
-        return float(metrics["mean"][name])
+        means = json.loads((out / "metrics.json").read_text(encoding="utf-8"))["mean"]
     except (OSError, ValueError, KeyError, TypeError):
-        return None
+        means = {}
+    result: dict[str, float | None] = {}
+    for name in ("cd", "cd_visible"):
+        try:
+            result[name] = float(means[name])
+        except (KeyError, TypeError, ValueError):
+            result[name] = None
+    return result
 
 
 def simulate(job: SimulateJob) -> bool:
@@ -157,8 +164,7 @@ def execute(task: Task) -> Outcome:
         "status": "skipped" if skipped else "ok",
         "error": None,
         "runtime_s": runtime,
-        "cd": _cd(out) if task.is_cell else None,
-        "cd_visible": _cd(out, "cd_visible") if task.is_cell else None,
+        **(_cell_cds(out) if task.is_cell else {"cd": None, "cd_visible": None}),
     }
 
 

@@ -136,7 +136,7 @@ class Sweep:
             self.true_probe_to_world = np.asarray(self.true_probe_to_world, dtype=np.float64)
             _check_count(self.true_probe_to_world, n, where, "true_poses")
         if self.true_transmission is not None:
-            _check_transmission(self.true_transmission, self.images.shape, where)
+            validate_transmission(self.true_transmission, where, "transmission", self.images.shape)
 
     @property
     def n_frames(self) -> int:
@@ -149,18 +149,6 @@ class Sweep:
             return np.zeros(0, dtype=np.int64)
         annotated = (self.labels != LABEL_UNANNOTATED).any(axis=(1, 2))
         return np.flatnonzero(annotated)
-
-
-def _check_transmission(
-    transmission: np.ndarray, image_shape: tuple[int, ...], where: str | Path
-) -> None:
-    validate_transmission(transmission, where, "transmission")
-    if transmission.shape != image_shape:
-        raise UltronInputError(
-            where,
-            "transmission",
-            f"shape {transmission.shape} differs from images {tuple(image_shape)}",
-        )
 
 
 def _check_count(array: np.ndarray, n: int, where: str | Path, field_name: str) -> None:
@@ -430,7 +418,7 @@ def _load_sweep(root: Path, meta_path: Path, index: int, entry: Any) -> Sweep:
     transmission_path = folder / TRANSMISSION_FILE
     if transmission_path.exists():
         transmission = load_npy(transmission_path, "transmission")
-        _check_transmission(transmission, images.shape, transmission_path)
+        validate_transmission(transmission, transmission_path, "transmission", images.shape)
     return Sweep(
         name=name,
         kind=kind,

@@ -31,19 +31,6 @@ def true_transmission_path(dataset_dir: str | Path, sweep_name: str) -> Path:
     return Path(dataset_dir) / sweep_name / TRANSMISSION_FILE
 
 
-def validate_true_transmission(
-    array: np.ndarray, where: str | Path, expected_shape: tuple[int, ...] | None = None
-) -> None:
-    """float16 (N, H, W) [of ``expected_shape``], finite, every value in [0, 1]."""
-    validate_transmission(array, where, TRANSMISSION_FILE)
-    if expected_shape is not None and tuple(array.shape) != tuple(expected_shape):
-        raise UltronInputError(
-            where,
-            TRANSMISSION_FILE,
-            f"shape {array.shape} differs from the sweep's images {tuple(expected_shape)}",
-        )
-
-
 def load_true_transmission(
     dataset_dir: str | Path,
     sweep_name: str,
@@ -64,5 +51,5 @@ def load_true_transmission(
             "(a simulated dataset; re-simulate it with a version that writes it)",
         )
     array = load_npy(path, TRANSMISSION_FILE)
-    validate_true_transmission(array, path, expected_shape)
+    validate_transmission(array, path, TRANSMISSION_FILE, expected_shape)
     return array

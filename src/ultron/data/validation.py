@@ -118,10 +118,13 @@ def validate_labels(labels: np.ndarray, where: str | Path, field: str = "labels"
 
 
 def validate_transmission(
-    transmission: np.ndarray, where: str | Path, field: str = "transmission"
+    transmission: np.ndarray,
+    where: str | Path,
+    field: str = "transmission",
+    image_shape: tuple[int, ...] | None = None,
 ) -> None:
     """A true transmission map (``<sweep>/transmission.npy``): float16 (N, H, W), finite, every
-    value in [0, 1]."""
+    value in [0, 1], and of the sweep's ``image_shape`` when given."""
     if not isinstance(transmission, np.ndarray):
         raise UltronInputError(
             where, field, f"expected a numpy array, got {type(transmission).__name__}"
@@ -140,6 +143,12 @@ def validate_transmission(
     if low < 0.0 or high > 1.0:
         raise UltronInputError(
             where, field, f"values span [{low:g}, {high:g}], expected transmissions in [0, 1]"
+        )
+    if image_shape is not None and tuple(transmission.shape) != tuple(image_shape):
+        raise UltronInputError(
+            where,
+            field,
+            f"shape {transmission.shape} differs from the sweep's images {tuple(image_shape)}",
         )
 
 

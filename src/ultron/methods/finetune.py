@@ -124,11 +124,6 @@ def check_theta_model(network: nn.Module, meta: dict[str, Any], fitted, where: s
     return meta.get("loss", "ultron")
 
 
-def model_visibility(meta: dict[str, Any], where: str) -> VisibilityConfig:
-    """The transmission source a saved model was trained with (``field`` if not recorded)."""
-    return VisibilityConfig.from_dict(meta, where)
-
-
 def finetune_ultron(
     dataset: SweepDataset,
     fitted,
@@ -177,7 +172,9 @@ def finetune_ultron(
     )
     with timer.stage("mesh_observed"):
         meshing = replace(config.meshing, visibility=visibility)
-        mesh, surface_info = keep_observed_surface(mesh, dataset, fitted, meshing, truth)
+        mesh, surface_info = keep_observed_surface(
+            mesh, dataset, fitted, meshing, grid.voxel_mm, truth
+        )
     info |= surface_info
     info["grid"] = grid.to_dict()
     meta = {"input": "theta", "theta_channels": list(fitted.channels), "loss": loss,
@@ -206,7 +203,8 @@ def finetune(
     with timer.stage("load"):
         network, meta = load_network(model_dir)
         dataset = SweepDataset.load(dataset_dir)
-        visibility = config.visibility or model_visibility(meta, where)
+        # the source the model was trained with (``field`` if not recorded)
+        visibility = config.visibility or VisibilityConfig.from_dict(meta, where)
         truth = load_oracle_truth(visibility, dataset_dir, dataset) if config.iters > 0 else None
     with timer.stage("field"):
         fitted, used_dir, cached = load_or_fit_field(

@@ -170,12 +170,14 @@ def keep_observed_surface(
     dataset: SweepDataset,
     fitted,
     config: UltronConfig,
+    voxel_mm: float,
     truth: Mapping[str, np.ndarray] | None = None,
 ) -> tuple[Any, dict[str, Any]]:
     """The part of ``mesh`` that some frame observed (module docstring, step 5) and counts.
 
     Each frame's T comes from the oracle (diagnostic runs) or the fitted field; the elevational
-    slab is the one the field-of-view mask uses (0.75 × the frame gap, ≥ one voxel). When no
+    slab is the one the field-of-view mask uses (0.75 × the frame gap, ≥ one voxel of the
+    meshing grid, ``voxel_mm``). When no
     face is observed the whole iso-surface is kept and ``surface_fallback`` says so.
     """
     observed = config.observed
@@ -188,14 +190,13 @@ def keep_observed_surface(
         frame_transmission(visibility, dataset, sweep.name, fitted=fitted, truth=truth)
         for sweep in dataset.sweeps
     ]
-    voxel = config.voxel_mm or min(dataset.probe.lateral_spacing_mm, dataset.probe.axial_spacing_mm)
     seen = observed_points(
         np.asarray(mesh.vertices),
         np.asarray(mesh.vertex_normals),
         dataset.all_poses(),
         dataset.probe,
         maps,
-        elevation_half_thickness_mm(dataset, voxel),
+        elevation_half_thickness_mm(dataset, voxel_mm),
         observed.max_incidence_deg,
         observed.min_transmission,
     )
@@ -228,7 +229,9 @@ def reconstruct_ultron(
         network, log = fit_occupancy(data, occupancy_config)
     mesh, volume, grid = mesh_occupancy(occupancy_function(fitted, network), dataset, config, timer)
     with timer.stage("mesh_observed"):
-        mesh, surface_info = keep_observed_surface(mesh, dataset, fitted, config, truth)
+        mesh, surface_info = keep_observed_surface(
+            mesh, dataset, fitted, config, grid.voxel_mm, truth
+        )
     info = {
         **surface_info,
         "selection": selection.to_dict(),

@@ -93,8 +93,8 @@ def distance_metrics(
             "completeness": inf, "completeness_hd95": inf, "hd_sym": inf, "hd95_sym": inf,
             "fscore_1mm": 0.0, "fscore_2mm": 0.0,
         }  # fmt: skip
-        visible = dict.fromkeys(VISIBLE_METRIC_NAMES, None if comp_visible_mm is None else inf)
-        return {name: {**result, **visible}[name] for name in METRIC_NAMES}
+        result |= dict.fromkeys(VISIBLE_METRIC_NAMES, None if comp_visible_mm is None else inf)
+        return {name: result[name] for name in METRIC_NAMES}
     hd95, comp_hd95 = float(np.percentile(acc_mm, 95)), float(np.percentile(comp_mm, 95))
     result: dict[str, float | None] = {
         "cd": float((acc_mm.mean() + comp_mm.mean()) / 2),

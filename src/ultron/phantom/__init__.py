@@ -30,12 +30,7 @@ from ultron.phantom.shapes import PHANTOMS, Phantom, VertebraShape, get_phantom
 from ultron.phantom.simulator import BModeConfig, BoneInterfaces, SimulatedFrames, simulate_frames
 from ultron.phantom.speckle import ScattererField, scatterer_field
 from ultron.phantom.tissue import CORTICAL_BONE, GEL_PULP, Tissue, intensity_reflection
-from ultron.phantom.visibility import (
-    VisibilityConfig,
-    reference_visibility,
-    visible_submesh,
-    visible_vertices,
-)
+from ultron.phantom.visibility import reference_visibility
 from ultron.phantom.volume import SdfVolume
 
 __all__ = [
@@ -56,7 +51,6 @@ __all__ = [
     "Tissue",
     "TrackingNoise",
     "VertebraShape",
-    "VisibilityConfig",
     "annotate",
     "get_phantom",
     "intensity_reflection",
@@ -68,6 +62,4 @@ __all__ = [
     "simulate_dataset",
     "simulate_frames",
     "sweep_spec",
-    "visible_submesh",
-    "visible_vertices",
 ]

@@ -60,7 +60,7 @@ from ultron.phantom.shapes import DEFAULT_VOXEL_MM, get_phantom
 from ultron.phantom.simulator import BModeConfig, simulate_frames
 from ultron.phantom.speckle import scatterer_field
 from ultron.phantom.tissue import Tissue
-from ultron.phantom.visibility import VisibilityConfig, reference_visibility
+from ultron.phantom.visibility import reference_visibility
 
 #: Progress callback: (what is being done, units done, units in total).
 Progress = Callable[[str, int, int], None]
@@ -288,7 +288,6 @@ def _write_visible_reference(
         [(s.name, poses, s.true_transmission) for s, poses in zip(sweeps, true_poses, strict=True)],
         config.probe(),
         config.bmode.elevation_span_mm,
-        VisibilityConfig(),
     )
     path = None
     if visible is not None:

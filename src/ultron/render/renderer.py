@@ -162,11 +162,17 @@ def render_field(
     cols: torch.Tensor | None = None,
     generator: torch.Generator | None = None,
     expected: bool = False,
+    hold_scattering: float | None = None,
 ) -> RenderedFrames:
     """Query ``field`` at the pixels of ``cols`` (see :func:`pixel_points_mm`) and render.
 
+    ``hold_scattering``: render with φ replaced by this constant (a fit's curriculum: the
+    image's dark regions can then only be explained by a loss of transmission).
     Differentiable w.r.t. the field; wrap in ``torch.no_grad()`` for inference.
     """
     points_mm = pixel_points_mm(probe_to_world, probe, cols)
     properties = field(unit_cube.to_unit(points_mm, dtype=torch.float32))
+    if hold_scattering is not None:
+        held = torch.full_like(properties.scattering, hold_scattering)
+        properties = replace(properties, scattering=held)
     return render_properties(properties, probe.axial_spacing_mm, config, generator, expected)

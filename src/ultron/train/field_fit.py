@@ -56,7 +56,7 @@ from ultron.fields.fitted import (
     read_field_json,
 )
 from ultron.fields.properties import HeadConfig
-from ultron.render.renderer import RenderConfig, pixel_points_mm, render_properties
+from ultron.render.renderer import RenderConfig, render_field
 from ultron.train.frames import FrameSet
 from ultron.train.losses import METRIC_SSIM_K2, psnr, ssim, ultranerf_loss, weighted_scattering_tv
 
@@ -238,17 +238,16 @@ def training_step(
     the image's dark regions can then only be explained by a loss of transmission).
     """
     frame_idx, cols = sample_patches(frames, config.frames_per_batch, config.patch_width, generator)
-    points_mm = pixel_points_mm(frames.probe_to_world[frame_idx], frames.probe, cols)
-    properties = module(cube.to_unit(points_mm, dtype=torch.float32))
-    if hold_scattering:
-        held = torch.full_like(properties.scattering, module.head_config.initial_scattering)
-        properties = replace(properties, scattering=held)
-    rendered = render_properties(
-        properties,
-        frames.probe.axial_spacing_mm,
+    rendered = render_field(
+        module,
+        cube,
+        frames.probe,
+        frames.probe_to_world[frame_idx],
         render_config,
-        generator,
+        cols,
+        generator=generator,
         expected=config.train_scatterers == "expected",
+        hold_scattering=module.head_config.initial_scattering if hold_scattering else None,
     )
     patch_cols = cols[:, None, :].expand(-1, frames.probe.height_px, -1)
     target = torch.gather(frames.images[frame_idx], 2, patch_cols)
