@@ -38,8 +38,8 @@ def main() -> None:
     from ultron.data.dataset import SweepDataset
     from ultron.data.labels import select_label_frames
     from ultron.fields.fitted import load_field
-    from ultron.fields.occupancy import OccupancyNetwork
-    from ultron.methods.finetune import FinetuneConfig, freeze_last_layers
+    from ultron.fields.occupancy import OccupancyNetwork, OccupancyNetworkConfig
+    from ultron.methods.finetune import FinetuneConfig, ThetaModel, freeze_last_layers
     from ultron.methods.model_io import load_network
     from ultron.methods.runinfo import StageTimer
     from ultron.methods.ultron_method import (
@@ -53,16 +53,18 @@ def main() -> None:
     dataset, fitted = SweepDataset.load(dataset_dir), load_field(field_dir)
     if args.model is not None:
         network, meta = load_network(args.model)
-        loss = meta.get("loss", "ultron")
+        spec = ThetaModel.from_meta(meta)
     else:
         torch.manual_seed(args.seed)
-        network, loss = OccupancyNetwork(), "ultron"
+        spec = ThetaModel()
+        width = spec.context.n_inputs(len(fitted.channels))
+        network = OccupancyNetwork(OccupancyNetworkConfig(in_dim=width))
         print("no --model: timing a freshly initialised f_ω (same architecture)")
     config = FinetuneConfig(label_fraction=args.label_fraction, iters=args.iters, seed=args.seed)
 
     start = time.perf_counter()
     selection = select_label_frames(dataset, config.label_fraction, config.seed)
-    data = occupancy_training_data(dataset, fitted, selection)
+    data = occupancy_training_data(dataset, fitted, selection, context=spec.context)
     gather_s = time.perf_counter() - start
 
     loop_s = []
@@ -71,12 +73,12 @@ def main() -> None:
         trainable = freeze_last_layers(model, config.frozen_layers)
         start = time.perf_counter()
         model, _ = fit_occupancy(
-            data, config.training(loss), model, lambda _, params=trainable: params
+            data, config.training(spec), model, lambda _, params=trainable: params
         )
         loop_s.append(time.perf_counter() - start)
 
     timer = StageTimer()
-    mesh_occupancy(occupancy_function(fitted, model), dataset, config.meshing, timer)
+    mesh_occupancy(occupancy_function(fitted, model, spec.context), dataset, config.meshing, timer)
 
     print(f"\ndataset {dataset_dir}; field {field_dir}; torch threads {torch.get_num_threads()}")
     print(

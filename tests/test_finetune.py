@@ -16,7 +16,13 @@ from ultron.errors import UltronInputError
 from ultron.fields.fitted import load_field
 from ultron.fields.occupancy import OccupancyNetwork, OccupancyNetworkConfig
 from ultron.fields.sdf import SDFNetwork, SDFNetworkConfig
-from ultron.methods.finetune import FinetuneConfig, finetune, finetune_ultron, freeze_last_layers
+from ultron.methods.finetune import (
+    FinetuneConfig,
+    ThetaModel,
+    finetune,
+    finetune_ultron,
+    freeze_last_layers,
+)
 from ultron.methods.model_io import NETWORK_FILE, load_network, save_network
 from ultron.methods.run import ReconstructionRequest, reconstruct
 from ultron.methods.runinfo import StageTimer
@@ -58,7 +64,11 @@ def shapes(tmp_path_factory) -> dict[str, Path]:
     request = ReconstructionRequest(
         method="ultron",
         label_fraction=0.5,
-        ultron=UltronConfig(occupancy=OccupancyTrainConfig(iters=600, batch_size=1024, lr=1e-3)),
+        ultron=UltronConfig(
+            occupancy=OccupancyTrainConfig(
+                iters=600, batch_size=1024, lr=1e-3, positive_weight=None
+            )
+        ),
         metrics=FAST_METRICS,
     )
     reconstruct(l3, request, root / "model", field_dir=l3_field)
@@ -83,10 +93,10 @@ def test_reconstruct_saves_a_loadable_network(shapes):
 
 
 def test_freezing_keeps_last_two_layers_bit_identical(shapes):
-    network, _ = load_network(shapes["model"])
+    network, meta = load_network(shapes["model"])
     before = {k: v.clone() for k, v in network.state_dict().items()}
     dataset, fitted = SweepDataset.load(shapes["new"]), load_field(shapes["field"])
-    result = finetune_ultron(dataset, fitted, network, "ultron", _config())
+    result = finetune_ultron(dataset, fitted, network, ThetaModel.from_meta(meta), _config())
     tuned = result.info["network"].state_dict()
     frozen = {f"trunk.output.{p}" for p in ("weight", "bias")}
     frozen |= {f"trunk.hidden.{len(network.trunk.hidden) - 1}.{p}" for p in ("weight", "bias")}
@@ -107,10 +117,11 @@ def test_iters_zero_equals_direct_application(shapes, tmp_path):
     config = _config(iters=0)
     summary = finetune(shapes["model"], shapes["new"], config, tmp_path / "direct",
                        field_dir=shapes["field"])  # fmt: skip
-    network, _ = load_network(shapes["model"])
+    network, meta = load_network(shapes["model"])
     dataset, fitted = SweepDataset.load(shapes["new"]), load_field(shapes["field"])
+    context = ThetaModel.from_meta(meta).context
     _, volume, _ = mesh_occupancy(
-        occupancy_function(fitted, network), dataset, config.meshing, StageTimer()
+        occupancy_function(fitted, network, context), dataset, config.meshing, StageTimer()
     )
     import nibabel
 
@@ -152,6 +163,14 @@ def test_finetune_rejects_wrong_models(shapes, tmp_path):
                  "input": "unit_cube"})  # fmt: skip
     with pytest.raises(UltronInputError, match="UltrON network"):
         finetune(tmp_path / "on", shapes["new"], _config(), tmp_path / "x", shapes["field"])
+    # a θ model whose width does not fit its recorded context (39 inputs for 3 channels and
+    # two radii; this one takes θ alone)
+    channels = list(load_field(shapes["field"]).channels)
+    save_network(tmp_path / "narrow", OccupancyNetwork(OccupancyNetworkConfig()), {
+        "method": "ultron", "input": "theta", "theta_channels": channels,
+        "theta_context": {"radii_mm": [1.0, 2.0]}})  # fmt: skip
+    with pytest.raises(UltronInputError, match=r"theta_context.*39 inputs.*takes 3"):
+        finetune(tmp_path / "narrow", shapes["new"], _config(), tmp_path / "x", shapes["field"])
     (tmp_path / "bad").mkdir()
     (tmp_path / "bad" / NETWORK_FILE).write_bytes(b"not a torch file")
     with pytest.raises(UltronInputError, match="unreadable"):
@@ -162,11 +181,11 @@ def test_finetune_rejects_wrong_models(shapes, tmp_path):
 def test_finetune_uses_the_given_or_the_models_transmission_source(shapes, tmp_path):
     from ultron.train.visibility import VisibilityConfig
 
-    network, _ = load_network(shapes["model"])
+    network, meta = load_network(shapes["model"])
     dataset, fitted = SweepDataset.load(shapes["new"]), load_field(shapes["field"])
     labels = VisibilityConfig("labels")
     config = _config(iters=5, visibility=labels, meshing=UltronConfig(voxel_mm=2.0))
-    result = finetune_ultron(dataset, fitted, network, "ultron", config)
+    result = finetune_ultron(dataset, fitted, network, ThetaModel.from_meta(meta), config)
     assert result.info["transmission_source"] == "labels"
     assert result.info["model"]["transmission_source"] == "labels"
     assert result.info["model"]["transmission_parameters"] == {"margin_mm": 0.0, "decay_mm": 1.0}

@@ -13,6 +13,7 @@ from ultron.train.occupancy import (
     attenuation_compensated_bce,
     binary_cross_entropy,
     fit_occupancy,
+    parse_positive_weight,
     positive_class_weight,
 )
 
@@ -65,9 +66,22 @@ def test_shape_mismatch_is_an_error():
 
 def test_balanced_positive_weight():
     labels = torch.tensor([1.0] + [0.0] * 9)
-    assert positive_class_weight(labels, OccupancyTrainConfig()) == pytest.approx(9.0)
-    assert positive_class_weight(torch.tensor([1.0] + [0.0] * 99), OccupancyTrainConfig()) == 20.0
+    balanced = OccupancyTrainConfig(positive_weight=None)
+    assert positive_class_weight(labels, balanced) == pytest.approx(9.0)
+    assert positive_class_weight(torch.tensor([1.0] + [0.0] * 99), balanced) == 20.0
     assert positive_class_weight(labels, OccupancyTrainConfig(positive_weight=2.0)) == 2.0
+    # the default is the paper's unweighted loss
+    assert positive_class_weight(labels, OccupancyTrainConfig()) == 1.0
+
+
+def test_positive_weight_parsing_and_validation():
+    assert parse_positive_weight("balanced") is None
+    assert parse_positive_weight("2.5") == 2.5
+    for bad in ("0", "-1", "nan", "inf", "heavy"):
+        with pytest.raises(UltronInputError, match="positive_weight"):
+            parse_positive_weight(bad)
+    with pytest.raises(UltronInputError, match="positive_weight"):
+        OccupancyTrainConfig(positive_weight=float("nan"))
 
 
 SMALL = OccupancyNetworkConfig(width=64, depth=4, skip_at=2, n_frequencies=2)

@@ -71,7 +71,11 @@ def test_ultron_end_to_end(tiny: Path, tmp_path: Path, monkeypatch):
     request = ReconstructionRequest(
         method="ultron",
         label_fraction=0.5,
-        ultron=UltronConfig(occupancy=OccupancyTrainConfig(iters=600, batch_size=1024, lr=1e-3)),
+        ultron=UltronConfig(
+            occupancy=OccupancyTrainConfig(
+                iters=600, batch_size=1024, lr=1e-3, positive_weight=None
+            )
+        ),
         metrics=FAST_METRICS,
     )
     field_config = FieldTrainConfig(iterations=400, check_every=1000, checkpoint_every=1000)

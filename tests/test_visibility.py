@@ -169,7 +169,8 @@ def test_field_source_equals_the_pre_refactor_values(fitted_case):
         sweep.probe_to_world, pixels.frame, pixels.row, pixels.col
     )
     assert torch.equal(data.transmission, t.float())
-    assert torch.equal(data.inputs, fitted.theta_stats.normalise(theta).float())
+    n = len(fitted.channels)
+    assert torch.equal(data.inputs[:, :n], fitted.theta_stats.normalise(theta).float())
     # the same T without the precomputed values, and on whole frames
     config = VisibilityConfig()
     assert torch.equal(pixel_transmission(config, dataset, pixels, fitted=fitted), t)
@@ -221,7 +222,7 @@ def test_oracle_reads_transmission_npy_and_trains(fitted_case, tmp_path):
     np.testing.assert_array_equal(
         data.transmission.numpy(), true_t[pixels.frame, pixels.row, pixels.col].astype(np.float32)
     )
-    occupancy = OccupancyTrainConfig(iters=150, batch_size=1024, lr=1e-3)
+    occupancy = OccupancyTrainConfig(iters=150, batch_size=1024, lr=1e-3, positive_weight=None)
     request = ReconstructionRequest(
         method="ultron", label_fraction=1.0, ultron=UltronConfig(occupancy=occupancy,
         visibility=config, voxel_mm=0.5),
@@ -334,11 +335,14 @@ def test_reconstruct_cli_with_the_confidence_source(fitted_case, tmp_path):
         app,
         ["reconstruct", str(fitted_case["root"] / "dataset"), "--out", str(out),
          "--method", "ultron-noloss", "--label-fraction", "0.5", "--visibility", "confidence",
-         "--field", str(fitted_case["root"] / "field"), "--occupancy-iters", "100"],
+         "--field", str(fitted_case["root"] / "field"), "--occupancy-iters", "100",
+         "--positive-weight", "balanced"],
     )  # fmt: skip
     assert result.exit_code == 0, result.output
     run = json.loads((out / "run.json").read_text())
     assert run["transmission_source"] == "confidence" and run["diagnostic"] is False
     assert run["transmission_parameters"]["beta"] == 90.0
     assert run["occupancy_config"]["loss"] == "bce"  # the ablation ignores T, records its source
-    assert load_network(out)[1]["transmission_source"] == "confidence"
+    meta = load_network(out)[1]
+    assert meta["transmission_source"] == "confidence"
+    assert meta["positive_weight"] is None and meta["theta_context"] == {"radii_mm": [1.0, 2.0]}

@@ -49,22 +49,25 @@ def _request(
     visibility: str = "field",
     oracle: bool = False,
     surface: str = "observed",
+    theta_context: str = "1,2",
+    positive_weight: str = "1",
 ):
     from dataclasses import replace
 
+    from ultron.fields.context import ThetaContextConfig
     from ultron.mesh.observed import ObservedSurfaceConfig
     from ultron.methods.on_method import ONConfig
     from ultron.methods.run import ReconstructionRequest
     from ultron.methods.ultron_method import UltronConfig
     from ultron.metrics.surface import MetricsConfig
-    from ultron.train.occupancy import OccupancyTrainConfig
+    from ultron.train.occupancy import OccupancyTrainConfig, parse_positive_weight
     from ultron.train.visibility import visibility_config
 
-    occupancy = (
-        OccupancyTrainConfig(seed=seed)
-        if occupancy_iters is None
-        else OccupancyTrainConfig(iters=occupancy_iters, seed=seed)
+    occupancy = OccupancyTrainConfig(
+        seed=seed, positive_weight=parse_positive_weight(positive_weight)
     )
+    if occupancy_iters is not None:
+        occupancy = replace(occupancy, iters=occupancy_iters)
     on = ONConfig()
     if occupancy_iters is not None:
         on = replace(on, occupancy=replace(on.occupancy, iters=occupancy_iters))
@@ -76,6 +79,7 @@ def _request(
             occupancy=occupancy,
             visibility=visibility_config(visibility, oracle),
             observed=ObservedSurfaceConfig(surface=surface),
+            context=ThetaContextConfig.parse(theta_context),
         ),
         on=on,
         rocosdf_preset=preset,
@@ -151,13 +155,30 @@ def reconstruct(
             " T ≥ 0.3 above them, default) or all (the closed iso-surface).",
         ),
     ] = "observed",
+    theta_context: Annotated[
+        str,
+        typer.Option(
+            "--theta-context",
+            help="ultron*: radii (mm, comma-separated) of the world-axis neighbours whose θ f"
+            " reads besides θ(x); 'none' for θ(x) alone, as in the paper.",
+        ),
+    ] = "1,2",
+    positive_weight: Annotated[
+        str,
+        typer.Option(
+            "--positive-weight",
+            help="ultron*: loss weight of the bone labels: 1 (unweighted, the paper's), another"
+            " number > 0, or 'balanced' (n_background / n_bone, at most 20: a fuller but less"
+            " accurate surface, e.g. for very short runs).",
+        ),
+    ] = "1",
 ) -> None:
     """Reconstruct a bone surface: mesh.ply/.stl/.obj, occupancy.nii.gz, metrics.json, run.json."""
     from ultron.methods.run import reconstruct as run
 
     request = _request(
         method, label_fraction, seed, occupancy_iters, points, preset, visibility,
-        oracle_transmission, surface,
+        oracle_transmission, surface, theta_context, positive_weight,
     )  # fmt: skip
     bar, update = _field_progress()
     with bar:

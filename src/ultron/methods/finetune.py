@@ -15,6 +15,10 @@ saved before sources were recorded used ``field``), computed on the new dataset,
 therefore needs the new dataset's true ``transmission.npy`` (checked before any work) unless
 another source is given.
 
+The model's input (θ and its neighbourhood, :mod:`ultron.fields.context`) and class weight
+are those it was trained with, recorded in its ``network.pt`` (a model saved before they were
+recorded read θ alone with the balanced loss).
+
 Meshing and metrics are exactly those of ``reconstruct``; the outputs are the same files, plus
 the fine-tuned ``network.pt`` (itself a valid MODEL_DIR).
 """
@@ -32,6 +36,7 @@ from torch import nn
 from ultron.data.dataset import SweepDataset
 from ultron.data.labels import select_label_frames
 from ultron.errors import UltronInputError, argument_error
+from ultron.fields.context import ThetaContextConfig
 from ultron.fields.occupancy import OccupancyNetwork
 from ultron.methods.model_io import NETWORK_FILE, load_network
 from ultron.methods.runinfo import StageTimer
@@ -82,15 +87,35 @@ class FinetuneConfig:
             if isinstance(value, bool) or not isinstance(value, int) or value < 0:
                 raise argument_error(name, f"expected an integer ≥ 0, got {value!r}")
 
-    def training(self, loss: str) -> OccupancyTrainConfig:
-        """The occupancy-training settings of the fine-tuning loop."""
+    def training(self, model: ThetaModel) -> OccupancyTrainConfig:
+        """The occupancy-training settings of the fine-tuning loop for ``model``."""
         return OccupancyTrainConfig(
-            loss=loss,
+            loss=model.loss,
+            positive_weight=model.positive_weight,
             iters=self.iters,
             batch_size=self.batch_size,
             lr=self.lr,
             final_lr_factor=self.final_lr_factor,
             seed=self.seed,
+        )
+
+
+@dataclass(frozen=True)
+class ThetaModel:
+    """How a saved f_ω was trained: its loss, its input context and its class weight."""
+
+    loss: str = "ultron"
+    context: ThetaContextConfig = field(default_factory=ThetaContextConfig)
+    positive_weight: float | None = 1.0
+
+    @classmethod
+    def from_meta(cls, meta: dict[str, Any]) -> ThetaModel:
+        """From ``network.pt``'s meta; missing keys are the pre-context defaults (θ alone,
+        balanced loss)."""
+        return cls(
+            loss=meta.get("loss", "ultron"),
+            context=ThetaContextConfig.from_dict(meta.get("theta_context")),
+            positive_weight=meta.get("positive_weight"),
         )
 
 
@@ -109,8 +134,9 @@ def freeze_last_layers(network: OccupancyNetwork, n: int) -> list[nn.Parameter]:
     return trainable
 
 
-def check_theta_model(network: nn.Module, meta: dict[str, Any], fitted, where: str) -> str:
-    """The model must be UltrON's f_ω(θ) with the new field's θ channels; returns its loss."""
+def check_theta_model(network: nn.Module, meta: dict[str, Any], fitted, where: str) -> ThetaModel:
+    """The model must be UltrON's f_ω(θ) with the new field's θ channels and an input as wide
+    as its recorded context; returns how it was trained."""
     if not isinstance(network, OccupancyNetwork) or meta.get("input") != "theta":
         raise UltronInputError(
             where, "method", f"expected an UltrON network on θ (--method ultron or ultron-noloss), "
@@ -121,21 +147,29 @@ def check_theta_model(network: nn.Module, meta: dict[str, Any], fitted, where: s
         raise UltronInputError(
             where, "theta_channels", f"the model takes {channels}, the field gives {list(fitted.channels)}"
         )  # fmt: skip
-    return meta.get("loss", "ultron")
+    model = ThetaModel.from_meta(meta)
+    expected = model.context.n_inputs(len(channels))
+    if network.config.in_dim != expected:
+        raise UltronInputError(
+            where, "theta_context", f"{model.context.to_dict()} needs {expected} inputs, "
+            f"the network takes {network.config.in_dim}",
+        )  # fmt: skip
+    return model
 
 
 def finetune_ultron(
     dataset: SweepDataset,
     fitted,
     network: OccupancyNetwork,
-    loss: str,
+    spec: ThetaModel,
     config: FinetuneConfig,
     timer: StageTimer | None = None,
     progress: Callable[[int, float], None] | None = None,
     visibility: VisibilityConfig | None = None,
     truth: dict[str, Any] | None = None,
 ) -> Reconstruction:
-    """Fine-tune a copy of ``network`` on ``dataset`` (θ from ``fitted``) and mesh it.
+    """Fine-tune a copy of ``network`` (trained as ``spec`` says) on ``dataset`` (θ from
+    ``fitted``) and mesh it.
 
     T comes from ``visibility`` (default ``config.visibility``, else the fitted field);
     ``truth`` holds the oracle's true T per sweep. With ``config.iters == 0`` no label is read
@@ -150,11 +184,13 @@ def finetune_ultron(
     if config.iters > 0:
         with timer.stage("labels"):
             selection = select_label_frames(dataset, config.label_fraction, config.seed)
-            data = occupancy_training_data(dataset, fitted, selection, visibility, truth)
+            data = occupancy_training_data(
+                dataset, fitted, selection, visibility, truth, spec.context
+            )
         trainable = freeze_last_layers(model, config.frozen_layers)
         with timer.stage("finetune"):
             model, log = fit_occupancy(
-                data, config.training(loss), model, lambda _: trainable, progress
+                data, config.training(spec), model, lambda _: trainable, progress
             )
         for parameter in model.parameters():
             parameter.requires_grad_(True)
@@ -168,7 +204,7 @@ def finetune_ultron(
         }
     model.eval()
     mesh, volume, grid = mesh_occupancy(
-        occupancy_function(fitted, model), dataset, config.meshing, timer
+        occupancy_function(fitted, model, spec.context), dataset, config.meshing, timer
     )
     with timer.stage("mesh_observed"):
         meshing = replace(config.meshing, visibility=visibility)
@@ -177,7 +213,8 @@ def finetune_ultron(
         )
     info |= surface_info
     info["grid"] = grid.to_dict()
-    meta = {"input": "theta", "theta_channels": list(fitted.channels), "loss": loss,
+    meta = {"input": "theta", "theta_channels": list(fitted.channels), "loss": spec.loss,
+            "theta_context": spec.context.to_dict(), "positive_weight": spec.positive_weight,
             **visibility.to_dict()}  # fmt: skip
     return Reconstruction(
         mesh=mesh, volume=volume, grid=grid, info=info | {"network": model, "model": meta}
@@ -210,9 +247,9 @@ def finetune(
         fitted, used_dir, cached = load_or_fit_field(
             dataset_dir, dataset, field_dir, field_config, progress
         )
-    loss = check_theta_model(network, meta, fitted, where)
+    spec = check_theta_model(network, meta, fitted, where)
     result = finetune_ultron(
-        dataset, fitted, network, loss, config, timer, visibility=visibility, truth=truth
+        dataset, fitted, network, spec, config, timer, visibility=visibility, truth=truth
     )
     identity = {
         "method": "ultron-finetune",

@@ -1,13 +1,15 @@
 """UltrON (and its "w/o loss" ablation): occupancy f(θ) from a fitted acoustic field.
 
 1. Choose the label fraction's frames (``select_label_frames``) and gather their annotated
-   pixels. 2. For each pixel, θ from the fitted field (normalised with the field's saved
-   statistics) and T along that frame's own scanline (exclusive, detached) from the configured
-   source (:mod:`ultron.train.visibility`: the fitted field by default, or the frame's confidence
-   map, the annotation, or — diagnostic only — the simulator's true T). 3. Fit f_ω with the
-   attenuation-compensated BCE (``ultron``) or plain BCE (``ultron-noloss``, which ignores T but
-   records its source). 4. Evaluate
-   f(θ(x)) on a grid over the scanned region (voxel = the finer pixel spacing), zero outside
+   pixels. 2. For each pixel, f's input g(x) from the fitted field: θ and θ of its world-axis
+   neighbours, normalised with the field's saved statistics (:mod:`ultron.fields.context`;
+   ``context.radii_mm=()`` is the paper's θ alone), and T along that frame's own scanline
+   (exclusive, detached) from the configured source (:mod:`ultron.train.visibility`: the
+   fitted field by default, or the frame's confidence map, the annotation, or — diagnostic
+   only — the simulator's true T). 3. Fit f_ω with the attenuation-compensated BCE
+   (``ultron``) or plain BCE (``ultron-noloss``, which ignores T but records its source), both
+   unweighted as in the paper (``OccupancyTrainConfig.positive_weight``). 4. Evaluate
+   f(g(x)) on a grid over the scanned region (voxel = the finer pixel spacing), zero outside
    every frame's field of view, and mesh it. 5. Keep the observed surface
    (:mod:`ultron.mesh.observed`, ``surface="observed"``, the default): the faces that some frame
    saw facing the probe with a transmission ≥ 0.3 above them. With a working T the
@@ -34,6 +36,7 @@ from ultron.data.dataset import SweepDataset
 from ultron.data.geometry import field_of_view_bounds_mm, median_frame_gap_mm
 from ultron.data.labels import FrameSelection, gather_labelled_pixels, select_label_frames
 from ultron.errors import UltronInputError, argument_error
+from ultron.fields.context import ThetaContextConfig, theta_features
 from ultron.fields.occupancy import OccupancyNetwork
 from ultron.mesh.extract import ExtractionConfig, extract_surface
 from ultron.mesh.grid import GridSpec, evaluate_coarse_to_fine, field_of_view_mask
@@ -53,7 +56,8 @@ METHOD_LOSSES = {"ultron": "ultron", "ultron-noloss": "bce"}
 
 @dataclass(frozen=True)
 class UltronConfig:
-    """Settings of an UltrON reconstruction (``visibility``: the source of the loss's T)."""
+    """Settings of an UltrON reconstruction (``visibility``: the source of the loss's T,
+    ``context``: the neighbourhood f_ω reads besides θ(x))."""
 
     label_fraction: float = 0.1
     seed: int = 0
@@ -64,6 +68,7 @@ class UltronConfig:
     extraction: ExtractionConfig = field(default_factory=ExtractionConfig)
     visibility: VisibilityConfig = field(default_factory=VisibilityConfig)
     observed: ObservedSurfaceConfig = field(default_factory=ObservedSurfaceConfig)
+    context: ThetaContextConfig = field(default_factory=ThetaContextConfig)
 
     def __post_init__(self) -> None:
         if not 0 < self.label_fraction <= 1:
@@ -109,10 +114,13 @@ def occupancy_training_data(
     selection: FrameSelection,
     visibility: VisibilityConfig | None = None,
     truth: Mapping[str, np.ndarray] | None = None,
+    context: ThetaContextConfig | None = None,
 ) -> OccupancyTrainingData:
-    """Per labelled pixel: normalised θ, T (detached) from ``visibility`` (default: the fitted
-    field, computed in the same rendering pass as θ), label. ``truth`` maps sweep names to the
-    true T for the oracle (:func:`~ultron.train.visibility.load_oracle_truth`)."""
+    """Per labelled pixel: f's input g(x) (:func:`~ultron.fields.context.theta_features` with
+    ``context``, default θ and its neighbours at 1 and 2 mm), T (detached) from ``visibility``
+    (default: the fitted field, computed in the same rendering pass as θ), label. ``truth``
+    maps sweep names to the true T for the oracle
+    (:func:`~ultron.train.visibility.load_oracle_truth`)."""
     if fitted.theta_stats is None:
         raise UltronInputError("field", "theta_stats", "the field has no θ statistics (refit it)")
     fitted.check_probe(dataset.probe)
@@ -121,17 +129,17 @@ def occupancy_training_data(
     transmission = pixel_transmission(
         visibility or VisibilityConfig(), dataset, pixels, truth=truth, field_transmission=field_t
     )
-    inputs = fitted.theta_stats.normalise(theta)
+    world = torch.from_numpy(pixels.world_mm(dataset))
+    inputs = theta_features(fitted, world, context or ThetaContextConfig(), centre=theta)
     labels = torch.from_numpy(pixels.label.astype(np.uint8))
-    return OccupancyTrainingData(inputs.float(), transmission.detach().float(), labels)
+    return OccupancyTrainingData(inputs, transmission.detach().float(), labels)
 
 
-def occupancy_function(fitted, network: OccupancyNetwork):
-    """points (M, 3) world mm → f(θ(x)) ∈ (0, 1)."""
+def occupancy_function(fitted, network: OccupancyNetwork, context: ThetaContextConfig):
+    """points (M, 3) world mm → f(g(x)) ∈ (0, 1), g the input of ``context``."""
 
     def fn(points_mm: torch.Tensor) -> torch.Tensor:
-        theta = fitted.query(points_mm).stack()
-        return network.occupancy(fitted.theta_stats.normalise(theta))
+        return network.occupancy(theta_features(fitted, points_mm, context))
 
     return fn
 
@@ -224,10 +232,13 @@ def reconstruct_ultron(
     occupancy_config = replace(config.occupancy, loss=METHOD_LOSSES[method])
     with timer.stage("labels"):
         selection = select_label_frames(dataset, config.label_fraction, config.seed)
-        data = occupancy_training_data(dataset, fitted, selection, config.visibility, truth)
+        data = occupancy_training_data(
+            dataset, fitted, selection, config.visibility, truth, config.context
+        )
     with timer.stage("occupancy_fit"):
         network, log = fit_occupancy(data, occupancy_config)
-    mesh, volume, grid = mesh_occupancy(occupancy_function(fitted, network), dataset, config, timer)
+    fn = occupancy_function(fitted, network, config.context)
+    mesh, volume, grid = mesh_occupancy(fn, dataset, config, timer)
     with timer.stage("mesh_observed"):
         mesh, surface_info = keep_observed_surface(
             mesh, dataset, fitted, config, grid.voxel_mm, truth
@@ -239,6 +250,7 @@ def reconstruct_ultron(
         "n_labelled_pixels": len(data.labels),
         "n_bone_pixels": int(data.labels.sum()),
         **config.visibility.to_dict(),
+        "theta_context": config.context.to_dict(),
         "transmission_stats": transmission_summary(data.transmission, data.labels),
         "occupancy_config": occupancy_config.to_dict(),
         "occupancy_log": log,
@@ -247,7 +259,9 @@ def reconstruct_ultron(
     model = {
         "input": "theta",
         "theta_channels": list(fitted.channels),
+        "theta_context": config.context.to_dict(),
         "loss": occupancy_config.loss,
+        "positive_weight": occupancy_config.positive_weight,
         **config.visibility.to_dict(),
     }
     return Reconstruction(

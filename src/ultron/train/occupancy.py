@@ -10,10 +10,17 @@ detached, never normalised) and y the label:
   The clamp keeps the logarithms finite; where T·f < ε the clamp also stops the gradient.
 * ``ultron-noloss`` (the paper's ablation) and ``on`` — plain BCE(f, y).
 
-Class balance: bone is a small share of the labelled pixels (a few percent). Each class is
-given equal total weight — positives weighted by n_neg / n_pos (a "balanced" BCE), capped at
-``max_positive_weight`` — so the thin bone band is not drowned by background; with the cap a
-degenerate label set cannot make single pixels dominate. ``positive_weight`` overrides it.
+Class balance: bone is a small share of the labelled pixels (a few percent). By default the
+loss is unweighted, as in the paper (``positive_weight = 1``), so f = 0.5 — the iso-level the
+mesh is cut at — is where bone is as likely as not. ``positive_weight=None`` gives each class
+equal total weight instead (positives weighted by n_neg / n_pos, capped at
+``max_positive_weight``: a "balanced" BCE, which the ON baseline keeps). Balancing moves the
+0.5 level to a posterior of 1 / (1 + w): with w = 20, every point that is bone with 5 %
+probability is meshed. Measured on tuning data only (L3 seed 11, UltrON with its default input,
+held-out labelled frames, pixels with f ≥ 0.5): balanced precision 0.24 / recall 0.77 and 2.8 %
+of the lit background called bone; w = 2: 0.60 / 0.57 / 0.41 %; w = 1: 0.68 / 0.49 / 0.23 %.
+Meshed, the unweighted loss gives MAD 0.30 mm and HD95 0.67 mm (module
+:mod:`ultron.fields.context` has the figures).
 
 Optimisation: Adam (lr 1e-4) with an exponential decay that reaches ``final_lr_factor``× the
 initial rate at the last iteration, shuffled minibatches drawn with a seeded generator.
@@ -75,7 +82,7 @@ class OccupancyTrainConfig:
     batch_size: int = 4096
     lr: float = 1e-4
     final_lr_factor: float = 0.1
-    positive_weight: float | None = None
+    positive_weight: float | None = 1.0
     max_positive_weight: float = 20.0
     seed: int = 0
     network: OccupancyNetworkConfig = field(default_factory=OccupancyNetworkConfig)
@@ -93,11 +100,28 @@ class OccupancyTrainConfig:
             raise argument_error(
                 "final_lr_factor", f"expected in (0, 1], got {self.final_lr_factor}"
             )
-        if self.positive_weight is not None and not self.positive_weight > 0:
+        if self.positive_weight is not None and not (
+            math.isfinite(self.positive_weight) and self.positive_weight > 0
+        ):
             raise argument_error("positive_weight", f"expected > 0, got {self.positive_weight}")
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
+
+
+def parse_positive_weight(text: str) -> float | None:
+    """From the CLI: a weight > 0 for the bone labels, or ``"balanced"`` (None: n_neg / n_pos)."""
+    if text.strip().lower() == "balanced":
+        return None
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):
+        raise argument_error(
+            "positive_weight", f"expected a number > 0 or 'balanced', got {text!r}"
+        )
+    return value
 
 
 @dataclass(frozen=True)
@@ -121,7 +145,8 @@ class OccupancyTrainingData:
 
 
 def positive_class_weight(labels: torch.Tensor, config: OccupancyTrainConfig) -> float:
-    """n_neg / n_pos capped at ``max_positive_weight`` (or the configured override)."""
+    """The configured ``positive_weight``; when it is None, n_neg / n_pos capped at
+    ``max_positive_weight`` (1 when a class is absent)."""
     if config.positive_weight is not None:
         return float(config.positive_weight)
     n_pos = float(labels.sum())

@@ -1,0 +1,125 @@
+"""The input of UltrON's occupancy network: θ at a point and θ of its neighbours.
+
+The paper's f_ω reads θ(x) alone. On ultron's phantoms θ(x) alone cannot say "bone": the
+reflection β at the bone echo is matched by the field's speckle spikes in lit gel, and the
+(dark) inside of a shadow looks the same under bone and below a deep echo-poor region. A
+point's *neighbourhood* can: a bone echo is a bright β with a shadow (low φ / high α) on one
+side and gel on the other. So f_ω reads, per point x,
+
+    g(x) = [ θ̂(x),  θ̂(x + r·e)  for r in ``radii_mm``, e in (+x, −x, +y, −y, +z, −z) ]
+
+with θ̂ = (θ − mean) / std the field's normalised properties (its saved statistics) and e the
+world axes: C·(1 + 6·len(radii)) inputs for C channels (39 for three channels and two radii).
+The stencil is fixed in the world frame, so a trained f_ω transfers to another dataset scanned
+in the same frame convention (the fine-tuning setting); the neighbours are not averaged,
+because the side on which the shadow lies is the information. ``radii_mm=()`` is the paper's
+θ(x) alone.
+
+Measured on tuning data only (L3 seed 11, never a benchmark seed; 10 % labels, plain BCE,
+default field; held-out labelled frames, pixels with f ≥ 0.5): θ(x) alone reached no pixel at
+all (posterior never ≥ 0.5), θ(x) ⊕ the 6-neighbour *average* at 1 and 2 mm needed a class
+weight and then had precision 0.19; the directional stencil at 1 mm gave precision 0.68 /
+recall 0.49, at 0.5 mm 0.60 / 0.32, at 1 and 2 mm 0.69 / 0.55 (the default). Meshed (observed
+surface): CD vis. 1.06 mm, MAD 0.30 mm, HD95 0.67 mm against 2.32 / 3.50 / 10.7 with θ(x) and
+the balanced loss, and 1.82 / 0.54 / 1.35 for label compounding of the same labels.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+
+from ultron.errors import argument_error
+
+#: The six world-axis unit vectors of the stencil, in the order of g(x)'s blocks.
+STENCIL_DIRECTIONS = (
+    (1.0, 0.0, 0.0),
+    (-1.0, 0.0, 0.0),
+    (0.0, 1.0, 0.0),
+    (0.0, -1.0, 0.0),
+    (0.0, 0.0, 1.0),
+    (0.0, 0.0, -1.0),
+)
+
+
+@dataclass(frozen=True)
+class ThetaContextConfig:
+    """Stencil radii (mm) of f_ω's input; ``()`` is the paper's θ(x) alone."""
+
+    radii_mm: tuple[float, ...] = (1.0, 2.0)
+
+    def __post_init__(self) -> None:
+        radii = tuple(float(r) for r in self.radii_mm)
+        if any(not np.isfinite(r) or r <= 0 for r in radii):
+            raise argument_error(
+                "theta_context", f"expected positive finite radii in mm, got {radii}"
+            )
+        object.__setattr__(self, "radii_mm", radii)
+
+    def n_inputs(self, n_channels: int) -> int:
+        """Width of g(x) for ``n_channels`` θ channels."""
+        return n_channels * (1 + len(STENCIL_DIRECTIONS) * len(self.radii_mm))
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"radii_mm": list(self.radii_mm)}
+
+    @classmethod
+    def parse(cls, text: str) -> ThetaContextConfig:
+        """From the CLI: comma-separated radii in mm (``"1,2"``), or ``"none"`` for θ alone."""
+        if text.strip().lower() == "none":
+            return cls(radii_mm=())
+        try:
+            radii = tuple(float(part) for part in text.split(","))
+        except ValueError:
+            raise argument_error(
+                "theta_context", f"expected comma-separated radii in mm or 'none', got {text!r}"
+            ) from None
+        return cls(radii_mm=radii)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any] | None) -> ThetaContextConfig:
+        """A recorded context; ``None`` (a model saved before contexts existed) is θ alone."""
+        if data is None:
+            return cls(radii_mm=())
+        return cls(radii_mm=tuple(data.get("radii_mm", ())))
+
+
+def stencil_offsets_mm(config: ThetaContextConfig) -> torch.Tensor:
+    """The (6·len(radii), 3) float64 offsets r·e, radii outer, directions inner."""
+    directions = torch.tensor(STENCIL_DIRECTIONS, dtype=torch.float64)
+    if not config.radii_mm:
+        return torch.zeros(0, 3, dtype=torch.float64)
+    return torch.cat([r * directions for r in config.radii_mm])
+
+
+def theta_features(
+    fitted,
+    points_mm: np.ndarray | torch.Tensor,
+    config: ThetaContextConfig,
+    centre: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """g(x) (module doc) at world points (M, 3) mm → float32 (M, C·(1 + 6·len(radii))).
+
+    ``centre`` optionally gives the raw θ(x) (M, C) already computed (e.g. by rendering the
+    labelled frames); the neighbours are always queried from ``fitted``.
+    """
+    if fitted.theta_stats is None:
+        raise argument_error("fitted", "the field has no θ statistics (refit it)")
+    points = torch.as_tensor(points_mm).to(torch.float64)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise argument_error("points_mm", f"expected (M, 3), got {tuple(points.shape)}")
+    stats = fitted.theta_stats
+    if centre is None:
+        centre = fitted.query(points).stack()
+    elif centre.shape != (points.shape[0], len(stats.channels)):
+        raise argument_error(
+            "centre",
+            f"expected ({points.shape[0]}, {len(stats.channels)}), got {tuple(centre.shape)}",
+        )
+    parts = [stats.normalise(centre.float())]
+    for offset in stencil_offsets_mm(config):
+        parts.append(stats.normalise(fitted.query(points + offset).stack()))
+    return torch.cat(parts, dim=-1).float()
