@@ -156,7 +156,7 @@ def markdown_table(table: str, rows: Sequence[Mapping[str, Any]]) -> str:
 
 
 # -------------------------------------------------------------------------------- targets
-def _cd(rows: Sequence[Mapping[str, Any]], name: str, metric: str = "cd") -> float | None:
+def _figure(rows: Sequence[Mapping[str, Any]], name: str, metric: str = "cd") -> float | None:
     """The row's mean ``metric`` when it was measured and finite, else None."""
     for row in rows:
         value = row["mean"].get(metric) if row["row"] == name and row["n"] else None
@@ -187,7 +187,7 @@ def table1_targets(rows: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
     :func:`visible_targets`."""
     u10, u5 = ULTRON_10.name, "UltrON (5%)"
     noloss, on, roco = "UltrON w/o loss (10%)", "ON (100%)", ROCOSDF_100.name
-    cd = {row["row"]: _cd(rows, row["row"]) for row in rows}
+    cd = {row["row"]: _figure(rows, row["row"]) for row in rows}
     ours = cd.get(u10)
     others = {k: v for k, v in cd.items() if k != u10 and v is not None}
     targets = []
@@ -237,7 +237,7 @@ def visible_targets(rows: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
     compounding (10%)'s, ≥ 26 % below ON (100%)'s and RoCoSDF (100%)'s, ≥ 10 % below its
     ablation's, and its (one-sided) HD95 ≤ 3 mm."""
     u10, noloss = ULTRON_10.name, "UltrON w/o loss (10%)"
-    ours = _cd(rows, u10, "cd_visible")
+    ours = _figure(rows, u10, "cd_visible")
     checks = (
         ("compounding (10%)", 0.0),
         ("ON (100%)", CD_MARGIN_TARGET),
@@ -249,7 +249,7 @@ def visible_targets(rows: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
         name = f"{u10} CD vis. ≥ {margin:.0%} below {other}" if margin else (
             f"{u10} CD vis. < {other} CD vis."
         )  # fmt: skip
-        pair = {u10: ours, other: _cd(rows, other, "cd_visible")}
+        pair = {u10: ours, other: _figure(rows, other, "cd_visible")}
         if (missing := _unmeasured(name, pair)) is not None:
             targets.append(missing)
             continue
@@ -258,7 +258,7 @@ def visible_targets(rows: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
         met = 1 - ours / theirs >= margin if margin else ours < theirs
         targets.append(_target(name, met, detail))
     name = f"{u10} HD95 ≤ {HD95_TARGET_MM:g} mm"
-    hd95 = _cd(rows, u10, "hd95")
+    hd95 = _figure(rows, u10, "hd95")
     if (missing := _unmeasured(name, {u10: hd95})) is not None:
         return [*targets, missing]
     return [*targets, _target(name, hd95 <= HD95_TARGET_MM, f"{hd95:.3f} mm")]
@@ -271,7 +271,7 @@ def table2_targets(rows: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
         f"fine-tuning ({tuned}) recovers > {RECOVERY_TARGET:.0%} of the CD gap between"
         f" {direct} and {full}"
     )
-    cd = {k: _cd(rows, k) for k in (direct, tuned, full)}
+    cd = {k: _figure(rows, k) for k in (direct, tuned, full)}
     if (missing := _unmeasured(name, cd)) is not None:
         return [missing]
     gap = cd[direct] - cd[full]
@@ -288,9 +288,12 @@ def robustness_targets(rows: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]
     u, r = ULTRON_10, ROCOSDF_100
     for condition in (ANNOTATION, POSE):
         now = {
-            k: _cd(rows, k) for k in (robustness_row(u, condition), robustness_row(r, condition))
+            k: _figure(rows, k)
+            for k in (robustness_row(u, condition), robustness_row(r, condition))
         }
-        base = {k: _cd(rows, k) for k in (robustness_row(u, DEFAULT), robustness_row(r, DEFAULT))}
+        base = {
+            k: _figure(rows, k) for k in (robustness_row(u, DEFAULT), robustness_row(r, DEFAULT))
+        }
         (ours, theirs), (base_ours, base_theirs) = now.values(), base.values()
         name = f"{u.name} CD < {r.name} CD with {condition}"
         if (missing := _unmeasured(name, now)) is not None:

@@ -36,12 +36,12 @@ from torch import nn
 from ultron.data.dataset import SweepDataset
 from ultron.data.labels import select_label_frames
 from ultron.errors import UltronInputError, argument_error
-from ultron.fields.context import ThetaContextConfig
 from ultron.fields.occupancy import OccupancyNetwork
 from ultron.methods.model_io import NETWORK_FILE, load_network
 from ultron.methods.runinfo import StageTimer
 from ultron.methods.ultron_method import (
     Reconstruction,
+    ThetaModel,
     UltronConfig,
     keep_observed_surface,
     mesh_occupancy,
@@ -97,25 +97,6 @@ class FinetuneConfig:
             lr=self.lr,
             final_lr_factor=self.final_lr_factor,
             seed=self.seed,
-        )
-
-
-@dataclass(frozen=True)
-class ThetaModel:
-    """How a saved f_ω was trained: its loss, its input context and its class weight."""
-
-    loss: str = "ultron"
-    context: ThetaContextConfig = field(default_factory=ThetaContextConfig)
-    positive_weight: float | None = 1.0
-
-    @classmethod
-    def from_meta(cls, meta: dict[str, Any]) -> ThetaModel:
-        """From ``network.pt``'s meta; missing keys are the pre-context defaults (θ alone,
-        balanced loss)."""
-        return cls(
-            loss=meta.get("loss", "ultron"),
-            context=ThetaContextConfig.from_dict(meta.get("theta_context")),
-            positive_weight=meta.get("positive_weight"),
         )
 
 
@@ -213,9 +194,7 @@ def finetune_ultron(
         )
     info |= surface_info
     info["grid"] = grid.to_dict()
-    meta = {"input": "theta", "theta_channels": list(fitted.channels), "loss": spec.loss,
-            "theta_context": spec.context.to_dict(), "positive_weight": spec.positive_weight,
-            **visibility.to_dict()}  # fmt: skip
+    meta = spec.to_meta(fitted.channels, visibility)
     return Reconstruction(
         mesh=mesh, volume=volume, grid=grid, info=info | {"network": model, "model": meta}
     )

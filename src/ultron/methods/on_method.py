@@ -4,8 +4,9 @@ The same network as UltrON's f_ω (8 × 128, skip at 4, ReLU, sigmoid), but on t
 encoded world position of each labelled pixel mapped to the unit cube of the scanned region
 (:class:`~ultron.data.geometry.UnitCube` of the field-of-view box, so the reference mesh is
 never read), trained with plain BCE on the same labelled pixels (same label-fraction
-selection), with the class-balanced BCE (``positive_weight=None``; UltrON's loss is unweighted
-since f reads θ's neighbourhood, see :mod:`ultron.train.occupancy`), meshed exactly as UltrON is (:func:`mesh_occupancy`).
+selection), class-balanced (``positive_weight=None``; UltrON's loss is unweighted since f
+reads θ's neighbourhood, see :mod:`ultron.train.occupancy`), meshed exactly as UltrON is
+(:func:`mesh_occupancy`).
 
 Positional encoding: coordinates need more bands than θ (NeRF uses 10 for positions); the
 default of 8 bands resolves a period of 2/2⁷ of the cube's half-extent (≈ 1 mm on the default

@@ -25,7 +25,7 @@ Nothing here reads the reference mesh.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -81,6 +81,38 @@ class UltronConfig:
             raise argument_error(
                 "coarse_factor", f"expected a positive integer, got {self.coarse_factor!r}"
             )
+
+
+@dataclass(frozen=True)
+class ThetaModel:
+    """How an f_ω on θ was trained: its loss, its input context and its class weight — what
+    its ``network.pt`` records (:meth:`to_meta`) and fine-tuning reads back (:meth:`from_meta`).
+    """
+
+    loss: str = "ultron"
+    context: ThetaContextConfig = field(default_factory=ThetaContextConfig)
+    positive_weight: float | None = 1.0
+
+    def to_meta(self, channels: Sequence[str], visibility: VisibilityConfig) -> dict[str, Any]:
+        """The ``meta`` of the network's ``network.pt`` (θ ``channels``, T's source)."""
+        return {
+            "input": "theta",
+            "theta_channels": list(channels),
+            "theta_context": self.context.to_dict(),
+            "loss": self.loss,
+            "positive_weight": self.positive_weight,
+            **visibility.to_dict(),
+        }
+
+    @classmethod
+    def from_meta(cls, meta: dict[str, Any]) -> ThetaModel:
+        """From ``network.pt``'s meta; missing keys are the pre-context defaults (θ alone,
+        balanced loss)."""
+        return cls(
+            loss=meta.get("loss", "ultron"),
+            context=ThetaContextConfig.from_dict(meta.get("theta_context")),
+            positive_weight=meta.get("positive_weight"),
+        )
 
 
 @dataclass
@@ -256,14 +288,9 @@ def reconstruct_ultron(
         "occupancy_log": log,
         "grid": grid.to_dict(),
     }
-    model = {
-        "input": "theta",
-        "theta_channels": list(fitted.channels),
-        "theta_context": config.context.to_dict(),
-        "loss": occupancy_config.loss,
-        "positive_weight": occupancy_config.positive_weight,
-        **config.visibility.to_dict(),
-    }
+    model = ThetaModel(
+        occupancy_config.loss, config.context, occupancy_config.positive_weight
+    ).to_meta(fitted.channels, config.visibility)
     return Reconstruction(
         mesh=mesh, volume=volume, grid=grid, info=info | {"network": network, "model": model}
     )

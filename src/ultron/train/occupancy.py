@@ -18,8 +18,8 @@ equal total weight instead (positives weighted by n_neg / n_pos, capped at
 0.5 level to a posterior of 1 / (1 + w): with w = 20, every point that is bone with 5 %
 probability is meshed. Measured on tuning data only (L3 seed 11, UltrON reading θ and its 1 mm
 neighbours, held-out labelled frames, pixels with f ≥ 0.5): balanced precision 0.24 / recall
-0.77 and 2.8 % of the lit background called bone; w = 2: 0.60 / 0.57 / 0.41 %; w = 1: 0.68 / 0.49 / 0.23 %.
-Meshed, the unweighted loss gives MAD 0.30 mm and HD95 0.67 mm (module
+0.77 and 2.8 % of the lit background called bone; w = 2: 0.60 / 0.57 / 0.41 %; w = 1:
+0.68 / 0.49 / 0.23 %. Meshed, the unweighted loss gives MAD 0.30 mm and HD95 0.67 mm (module
 :mod:`ultron.fields.context` has the figures).
 
 Optimisation: Adam (lr 1e-4) with an exponential decay that reaches ``final_lr_factor``× the
