@@ -61,7 +61,7 @@ def test_import_bad_probe_size_is_clear(tmp_path: Path, l2_sample: Path):
         ],
     )
     assert result.exit_code == 2
-    assert "width_mm" in result.stderr
+    assert "--width-mm" in result.stderr
     assert not (tmp_path / "x").exists()
 
 

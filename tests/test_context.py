@@ -13,6 +13,7 @@ from ultron.fields.context import (
     theta_features,
 )
 from ultron.fields.fitted import ThetaStatistics
+from ultron.fields.occupancy import OccupancyNetworkConfig
 from ultron.fields.properties import CHANNELS, AcousticProperties
 
 
@@ -64,10 +65,21 @@ def test_config_parsing_round_trip_and_validation():
     assert ThetaContextConfig.parse("0.5, 3").radii_mm == (0.5, 3.0)
     config = ThetaContextConfig(radii_mm=(1.5,))
     assert ThetaContextConfig.from_dict(config.to_dict()) == config
-    # a model saved before contexts were recorded read θ alone
+    # a model saved before contexts were recorded read θ alone; one saved before
+    # encode_neighbours existed encoded its neighbours
     assert ThetaContextConfig.from_dict(None).radii_mm == ()
+    assert ThetaContextConfig.from_dict({"radii_mm": [1.0]}).encode_neighbours
     assert ThetaContextConfig(radii_mm=()).n_inputs(3) == 3
     assert stencil_offsets_mm(ThetaContextConfig(radii_mm=())).shape == (0, 3)
     for bad in ("1,x", "", "-1", "0", "nan"):
         with pytest.raises(UltronInputError, match="theta_context"):
             ThetaContextConfig.parse(bad)
+
+
+def test_network_config_encodes_theta_alone_unless_asked():
+    base = OccupancyNetworkConfig(width=32)
+    network = ThetaContextConfig().network(base, 3)
+    assert (network.in_dim, network.encoded_inputs, network.width) == (39, 3, 32)
+    assert ThetaContextConfig(encode_neighbours=True).network(base, 3).encoded_inputs is None
+    paper = ThetaContextConfig(radii_mm=()).network(base, 4)
+    assert (paper.in_dim, paper.encoded_inputs) == (4, None)

@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import json
+import os
+import stat
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -213,3 +216,72 @@ def test_import_shared_l2_sample(tmp_path: Path, l2_sample: Path):
     assert torch.isfinite(bounds).all()
     origins = torch.as_tensor(dataset.all_poses()[:, :3, 3])
     assert (origins >= bounds[0]).all() and (origins <= bounds[1]).all()
+
+
+# ----------------------------------------------------------------- content hash
+def _variants(base: SweepDataset) -> dict[str, SweepDataset]:
+    """Copies of ``base`` that differ from it in one respect each."""
+
+    def copy() -> SweepDataset:
+        return SweepDataset(
+            base.probe, [replace(s, images=s.images.copy(), probe_to_world=s.probe_to_world.copy(),
+                                 labels=None if s.labels is None else s.labels.copy())
+                         for s in base.sweeps],
+        )  # fmt: skip
+
+    variants = {}
+    variants["pixel"] = d = copy()
+    d.sweeps[1].images[2, 3, 4] ^= 1
+    variants["pose"] = d = copy()
+    d.sweeps[0].probe_to_world[1, 0, 3] += 1e-9
+    variants["label"] = d = copy()
+    d.sweeps[0].labels[0, 0, 0] = 255 if d.sweeps[0].labels[0, 0, 0] != 255 else 0
+    variants["no labels"] = d = copy()
+    d.sweeps[0].labels = None
+    variants["name"] = d = copy()
+    d.sweeps[0].name = "row2"
+    variants["order"] = SweepDataset(base.probe, list(reversed(copy().sweeps)))
+    variants["probe"] = SweepDataset(replace(base.probe, width_mm=12.5), copy().sweeps)
+    variants["frames"] = d = copy()
+    sweep = d.sweeps[0]  # one frame fewer
+    d.sweeps[0] = replace(sweep, images=sweep.images[:2], probe_to_world=sweep.probe_to_world[:2],
+                          labels=sweep.labels[:2])  # fmt: skip
+    return variants
+
+
+def test_content_hash_identifies_the_data(tmp_path: Path, tiny_dataset: SweepDataset):
+    digest = tiny_dataset.content_hash()
+    assert len(digest) == 64 and int(digest, 16) >= 0  # SHA-256, hex
+    tiny_dataset.save(tmp_path / "a")
+    assert SweepDataset.load(tmp_path / "a").content_hash() == digest  # as loaded from disk
+    # what a field fit does not read and the data does not hold: kinds, metadata, reference
+    other = SweepDataset(
+        tiny_dataset.probe,
+        [replace(s, kind="other") for s in tiny_dataset.sweeps],
+        metadata={"note": "x"},
+    )
+    assert other.content_hash() == digest
+    # non-native byte order and non-contiguous arrays hash by value
+    sweep = tiny_dataset.sweeps[0]
+    swapped = replace(
+        sweep,
+        images=np.asfortranarray(sweep.images),
+        probe_to_world=sweep.probe_to_world.astype(">f8"),
+    )
+    assert not swapped.images.flags.c_contiguous
+    swapped_dataset = SweepDataset(tiny_dataset.probe, [swapped, tiny_dataset.sweeps[1]])
+    assert swapped_dataset.content_hash() == digest
+    hashes = {name: d.content_hash() for name, d in _variants(tiny_dataset).items()}
+    for name, value in hashes.items():
+        assert value != digest, name
+    assert len(set(hashes.values())) == len(hashes)
+
+
+def test_new_dataset_directory_is_not_private(tmp_path: Path, tiny_dataset: SweepDataset):
+    previous = os.umask(0o022)
+    try:
+        tiny_dataset.save(tmp_path / "ds")
+    finally:
+        os.umask(previous)
+    assert stat.S_IMODE((tmp_path / "ds").stat().st_mode) == 0o755  # not mkdtemp's 0700
+    assert stat.S_IMODE((tmp_path / "ds" / "row" / "images.npy").stat().st_mode) == 0o644

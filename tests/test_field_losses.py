@@ -9,6 +9,7 @@ import torch
 
 from ultron.errors import UltronInputError
 from ultron.train import psnr, ssim, ssim_map, ultranerf_loss, weighted_scattering_tv
+from ultron.train.losses import confidence_transmission_prior
 
 F64 = torch.float64
 
@@ -48,3 +49,21 @@ def test_weighted_scattering_tv_ignores_the_brightest_reflector() -> None:
     assert float(weighted_scattering_tv(phi, beta)) == 0.0  # β_max − β = 0 everywhere
     beta[..., 0, 0] = 0.5  # weight 0.5 elsewhere: 4 of 12 depth differences are 1
     assert float(weighted_scattering_tv(phi, beta)) == pytest.approx(0.5 * 4 / 12)
+
+
+def test_confidence_prior_is_one_sided_and_hand_worked() -> None:
+    t = torch.tensor([[0.9, 0.2], [1.0, 0.5]], dtype=torch.float64, requires_grad=True)
+    c = torch.tensor([[0.5, 0.5], [0.1, 0.9]], dtype=torch.float64)
+    # excesses over C + 0.3: 0.1, none, 0.6, none → (0.01 + 0.36) / 4
+    prior = confidence_transmission_prior(t, c, 0.3)
+    assert prior.item() == pytest.approx(0.0925, abs=1e-12)
+    prior.backward()
+    # only T above C + m is pulled down: dP/dT = 2·excess / 4
+    assert torch.allclose(t.grad, torch.tensor([[0.05, 0.0], [0.3, 0.0]], dtype=torch.float64))
+    assert torch.autograd.gradcheck(
+        lambda x: confidence_transmission_prior(x, c, 0.3), (t.detach().requires_grad_(),)
+    )
+    with pytest.raises(UltronInputError, match="confidence"):
+        confidence_transmission_prior(t, c[:1], 0.3)
+    with pytest.raises(UltronInputError, match="margin"):
+        confidence_transmission_prior(t, c, float("nan"))

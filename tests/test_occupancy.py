@@ -147,3 +147,19 @@ def test_network_shapes_and_last_layers():
     assert len(network.last_layers(2)) == 2
     with pytest.raises(UltronInputError, match="inputs"):
         network(torch.zeros(5, 4))
+
+
+def test_encoded_inputs_pass_the_rest_through_unencoded():
+    config = OccupancyNetworkConfig(in_dim=5, n_frequencies=2, encoded_inputs=2)
+    network = OccupancyNetwork(config)
+    # γ widens the 2 encoded inputs to 2·(2·2 + 1) = 10; the other 3 enter as they are
+    assert network.trunk.hidden[0].in_features == 13
+    x = torch.randn(4, 5, generator=torch.Generator().manual_seed(0))
+    trunk_input = torch.cat([network.encoding(x[:, :2]), x[:, 2:]], dim=-1)
+    assert torch.equal(network(x), network.trunk(trunk_input).squeeze(-1))
+    # None (the default) encodes every input; a saved config round-trips
+    assert OccupancyNetwork(OccupancyNetworkConfig(in_dim=5)).trunk.hidden[0].in_features == 45
+    assert OccupancyNetworkConfig.from_dict(config.to_dict()) == config
+    for bad in (-1, 6):
+        with pytest.raises(UltronInputError, match="encoded_inputs"):
+            OccupancyNetworkConfig(in_dim=5, encoded_inputs=bad)

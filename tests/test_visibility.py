@@ -345,4 +345,7 @@ def test_reconstruct_cli_with_the_confidence_source(fitted_case, tmp_path):
     assert run["occupancy_config"]["loss"] == "bce"  # the ablation ignores T, records its source
     meta = load_network(out)[1]
     assert meta["transmission_source"] == "confidence"
-    assert meta["positive_weight"] is None and meta["theta_context"] == {"radii_mm": [1.0, 2.0]}
+    assert meta["positive_weight"] is None and meta["theta_context"] == {
+        "radii_mm": [1.0, 2.0],
+        "encode_neighbours": False,
+    }

@@ -2,6 +2,17 @@
 
 A reader (or an interrupted run) therefore sees either the old file or the complete new one,
 never a truncated file.
+
+Files get the mode an ordinary ``open()`` would give them, ``0o666 & ~umask`` (0644 under the
+usual umask 022), not :func:`tempfile.mkstemp`'s private 0600, so that outputs are readable by
+whoever may read the directory (see :func:`current_umask`).
+
+The temporary file is ``.<name>.<8 random characters>.tmp`` in the target's directory. A
+process killed mid-write (SIGKILL, out of memory, power loss) leaves it behind; the next write of
+the same target removes such orphans (:func:`remove_stale_temps`): only files of exactly that
+pattern, unlocked and older than :data:`STALE_AFTER_S` (a live writer holds an ``flock`` on its
+temporary file from its first microseconds, so a concurrent write of the same target is never
+disturbed).
 """
 
 from __future__ import annotations
@@ -10,25 +21,110 @@ import contextlib
 import io
 import json
 import os
+import re
 import tempfile
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any, BinaryIO
 
 import numpy as np
 
+try:  # advisory locks mark temporary files that a live writer still owns (POSIX only)
+    import fcntl
+except ImportError:  # pragma: no cover - Windows: no orphan clean-up
+    fcntl = None  # type: ignore[assignment]
+
+#: Orphaned temporary files younger than this are left alone (seconds).
+STALE_AFTER_S = 60.0
+
+_TEMP_SUFFIX = ".tmp"
+#: tempfile's random part: 8 characters of "abcdefghijklmnopqrstuvwxyz0123456789_".
+_RANDOM_PART = r"[a-z0-9_]{8}"
+
+
+def current_umask() -> int:
+    """The process's file-mode creation mask.
+
+    Read from ``/proc/self/status`` (``Umask:``, Linux ≥ 4.7) where available; otherwise by
+    setting it and restoring it at once (``os.umask``), which is not thread-safe: a file created
+    by another thread in that instant would get mode 0666. Acceptable here (ultron creates files
+    from one thread at a time), and never taken on Linux.
+    """
+    with contextlib.suppress(OSError, ValueError):
+        with open("/proc/self/status", encoding="ascii") as status:
+            for line in status:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+def file_mode() -> int:
+    """The mode a newly created regular file gets from ``open()``: ``0o666 & ~umask``."""
+    return 0o666 & ~current_umask()
+
+
+def directory_mode() -> int:
+    """The mode a newly created directory gets from ``mkdir()``: ``0o777 & ~umask``."""
+    return 0o777 & ~current_umask()
+
+
+def _temp_pattern(name: str) -> re.Pattern[str]:
+    return re.compile(rf"\.{re.escape(name)}\.{_RANDOM_PART}{re.escape(_TEMP_SUFFIX)}")
+
+
+def remove_stale_temps(path: str | Path, older_than_s: float = STALE_AFTER_S) -> list[Path]:
+    """Remove orphaned temporary files of target ``path`` left by interrupted writes.
+
+    Only regular files named exactly as :func:`atomic_open` names the temporary files of
+    ``path`` (``.<name>.XXXXXXXX.tmp``), last modified more than ``older_than_s`` ago and not
+    locked by a live writer, are removed. Returns the removed paths (nothing without ``fcntl``).
+    """
+    path = Path(path)
+    if fcntl is None or not path.parent.is_dir():
+        return []
+    pattern = _temp_pattern(path.name)
+    removed = []
+    with os.scandir(path.parent) as entries:
+        candidates = [e for e in entries if pattern.fullmatch(e.name)]
+    for entry in candidates:
+        with contextlib.suppress(OSError):
+            if not entry.is_file(follow_symlinks=False):
+                continue
+            if time.time() - entry.stat(follow_symlinks=False).st_mtime <= older_than_s:
+                continue
+            fd = os.open(entry.path, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0))
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)  # raises if a writer holds it
+                os.unlink(entry.path)
+                removed.append(Path(entry.path))
+            finally:
+                os.close(fd)
+    return removed
+
 
 @contextlib.contextmanager
 def atomic_open(path: str | Path) -> Iterator[BinaryIO]:
     """Open a binary temporary file next to ``path``; on clean exit it replaces ``path``.
 
-    On an exception the temporary file is removed and ``path`` is left untouched.
+    On an exception the temporary file is removed and ``path`` is left untouched. The new file
+    has mode ``0o666 & ~umask``; orphaned temporary files of ``path`` are removed first
+    (:func:`remove_stale_temps`).
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    remove_stale_temps(path)
+    fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=_TEMP_SUFFIX, dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as handle:
+            if fcntl is not None:
+                fcntl.flock(fd, fcntl.LOCK_EX)  # released when the file is closed (or we die)
+            if hasattr(os, "fchmod"):
+                os.fchmod(fd, file_mode())
+            else:  # pragma: no cover - Windows
+                os.chmod(tmp_name, file_mode())
             yield handle
             handle.flush()
             os.fsync(handle.fileno())

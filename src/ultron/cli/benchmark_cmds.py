@@ -7,7 +7,7 @@ from typing import Annotated
 
 import typer
 
-from ultron.cli.common import console, user_errors
+from ultron.cli.common import check_count, console, user_errors
 
 #: Exit code when the benchmark ran but some cells failed.
 EXIT_CELLS_FAILED = 1
@@ -64,6 +64,10 @@ def benchmark(
     """Run the paper's Tables 1 and 2: simulate, fit, reconstruct every cell, aggregate,
     print the tables next to the paper's figures and the targets; write DIR/benchmark.json,
     DIR/tables.md and DIR/report.html. Exits 1 if any cell failed."""
+    check_count("--seeds", seeds)
+    check_count("--jobs", jobs)
+    check_count("--threads", threads)
+
     from ultron.benchmark import BenchmarkConfig, quick_config, run_benchmark
 
     changes: dict = {

@@ -1,21 +1,26 @@
-"""Shared CLI plumbing: one-line errors with exit code 2, and the consoles."""
+"""Shared CLI plumbing: one-line errors with exit code 2, numeric option checks, the consoles."""
 
 from __future__ import annotations
 
 import functools
+import math
 from collections.abc import Callable
 from typing import ParamSpec, TypeVar
 
 import typer
 from rich.console import Console
 
-from ultron.errors import UltronError
+from ultron.errors import UltronError, argument_error
 
 P = ParamSpec("P")
 R = TypeVar("R")
 
 #: Exit code for bad input, as for a usage error.
 EXIT_BAD_INPUT = 2
+
+#: Seeds are integers in [0, MAX_SEED]: the 32-bit range that every generator used accepts
+#: (torch's takes up to 2⁶⁴ − 1 but no larger; NumPy's takes no negative seed).
+MAX_SEED = 2**32 - 1
 
 console = Console()
 err_console = Console(stderr=True, soft_wrap=True)
@@ -33,3 +38,61 @@ def user_errors(func: Callable[P, R]) -> Callable[P, R]:
             raise typer.Exit(EXIT_BAD_INPUT) from None
 
     return wrapper
+
+
+def _number(value: float) -> str:
+    return str(value) if isinstance(value, int) else f"{value:g}"
+
+
+def _describe(
+    integer: bool, low: float | None, high: float | None, low_open: bool, high_open: bool
+) -> str:
+    kind = "an integer" if integer else "a finite number"
+    if low is not None and high is not None:
+        left, right = "(" if low_open else "[", ")" if high_open else "]"
+        return f"{kind} in {left}{_number(low)}, {_number(high)}{right}"
+    if low is not None:
+        return f"{kind} {'>' if low_open else '≥'} {_number(low)}"
+    if high is not None:
+        return f"{kind} {'<' if high_open else '≤'} {_number(high)}"
+    return kind
+
+
+def check_range(
+    option: str,
+    value: float | None,
+    low: float | None = None,
+    high: float | None = None,
+    *,
+    low_open: bool = False,
+    high_open: bool = False,
+) -> None:
+    """Refuse a numeric option's value with a one-line error naming ``option`` (the CLI exits
+    2) unless it is finite and within ``low``/``high`` (inclusive, or exclusive with
+    ``low_open``/``high_open``); ``None`` (option not given) passes.
+
+    Commands call this for every numeric option before reading or writing anything, so a
+    negative seed, ``nan`` or ``inf`` never reaches the code (where it could crash, or pass
+    comparisons that NaN always fails, e.g. a NaN tolerance that "repairs" any pose).
+    """
+    if value is None:
+        return
+    ok = math.isfinite(value)
+    if ok and low is not None:
+        ok = value > low if low_open else value >= low
+    if ok and high is not None:
+        ok = value < high if high_open else value <= high
+    if not ok:
+        integer = isinstance(value, int) and not isinstance(value, bool)
+        expected = _describe(integer, low, high, low_open, high_open)
+        raise argument_error(option, f"expected {expected}, got {value!r}")
+
+
+def check_seed(option: str, value: int | None) -> None:
+    """A seed must be an integer in [0, :data:`MAX_SEED`]."""
+    check_range(option, value, 0, MAX_SEED)
+
+
+def check_count(option: str, value: int | None, minimum: int = 1) -> None:
+    """A count (iterations, points, frames, threads …) must be an integer ≥ ``minimum``."""
+    check_range(option, value, minimum)

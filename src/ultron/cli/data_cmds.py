@@ -7,7 +7,7 @@ from typing import Annotated
 
 import typer
 
-from ultron.cli.common import console, user_errors
+from ultron.cli.common import check_range, console, user_errors
 
 
 @user_errors
@@ -33,7 +33,8 @@ def import_ultranerf(
         float,
         typer.Option(
             "--orthonormalize-tol",
-            help="Largest rotation-block deviation from orthonormal that is repaired (nearest rotation).",
+            help="Largest rotation-block deviation from orthonormal that is repaired (nearest"
+            " rotation), in [0, 1).",
         ),
     ] = 0.05,
     replace: Annotated[
@@ -41,7 +42,16 @@ def import_ultranerf(
     ] = False,
 ) -> None:
     """Import an Ultra-NeRF sweep into an ultron-sweeps/1 dataset (repeat to add sweeps)."""
-    from ultron.data.importers import add_sweep_to_dataset, read_ultranerf
+    from ultron.data.importers import (
+        MAX_ORTHONORMALIZE_TOLERANCE,
+        add_sweep_to_dataset,
+        read_ultranerf,
+    )
+
+    check_range("--width-mm", width_mm, 0.0, low_open=True)
+    check_range("--depth-mm", depth_mm, 0.0, low_open=True)
+    tolerance_max = MAX_ORTHONORMALIZE_TOLERANCE
+    check_range("--orthonormalize-tol", orthonormalize_tol, 0.0, tolerance_max, high_open=True)
 
     name = sweep_name or _safe_name(src)
     sweep, probe, report = read_ultranerf(src, width_mm, depth_mm, name, kind, orthonormalize_tol)

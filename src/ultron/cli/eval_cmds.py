@@ -7,7 +7,7 @@ from typing import Annotated
 
 import typer
 
-from ultron.cli.common import console, user_errors
+from ultron.cli.common import check_count, check_seed, console, user_errors
 
 
 @user_errors
@@ -32,6 +32,10 @@ def evaluate(
     """Compare MESH with REFERENCE: CD, HD, MAD, RMSE, HD95 (one-sided and symmetric),
     completeness, F-scores and, with --reference-visible, CD and completeness against the
     visible part (mean ± std)."""
+    check_count("--points", points)
+    check_count("--repeats", repeats)
+    check_seed("--seed", seed)
+
     from ultron import atomic
     from ultron.mesh.export import load_mesh
     from ultron.metrics.surface import MetricsConfig, evaluate_meshes

@@ -8,7 +8,7 @@ from typing import Annotated
 
 import typer
 
-from ultron.cli.common import console, user_errors
+from ultron.cli.common import check_count, check_range, check_seed, console, user_errors
 from ultron.errors import argument_error
 
 
@@ -58,6 +58,14 @@ def fit_field_command(
             help="Steps with φ held constant before it is learned (default: preset's).",
         ),
     ] = None,
+    confidence_prior: Annotated[
+        float | None,
+        typer.Option(
+            "--confidence-prior",
+            help="Weight of the one-sided prior T ≤ C + 0.3, C the frame's ultrasound confidence"
+            " map (0: off); default: preset's.",
+        ),
+    ] = None,
     seed: Annotated[int, typer.Option("--seed", help="Seed of initialisation and batches.")] = 0,
     holdout_every: Annotated[
         int,
@@ -83,25 +91,47 @@ def fit_field_command(
         int | None, typer.Option("--threads", help="torch CPU threads (default: torch's choice).")
     ] = None,
     no_resume: Annotated[
-        bool, typer.Option("--no-resume", help="Start afresh even if a checkpoint exists.")
+        bool,
+        typer.Option(
+            "--no-resume",
+            help="Start afresh even if a checkpoint exists: a previous fit's files in --out"
+            " are removed first.",
+        ),
     ] = False,
 ) -> None:
-    """Fit an acoustic neural field (Ultra-NeRF) to a dataset's frames and write FIELD_DIR."""
+    """Fit an acoustic neural field (Ultra-NeRF) to a dataset's frames and write FIELD_DIR.
+
+    An existing checkpoint in --out is resumed if it was fitted on the same dataset (content
+    hash in field.json) with the same settings; a larger --iters continues on the learning-rate
+    schedule of the new total."""
+    check_count("--iters", iters)
+    check_range("--scattering-floor", scattering_floor, 0.0, 1.0, high_open=True)
+    check_count("--scattering-warmup", scattering_warmup, 0)
+    check_range("--confidence-prior", confidence_prior, 0.0)
+    check_seed("--seed", seed)
+    check_count("--holdout-every", holdout_every, 0)
+    if holdout_every == 1:
+        raise argument_error(
+            "--holdout-every", "expected 0 (none) or an integer ≥ 2 (1 holds out every frame)"
+        )
+    check_count("--check-every", check_every)
+    check_count("--threads", threads)
+
     import torch
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
     from ultron.data.dataset import SweepDataset
     from ultron.train import field_preset, fit_field
+    from ultron.train.field_fit import check_resumable
 
     if threads is not None:
-        if threads < 1:
-            raise argument_error("--threads", f"expected ≥ 1, got {threads}")
         torch.set_num_threads(threads)
     data = SweepDataset.load(dataset)
     changes = {
         "backend": backend,
         "iterations": iters,
         "scattering_warmup_iters": scattering_warmup,
+        "confidence_prior_weight": confidence_prior,
     }
     if scattering_floor is not None:
         base = field_preset(preset).field.heads
@@ -115,6 +145,8 @@ def fit_field_command(
         train_scatterers=train_scatterers,
         check_every=check_every,
     )
+    if not no_resume:  # a checkpoint of another dataset or configuration: error before the bar
+        check_resumable(out, config, data.content_hash())
     columns = (
         TextColumn("[bold]fit-field"),
         BarColumn(),
@@ -172,14 +204,25 @@ def render_command(
     expected: Annotated[
         bool, typer.Option("--expected", help="Render the scatterer expectation (no speckle).")
     ] = False,
+    allow_other_field: Annotated[
+        bool,
+        typer.Option(
+            "--allow-other-field",
+            help="With --dataset: accept a field fitted on another dataset (its field.json's"
+            " dataset_sha256 differs).",
+        ),
+    ] = False,
 ) -> None:
     """Render B-mode frames from a fitted field at given probe poses (field's probe geometry)."""
+    check_seed("--seed", seed)
+
     import numpy as np
 
     from ultron import atomic
     from ultron.data.dataset import SweepDataset
     from ultron.data.validation import load_npy, validate_poses
     from ultron.fields import load_field
+    from ultron.fields.fitted import check_field_dataset
 
     if (poses is None) == (dataset is None):
         raise argument_error("--poses/--dataset", "give exactly one of --poses or --dataset")
@@ -198,6 +241,7 @@ def render_command(
             raise argument_error("--sweep", "required with --dataset")
         data = SweepDataset.load(dataset)
         fitted.check_probe(data.probe, str(dataset))
+        check_field_dataset(field_dir, data.content_hash(), str(dataset), allow_other_field)
         pose_array = data.sweep(sweep).probe_to_world
     if maps:
         result = fitted.render_maps(pose_array, seed=seed, expected=expected)

@@ -7,7 +7,7 @@ from typing import Annotated
 
 import typer
 
-from ultron.cli.common import console, user_errors
+from ultron.cli.common import check_count, check_range, check_seed, console, user_errors
 
 
 @user_errors
@@ -65,11 +65,32 @@ def simulate(
     ] = False,
 ) -> None:
     """Simulate a tracked multi-sweep B-mode dataset of a vertebra phantom, with labels."""
+    from ultron.phantom.dataset import MAX_VOXEL_MM
+
+    check_seed("--seed", seed)
+    check_count("--frames", frames)
+    for name, value in (
+        ("--step-mm", step_mm),
+        ("--probe-width-mm", probe_width_mm),
+        ("--depth-mm", depth_mm),
+    ):
+        check_range(name, value, 0.0, low_open=True)
+    check_count("--height-px", height_px)
+    check_count("--width-px", width_px)
+    for name, value in (
+        ("--pose-noise-mm", pose_noise_mm),
+        ("--pose-noise-deg", pose_noise_deg),
+        ("--label-noise-mm", label_noise_mm),
+    ):
+        check_range(name, value, 0.0)
+    check_range("--label-missing", label_missing, 0.0, 1.0)
+    check_range("--label-errors", label_errors, 0.0, 1.0)
+    check_range("--voxel-mm", voxel_mm, 0.0, MAX_VOXEL_MM, low_open=True)
+
     import time
 
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from ultron.errors import argument_error
     from ultron.phantom import (
         AnnotationConfig,
         ScanConfig,
@@ -79,18 +100,6 @@ def simulate(
     )
     from ultron.phantom.preview import write_preview
 
-    if frames < 1:
-        raise argument_error("--frames", f"expected a positive number of frames, got {frames}")
-    for name, value in (
-        ("--pose-noise-mm", pose_noise_mm),
-        ("--pose-noise-deg", pose_noise_deg),
-        ("--label-noise-mm", label_noise_mm),
-    ):
-        if not value >= 0:
-            raise argument_error(name, f"expected a noise level ≥ 0, got {value}")
-    for name, value in (("--label-missing", label_missing), ("--label-errors", label_errors)):
-        if not 0 <= value <= 1:
-            raise argument_error(name, f"expected a fraction in [0, 1], got {value}")
     config = SimulationConfig(
         phantom=phantom,
         seed=seed,

@@ -7,7 +7,15 @@ from typing import Annotated
 
 import typer
 
-from ultron.cli.common import console, user_errors
+from ultron.cli.common import check_count, check_range, check_seed, console, user_errors
+
+
+def _check_common(label_fraction: float, seed: int, field_iters: int | None, points: int) -> None:
+    """The numeric options reconstruct and finetune share."""
+    check_range("--label-fraction", label_fraction, 0.0, 1.0, low_open=True)
+    check_seed("--seed", seed)
+    check_count("--field-iters", field_iters)
+    check_count("--points", points)
 
 
 def _field_progress():
@@ -172,8 +180,19 @@ def reconstruct(
             " accurate surface, e.g. for very short runs).",
         ),
     ] = "1",
+    allow_other_field: Annotated[
+        bool,
+        typer.Option(
+            "--allow-other-field",
+            help="Accept a --field fitted on another dataset (its field.json's dataset_sha256"
+            " differs); run.json records field_dataset_match false.",
+        ),
+    ] = False,
 ) -> None:
     """Reconstruct a bone surface: mesh.ply/.stl/.obj, occupancy.nii.gz, metrics.json, run.json."""
+    _check_common(label_fraction, seed, field_iters, points)
+    check_count("--occupancy-iters", occupancy_iters, 0)
+
     from ultron.methods.run import reconstruct as run
 
     request = _request(
@@ -183,7 +202,13 @@ def reconstruct(
     bar, update = _field_progress()
     with bar:
         summary = run(
-            dataset, request, out, field, _field_config(field_iters, seed), progress=update
+            dataset,
+            request,
+            out,
+            field,
+            _field_config(field_iters, seed),
+            progress=update,
+            allow_other_field=allow_other_field,
         )
     _print_summary({method: summary})
     console.print(f"outputs in {out}")
@@ -212,6 +237,8 @@ def demo(
     ] = 0,
 ) -> None:
     """Simulate L3, fit the acoustic field, run UltrON and UltrON w/o loss at 10%, compare."""
+    check_seed("--seed", seed)
+
     from ultron.data.dataset import SweepDataset
     from ultron.methods.run import reconstruct as run
     from ultron.phantom import SimulationConfig, simulate_dataset
@@ -276,9 +303,20 @@ def finetune(
             help="Source of the loss's T: field, confidence or labels [default: the model's].",
         ),
     ] = None,
+    allow_other_field: Annotated[
+        bool,
+        typer.Option(
+            "--allow-other-field",
+            help="Accept a --field fitted on another dataset than DATASET (its field.json's"
+            " dataset_sha256 differs); run.json records field_dataset_match false.",
+        ),
+    ] = False,
 ) -> None:
     """Adapt a trained UltrON network to a new shape: freeze its last two layers, train the rest
     on a few labelled frames through the new dataset's own acoustic field, mesh, evaluate."""
+    _check_common(label_fraction, seed, field_iters, points)
+    check_count("--iters", iters, 0)
+
     from ultron.methods.finetune import FinetuneConfig
     from ultron.methods.finetune import finetune as run
     from ultron.metrics.surface import MetricsConfig
@@ -294,7 +332,14 @@ def finetune(
     bar, update = _field_progress()
     with bar:
         summary = run(
-            model_dir, dataset, config, out, field, _field_config(field_iters, seed), update
+            model_dir,
+            dataset,
+            config,
+            out,
+            field,
+            _field_config(field_iters, seed),
+            update,
+            allow_other_field=allow_other_field,
         )
     name = f"fine-tuned ({label_fraction:g}, {iters} iter)" if iters else "w/o fine-tuning"
     _print_summary({name: summary})

@@ -26,7 +26,9 @@ of simulated data, for diagnosis only (never read by a reconstruction):
 
 from __future__ import annotations
 
+import hashlib
 import json
+import os
 import re
 import shutil
 import tempfile
@@ -55,6 +57,9 @@ SWEEP_KINDS = ("row", "column", "tilted", "other")
 _NAME_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
 _REFERENCE_SUFFIXES = (".ply", ".stl", ".obj", ".off")
 TRANSMISSION_FILE = "transmission.npy"
+#: Names the definition of :meth:`SweepDataset.content_hash`; hashed first, so a change of
+#: definition (a new version) changes every hash.
+CONTENT_HASH_VERSION = "ultron-dataset-sha256/1"
 
 
 @dataclass(frozen=True)
@@ -203,6 +208,34 @@ class SweepDataset:
         """Every frame's probe-to-world pose, sweeps concatenated in order, (N_total, 4, 4)."""
         return np.concatenate([s.probe_to_world for s in self.sweeps], axis=0)
 
+    def content_hash(self) -> str:
+        """SHA-256 (64 hex digits) of what identifies this dataset's data.
+
+        Hashed in this order: :data:`CONTENT_HASH_VERSION`; the probe geometry (width and
+        depth in mm, height and width in pixels); then per sweep, in the dataset's order, its
+        name and its images, poses and labels (``none`` where it has no labels), each array as
+        its little-endian dtype, its shape and its C-order bytes. Sweep kinds, the reference
+        mesh, metadata and the simulator's ground truth are not part of it. The same arrays
+        give the same hash whether loaded or built in memory (poses are float64 either way);
+        a changed pixel, pose, label, name or sweep order changes it. Fast: one pass of SHA-256
+        over the arrays, no copies of contiguous little-endian ones (≈ 5 ms for the demo's
+        240 frames of 128 × 96 with labels, 5.9 MB).
+        """
+        digest = hashlib.sha256(CONTENT_HASH_VERSION.encode())
+        probe = self.probe
+        size_mm = [float(probe.width_mm), float(probe.depth_mm)]
+        size_px = [int(probe.height_px), int(probe.width_px)]
+        digest.update(json.dumps({"probe": [*size_mm, *size_px]}).encode())
+        for sweep in self.sweeps:
+            digest.update(json.dumps({"sweep": sweep.name}).encode())
+            for name, array in (
+                ("images", sweep.images),
+                ("poses", sweep.probe_to_world),
+                ("labels", sweep.labels),
+            ):
+                _hash_array(digest, name, array)
+        return digest.hexdigest()
+
     # ------------------------------------------------------------------- I/O
     @classmethod
     def load(cls, path: str | Path) -> SweepDataset:
@@ -276,6 +309,7 @@ class SweepDataset:
         root.parent.mkdir(parents=True, exist_ok=True)
         staging = Path(tempfile.mkdtemp(prefix=f".{root.name}.", suffix=".tmp", dir=root.parent))
         try:
+            os.chmod(staging, atomic.directory_mode())  # mkdtemp's 0700 would hide the dataset
             self._write_into(staging, None)
             staging.rename(root)
         except BaseException:
@@ -331,6 +365,18 @@ class SweepDataset:
                 atomic.save_npy(folder / name, array)
             else:  # a replaced sweep must not inherit its predecessor's files
                 (folder / name).unlink(missing_ok=True)
+
+
+def _hash_array(digest: Any, name: str, array: np.ndarray | None) -> None:
+    """Feed ``name``, dtype (little-endian), shape and C-order bytes of ``array`` to ``digest``."""
+    if array is None:
+        digest.update(json.dumps({name: None}).encode())
+        return
+    array = np.asarray(array)
+    canonical = np.ascontiguousarray(array, dtype=array.dtype.newbyteorder("<"))
+    header = {name: [canonical.dtype.str, list(canonical.shape)]}
+    digest.update(json.dumps(header).encode())
+    digest.update(canonical.reshape(-1).view(np.uint8))
 
 
 def _reference_path(root: Path, meta_path: Path, meta: dict[str, Any], key: str) -> Path | None:

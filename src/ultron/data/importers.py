@@ -34,6 +34,9 @@ from ultron.errors import UltronInputError, argument_error
 
 #: Largest rotation-block deviation the importer repairs (above it a pose is refused).
 DEFAULT_ORTHONORMALIZE_TOLERANCE = 0.05
+#: Tolerances must lie in [0, 1): a block deviating by 1 or more (e.g. a uniform scale ≥ √2)
+#: is no perturbed rotation, and "repairing" it would hide a wrong pose file.
+MAX_ORTHONORMALIZE_TOLERANCE = 1.0
 
 
 @dataclass(frozen=True)
@@ -66,6 +69,13 @@ def orthonormalize_poses(
 
     Returns the repaired float64 poses and the per-pose deviation max|R Rᵀ − I| before repair.
     """
+    if isinstance(tolerance, bool) or not (
+        isinstance(tolerance, int | float) and 0 <= tolerance < MAX_ORTHONORMALIZE_TOLERANCE
+    ):  # NaN fails every comparison: it would "repair" any pose
+        raise argument_error(
+            "orthonormalize_tolerance",
+            f"expected a value in [0, {MAX_ORTHONORMALIZE_TOLERANCE:g}), got {tolerance!r}",
+        )
     poses = np.asarray(poses, dtype=np.float64)
     if poses.ndim != 3 or poses.shape[1:] != (4, 4):
         raise UltronInputError(where, "poses", f"expected shape (N, 4, 4), got {poses.shape}")

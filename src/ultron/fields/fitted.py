@@ -2,9 +2,12 @@
 
 FIELD_DIR layout (written by :func:`ultron.train.fit_field`, every file atomically)::
 
-    field.json        format, field config (sizes resolved), render config, probe geometry
+    field.json        format, the dataset's content hash (``dataset_sha256``, see
+                      :meth:`SweepDataset.content_hash`; absent in fields fitted before it was
+                      recorded), field config (sizes resolved), render config, probe geometry
                       the field was fitted at, world ↔ unit-cube transform, training config, step
-    checkpoint.pt     {"model", "optimizer", "scheduler", "step", "generator"} (torch.save)
+    checkpoint.pt     {"model", "optimizer", "step", "generator"} (torch.save; older ones also
+                      hold an unused "scheduler")
     theta_stats.json  per-channel mean / std of θ over the training frames (stage 2 normalises θ)
     train_log.jsonl   one JSON object per logged step
 """
@@ -275,6 +278,32 @@ def read_field_json(field_dir: Path) -> dict[str, Any]:
     if not isinstance(meta, dict) or meta.get("format") != FIELD_FORMAT:
         raise UltronInputError(path, "format", f"expected {FIELD_FORMAT!r}")
     return meta
+
+
+def check_field_dataset(
+    field_dir: str | Path, dataset_sha256: str, where: str = "dataset", allow_other: bool = False
+) -> bool | None:
+    """Whether FIELD_DIR was fitted on the dataset whose content hash is ``dataset_sha256``
+    (:meth:`SweepDataset.content_hash`, recorded as field.json's ``dataset_sha256``).
+
+    Returns True on a match and None for a field.json without the record (fitted before it
+    was kept). A mismatch raises a one-line :class:`UltronInputError` naming field.json and
+    ``dataset_sha256`` (``where`` names the dataset) unless ``allow_other``, then returns False.
+    """
+    root = Path(field_dir)
+    recorded = read_field_json(root).get("dataset_sha256")
+    if recorded is None:
+        return None
+    if recorded == dataset_sha256:
+        return True
+    if allow_other:
+        return False
+    raise UltronInputError(
+        root / FIELD_JSON,
+        "dataset_sha256",
+        f"the field was fitted on another dataset than {where} (recorded {str(recorded)[:12]}…,"
+        f" {where} has {dataset_sha256[:12]}…); pass --allow-other-field to use it anyway",
+    )
 
 
 def read_checkpoint(field_dir: Path) -> dict[str, Any]:

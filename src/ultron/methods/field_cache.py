@@ -50,7 +50,12 @@ def get_or_fit_field(
     config,
     progress: Callable[[dict[str, Any]], None] | None = None,
 ):
-    """Load the cached field for this dataset and configuration, fitting it first if needed."""
+    """Load the cached field for this dataset and configuration, fitting it first if needed.
+
+    An interrupted fit resumes, unless its field.json records another dataset content hash
+    (:meth:`SweepDataset.content_hash`, which covers the labels too, while the cache key does
+    not): then the fit starts afresh, so that field.json names the dataset it is used with."""
+    from ultron.errors import UltronInputError
     from ultron.fields.fitted import CHECKPOINT, FIELD_JSON, load_field
     from ultron.train.field_fit import fit_field
 
@@ -58,6 +63,11 @@ def get_or_fit_field(
     done = field_dir / "done"
     if done.is_file() and (field_dir / FIELD_JSON).is_file() and (field_dir / CHECKPOINT).is_file():
         return load_field(field_dir), field_dir, True
-    fitted = fit_field(dataset, config, field_dir, progress=progress, resume=True)
+    try:
+        fitted = fit_field(dataset, config, field_dir, progress=progress, resume=True)
+    except UltronInputError as exc:
+        if exc.field != "dataset_sha256":
+            raise
+        fitted = fit_field(dataset, config, field_dir, progress=progress, resume=False)
     done.write_text("ok\n")
     return fitted, field_dir, False

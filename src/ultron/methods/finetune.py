@@ -209,9 +209,13 @@ def finetune(
     field_config=None,
     progress: Callable[[dict[str, Any]], None] | None = None,
     report: bool = True,
+    allow_other_field: bool = False,
 ) -> dict[str, Any]:
     """Load MODEL_DIR's network and the new dataset's field, fine-tune, write DIR as
-    ``reconstruct`` does; returns the same summary (``out``, ``metrics``, ``timings_s``)."""
+    ``reconstruct`` does; returns the same summary (``out``, ``metrics``, ``timings_s``).
+
+    A given ``field_dir`` must have been fitted on the new dataset unless
+    ``allow_other_field`` (see :func:`ultron.methods.run.load_or_fit_field`)."""
     from ultron.methods.run import load_or_fit_field, write_outputs
 
     timer = StageTimer()
@@ -223,8 +227,8 @@ def finetune(
         visibility = config.visibility or VisibilityConfig.from_dict(meta, where)
         truth = load_oracle_truth(visibility, dataset_dir, dataset) if config.iters > 0 else None
     with timer.stage("field"):
-        fitted, used_dir, cached = load_or_fit_field(
-            dataset_dir, dataset, field_dir, field_config, progress
+        fitted, extra = load_or_fit_field(
+            dataset_dir, dataset, field_dir, field_config, progress, allow_other_field
         )
     spec = check_theta_model(network, meta, fitted, where)
     result = finetune_ultron(
@@ -238,5 +242,4 @@ def finetune(
         "model_dir": str(Path(model_dir).resolve()),
         "model_method": meta.get("method"),
     }
-    extra = {"field_dir": str(Path(used_dir).resolve()), "field_cached": cached}
     return write_outputs(out_dir, dataset, identity, result, timer, config.metrics, extra, report)

@@ -183,9 +183,13 @@ def reconstruct(
     field_config=None,
     progress: Callable[[dict[str, Any]], None] | None = None,
     report: bool = True,
+    allow_other_field: bool = False,
 ) -> dict[str, Any]:
     """Load the dataset, get the field (given, or fitted and cached), run, write DIR (with
-    ``report.html`` unless ``report`` is false)."""
+    ``report.html`` unless ``report`` is false).
+
+    A given ``field_dir`` must have been fitted on this dataset (see
+    :func:`load_or_fit_field`) unless ``allow_other_field``."""
     timer = StageTimer()
     with timer.stage("load"):
         dataset = SweepDataset.load(dataset_dir)
@@ -194,10 +198,9 @@ def reconstruct(
     fitted, extra = None, {}
     if request.method in FIELD_METHODS:
         with timer.stage("field"):
-            fitted, used_dir, cached = load_or_fit_field(
-                dataset_dir, dataset, field_dir, field_config, progress
+            fitted, extra = load_or_fit_field(
+                dataset_dir, dataset, field_dir, field_config, progress, allow_other_field
             )
-        extra = {"field_dir": str(Path(used_dir).resolve()), "field_cached": cached}
     result = run_method(dataset, request, fitted, timer, truth)
     identity = {
         "method": request.method,
@@ -208,14 +211,37 @@ def reconstruct(
     return write_outputs(out_dir, dataset, identity, result, timer, request.metrics, extra, report)
 
 
-def load_or_fit_field(dataset_dir, dataset, field_dir, field_config, progress):
-    """A given FIELD_DIR is loaded (its probe must match); otherwise the cached fit is used."""
-    from ultron.fields.fitted import load_field
+def load_or_fit_field(
+    dataset_dir: str | Path,
+    dataset: SweepDataset,
+    field_dir: str | Path | None,
+    field_config: Any = None,
+    progress: Callable[[dict[str, Any]], None] | None = None,
+    allow_other_field: bool = False,
+) -> tuple[Any, dict[str, Any]]:
+    """The dataset's acoustic field and what run.json records of it (``field_dir``,
+    ``field_cached`` and, for a given field, ``field_dataset_match``).
+
+    A given FIELD_DIR must match the dataset's probe geometry and, where its field.json records
+    one, the dataset's content hash (:func:`ultron.fields.fitted.check_field_dataset`; a
+    mismatch is an error unless ``allow_other_field``, then ``field_dataset_match`` is false;
+    it is null for a field without the record). Otherwise the cached fit is used, keyed by the
+    dataset directory's content (:mod:`ultron.methods.field_cache`).
+    """
+    from ultron.fields.fitted import check_field_dataset, load_field
     from ultron.methods.field_cache import get_or_fit_field
     from ultron.train.field_fit import FieldTrainConfig
 
     if field_dir is not None:
         fitted = load_field(field_dir)
         fitted.check_probe(dataset.probe, where=str(dataset_dir))
-        return fitted, Path(field_dir), True
-    return get_or_fit_field(dataset_dir, dataset, field_config or FieldTrainConfig(), progress)
+        match = check_field_dataset(
+            field_dir, dataset.content_hash(), str(dataset_dir), allow_other_field
+        )
+        used_dir, cached = Path(field_dir), True
+        extra: dict[str, Any] = {"field_dataset_match": match}
+    else:
+        config = field_config or FieldTrainConfig()
+        fitted, used_dir, cached = get_or_fit_field(dataset_dir, dataset, config, progress)
+        extra = {}
+    return fitted, {"field_dir": str(Path(used_dir).resolve()), "field_cached": cached, **extra}

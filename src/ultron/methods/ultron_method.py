@@ -261,7 +261,11 @@ def reconstruct_ultron(
     is the oracle's true T per sweep (only for ``config.visibility.source == "oracle"``)."""
     if method not in METHOD_LOSSES:
         raise argument_error("method", f"expected one of {tuple(METHOD_LOSSES)}, got {method!r}")
-    occupancy_config = replace(config.occupancy, loss=METHOD_LOSSES[method])
+    occupancy_config = replace(
+        config.occupancy,
+        loss=METHOD_LOSSES[method],
+        network=config.context.network(config.occupancy.network, len(fitted.channels)),
+    )
     with timer.stage("labels"):
         selection = select_label_frames(dataset, config.label_fraction, config.seed)
         data = occupancy_training_data(

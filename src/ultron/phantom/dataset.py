@@ -69,6 +69,10 @@ PHANTOM_JSON_FORMAT = "ultron-phantom/1"
 VISIBLE_REFERENCE = "reference_visible.ply"
 
 
+#: The coarsest SDF grid / reference-mesh voxel, mm.
+MAX_VOXEL_MM = 2.0
+
+
 @dataclass(frozen=True)
 class SimulationConfig:
     """Every parameter of a simulated dataset (immutable; derive variants with ``replace``)."""
@@ -98,8 +102,10 @@ class SimulationConfig:
         if len({s.name for s in specs}) != len(specs):
             raise argument_error("sweeps", f"sweep names must be unique, got {list(self.sweeps)}")
         self.probe()  # validates the geometry
-        if not (math.isfinite(self.voxel_mm) and 0 < self.voxel_mm <= 2.0):
-            raise argument_error("voxel_mm", f"expected a voxel in (0, 2] mm, got {self.voxel_mm}")
+        if not (math.isfinite(self.voxel_mm) and 0 < self.voxel_mm <= MAX_VOXEL_MM):
+            raise argument_error(
+                "voxel_mm", f"expected a voxel in (0, {MAX_VOXEL_MM:g}] mm, got {self.voxel_mm}"
+            )
 
     def probe(self) -> ProbeGeometry:
         return ProbeGeometry(self.probe_width_mm, self.depth_mm, self.height_px, self.width_px)

@@ -6,6 +6,7 @@ from ultron.train.field_fit import (
     evaluate_frames,
     field_preset,
     fit_field,
+    learning_rate_at,
     theta_statistics,
 )
 from ultron.train.frames import FrameSet, holdout_indices, resample_frames, resampled_probe
@@ -19,6 +20,7 @@ __all__ = [
     "field_preset",
     "fit_field",
     "holdout_indices",
+    "learning_rate_at",
     "psnr",
     "resample_frames",
     "resampled_probe",

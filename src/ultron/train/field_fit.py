@@ -4,8 +4,10 @@ Each step renders ``frames_per_batch`` whole-depth patches of ``patch_width`` ad
 scanlines from random training frames (so the PSF and the SSIM see 2D neighbourhoods) and
 minimises 0.75·(1 − SSIM) + 0.25·MSE plus the backend's smoothness prior and the optional
 β-weighted TV of φ, with Adam and an exponential learning-rate decay (×0.1 over
-``lr_decay_steps``). Seeded by one integer; checkpoints (model, optimiser, scheduler,
-generator, step) make a run resumable, bit-identically.
+``decay_steps``, a function of the step: :func:`learning_rate_at`). Seeded by one integer;
+checkpoints (model, optimiser, generator, step) make a run resumable, bit-identically, and
+field.json records the dataset's content hash (``dataset_sha256``,
+:meth:`SweepDataset.content_hash`) so that a checkpoint is never resumed on another dataset.
 
 Where we differ from Ultra-NeRF (and why):
 
@@ -29,8 +31,6 @@ import json
 import math
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, replace
-from dataclasses import field as dataclass_field
 from pathlib import Path
 from typing import Any
 
@@ -55,160 +55,35 @@ from ultron.fields.fitted import (
     read_checkpoint,
     read_field_json,
 )
-from ultron.fields.properties import HeadConfig
 from ultron.render.renderer import RenderConfig, render_field
+from ultron.train.field_config import (
+    DEFAULT_LR,
+    FIELD_PRESETS,
+    PAPER_ITERATIONS,
+    PAPER_MLP_DECAY_STEPS,
+    SCATTERER_MODES,
+    SHADOW_WARMUP_ITERS,
+    FieldTrainConfig,
+    comparable_config,
+    field_preset,
+    learning_rate_at,
+)
 from ultron.train.frames import FrameSet
-from ultron.train.losses import METRIC_SSIM_K2, psnr, ssim, ultranerf_loss, weighted_scattering_tv
-
-#: Default learning rates and decay horizons (steps for a ×0.1 decay) per backend: the grid's
-#: features want a large rate decayed over the run; the MLP uses the paper's 1e-4 / 250k steps.
-DEFAULT_LR = {"grid": 1e-2, "mlp": 1e-4}
-PAPER_MLP_DECAY_STEPS = 250_000
-
-#: How scatterers enter training renders: drawn per step (Ultra-NeRF) or their expectation.
-SCATTERER_MODES = ("sample", "expected")
+from ultron.train.losses import (
+    METRIC_SSIM_K2,
+    confidence_transmission_prior,
+    psnr,
+    ssim,
+    ultranerf_loss,
+    weighted_scattering_tv,
+)
 
 Progress = Callable[[dict[str, Any]], None]
 
 
-@dataclass(frozen=True)
-class FieldTrainConfig:
-    """Everything that defines a field fit (saved to field.json; resume requires a match).
-
-    ``scattering_warmup_iters``: for that many first steps (at most half the run) φ is held at
-    its initial value, so the dark regions of the images can only be explained by a loss of
-    transmission (α or β); then φ is released (above the heads' floor). On the tuning phantoms
-    (L3 seed 1, L4 seed 2) 500 steps of 3000 raised the share of deep-shadow pixels (true
-    T < 0.1) whose fitted T is < 0.3 from 0.80 to 0.85 (L3) at an unchanged held-out SSIM.
-    See :func:`field_preset` for the paper's configuration.
-    """
-
-    field: FieldConfig = dataclass_field(default_factory=FieldConfig)
-    render: RenderConfig = dataclass_field(default_factory=RenderConfig)
-    iterations: int = 3000
-    seed: int = 0
-    frames_per_batch: int = 8
-    patch_width: int = 32
-    learning_rate: float | None = None
-    lr_decay_steps: int | None = None
-    holdout_every: int = 10
-    check_every: int = 250
-    checkpoint_every: int = 500
-    log_every: int = 25
-    fit_shape: tuple[int, int] | None = None
-    ssim_weight: float = 0.75
-    mse_weight: float = 0.25
-    scattering_tv_weight: float = 0.0
-    max_check_frames: int = 32
-    train_scatterers: str = "expected"
-    scattering_warmup_iters: int = 0
-
-    def __post_init__(self) -> None:
-        positive = ("iterations", "frames_per_batch", "patch_width", "check_every")
-        for name in (*positive, "checkpoint_every", "log_every", "max_check_frames"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise argument_error(name, f"expected a positive integer, got {value!r}")
-        if self.learning_rate is not None and not self.learning_rate > 0:
-            raise argument_error("learning_rate", f"expected > 0, got {self.learning_rate}")
-        if self.lr_decay_steps is not None and self.lr_decay_steps < 1:
-            raise argument_error("lr_decay_steps", "expected ≥ 1")
-        if self.fit_shape is not None:
-            shape = tuple(int(s) for s in self.fit_shape)
-            if len(shape) != 2 or min(shape) < 7:
-                raise argument_error("fit_shape", f"expected (H, W) with both ≥ 7, got {shape}")
-            object.__setattr__(self, "fit_shape", shape)
-        if self.train_scatterers not in SCATTERER_MODES:
-            raise argument_error(
-                "train_scatterers",
-                f"expected one of {SCATTERER_MODES}, got {self.train_scatterers!r}",
-            )
-        if isinstance(self.scattering_warmup_iters, bool) or not (
-            isinstance(self.scattering_warmup_iters, int) and self.scattering_warmup_iters >= 0
-        ):
-            raise argument_error("scattering_warmup_iters", "expected an integer ≥ 0")
-        for name in ("ssim_weight", "mse_weight", "scattering_tv_weight"):
-            if getattr(self, name) < 0:
-                raise argument_error(name, "expected ≥ 0")
-
-    @property
-    def effective_scattering_warmup(self) -> int:
-        """Steps with φ held: ``scattering_warmup_iters``, at most half the run (so φ is always
-        learned for at least the second half, also in short test or preview fits)."""
-        return min(self.scattering_warmup_iters, self.iterations // 2)
-
-    @property
-    def lr(self) -> float:
-        return self.learning_rate or DEFAULT_LR[self.field.backend]
-
-    @property
-    def decay_steps(self) -> int:
-        if self.lr_decay_steps is not None:
-            return self.lr_decay_steps
-        return self.iterations if self.field.backend == "grid" else PAPER_MLP_DECAY_STEPS
-
-    def to_dict(self) -> dict[str, Any]:
-        data = asdict(self)
-        data["field"] = self.field.to_dict()
-        data["fit_shape"] = list(self.fit_shape) if self.fit_shape else None
-        return data
-
-    @classmethod
-    def from_dict(cls, data: dict[str, Any]) -> FieldTrainConfig:
-        values = dict(data)
-        values["field"] = FieldConfig.from_dict(values.get("field", {}))
-        values["render"] = RenderConfig.from_dict(values.get("render", {}))
-        if values.get("fit_shape") is not None:
-            values["fit_shape"] = tuple(values["fit_shape"])
-        return cls(**values)
-
-
-#: Named starting points of a field fit (:func:`field_preset`).
-FIELD_PRESETS = ("default", "shadow", "paper")
-SHADOW_WARMUP_ITERS = 500
-PAPER_ITERATIONS = 75_000
-
-
-def field_preset(name: str = "default", **changes: Any) -> FieldTrainConfig:
-    """A fresh field-fit configuration.
-
-    - ``default``: the grid backend with Ultra-NeRF's heads;
-    - ``shadow``: the grid backend with the identifiable heads (:meth:`HeadConfig.identifiable`)
-      and a 500-step φ warm-up: the field puts the acoustic shadow in T;
-    - ``paper``: Ultra-NeRF as published: the 8 × 128 MLP, the paper's heads, no curriculum,
-      scatterers drawn every step, 75k iterations, lr 1e-4 decaying ×0.1 per 250k steps.
-
-    ``changes`` override fields (e.g. ``iterations``, ``seed``, ``backend``, ``heads``);
-    presets are built anew on every call, never mutated."""
-    if name not in FIELD_PRESETS:
-        raise argument_error("preset", f"expected one of {FIELD_PRESETS}, got {name!r}")
-    if name == "paper":
-        base = FieldTrainConfig(
-            field=FieldConfig(backend="mlp", heads=HeadConfig.paper()),
-            iterations=PAPER_ITERATIONS,
-            train_scatterers="sample",
-            scattering_warmup_iters=0,
-        )
-    elif name == "shadow":
-        base = FieldTrainConfig(
-            field=FieldConfig(heads=HeadConfig.identifiable()),
-            scattering_warmup_iters=SHADOW_WARMUP_ITERS,
-        )
-    else:
-        base = FieldTrainConfig()
-    field_changes = {k: changes.pop(k) for k in ("backend", "heads") if k in changes}
-    if field_changes:
-        changes["field"] = replace(base.field, **field_changes)
-    return replace(base, **changes)
-
-
-def _comparable(config: dict[str, Any]) -> dict[str, Any]:
-    """A config dict without the entries a resumed run may change."""
-    return {
-        k: v
-        for k, v in config.items()
-        if k not in ("iterations", "check_every", "checkpoint_every", "log_every")
-    }
+def _set_learning_rate(optimizer: torch.optim.Optimizer, lr: float) -> None:
+    for group in optimizer.param_groups:
+        group["lr"] = lr
 
 
 def sample_patches(
@@ -253,6 +128,13 @@ def training_step(
     target = torch.gather(frames.images[frame_idx], 2, patch_cols)
     loss, mse = ultranerf_loss(rendered.intensity, target, config.ssim_weight, config.mse_weight)
     total = loss + module.regularization(generator)
+    if config.confidence_prior_weight > 0:
+        if frames.confidence is None:
+            raise argument_error("frames", "the confidence prior needs FrameSet.with_confidence()")
+        confidence = torch.gather(frames.confidence[frame_idx], 2, patch_cols)
+        total = total + config.confidence_prior_weight * confidence_transmission_prior(
+            rendered.transmission, confidence, config.confidence_prior_margin
+        )
     if config.scattering_tv_weight > 0:
         total = total + config.scattering_tv_weight * weighted_scattering_tv(
             rendered.properties.scattering, rendered.properties.reflection
@@ -271,10 +153,35 @@ def make_optimizer(module: AcousticField, lr: float) -> torch.optim.Optimizer:
         return torch.optim.Adam(module.parameters(), lr=lr)
 
 
-def _save_checkpoint(out_dir: Path, state: dict[str, Any]) -> None:
+def _save_checkpoint(
+    out_dir: Path,
+    module: AcousticField,
+    optimizer: torch.optim.Optimizer,
+    generator: torch.Generator,
+    step: int,
+) -> None:
+    state = {
+        "model": module.state_dict(),
+        "optimizer": optimizer.state_dict(),
+        "generator": generator.get_state(),
+        "step": step,
+    }
     buffer = io.BytesIO()
     torch.save(state, buffer)
     atomic.write_bytes(out_dir / CHECKPOINT, buffer.getvalue())
+
+
+def _step_entry(
+    config: FieldTrainConfig, step: int, loss: torch.Tensor, mse: torch.Tensor, started: float
+) -> dict[str, Any]:
+    """The progress / log record of ``step`` (``lr``: the rate of the next update)."""
+    return {
+        "step": step,
+        "loss": float(loss),
+        "psnr": 10 * math.log10(1 / max(float(mse), 1e-12)),
+        "lr": learning_rate_at(config, step),
+        "elapsed_s": time.perf_counter() - started,
+    }
 
 
 def _field_meta(
@@ -284,10 +191,12 @@ def _field_meta(
     frames: FrameSet,
     cube: UnitCube,
     step: int,
+    dataset_sha256: str,
 ) -> dict[str, Any]:
     return {
         "format": FIELD_FORMAT,
         "units": "mm",
+        "dataset_sha256": dataset_sha256,
         "field": resolved.to_dict(),
         "render": render.to_dict(),
         "probe": probe_to_dict(frames.probe),
@@ -329,6 +238,60 @@ def theta_statistics(
     return ThetaStatistics(fitted.channels, tuple(flat.mean(0).tolist()), tuple(std.tolist()))
 
 
+def check_resumable(out_dir: str | Path, config: FieldTrainConfig, dataset_sha256: str) -> bool:
+    """Whether :func:`fit_field` (with ``resume``) would continue a checkpoint in ``out_dir``:
+    False without one; True if it was fitted on the dataset of content hash ``dataset_sha256``
+    (:meth:`SweepDataset.content_hash`) with a comparable configuration; otherwise a one-line
+    :class:`UltronInputError` naming field.json. A field.json without ``dataset_sha256`` (from
+    before it was recorded) is not checked for the dataset."""
+    out = Path(out_dir)
+    if not (out / CHECKPOINT).is_file():
+        return False
+    meta = read_field_json(out)
+    recorded = meta.get("dataset_sha256")
+    if recorded is not None and recorded != dataset_sha256:
+        raise UltronInputError(
+            out / FIELD_JSON,
+            "dataset_sha256",
+            "checkpoint was fitted on another dataset; use a new --out or --no-resume"
+            f" (recorded {str(recorded)[:12]}…, this dataset {dataset_sha256[:12]}…)",
+        )
+    saved = meta.get("train", {})
+    try:  # fills entries added since (their defaults are the earlier behaviour)
+        saved = FieldTrainConfig.from_dict(saved).to_dict()
+    except (TypeError, UltronInputError):
+        pass
+    if comparable_config(saved) != comparable_config(config.to_dict()):
+        raise UltronInputError(
+            out / FIELD_JSON,
+            "train",
+            "checkpoint was fitted with a different configuration; use a new --out directory",
+        )
+    return True
+
+
+def _resume(
+    out: Path, module: AcousticField, optimizer: torch.optim.Optimizer, generator: torch.Generator
+) -> tuple[int, list[dict[str, Any]]]:
+    """Load FIELD_DIR ``out``'s checkpoint into the run's state; returns (step, log)."""
+    state = read_checkpoint(out)
+    module.load_state_dict(state["model"])
+    optimizer.load_state_dict(state["optimizer"])
+    generator.set_state(state["generator"])
+    log = []
+    if (out / TRAIN_LOG).is_file():
+        lines = (out / TRAIN_LOG).read_text(encoding="utf-8").splitlines()
+        log = [json.loads(line) for line in lines if line.strip()]
+    return int(state["step"]), log
+
+
+def _clear_field_dir(out: Path) -> None:
+    """Remove a previous fit's files from ``out`` (only FIELD_DIR's own file names), so that
+    an interrupted fresh run never leaves a mix of two runs (or an old checkpoint to resume)."""
+    for name in (CHECKPOINT, FIELD_JSON, THETA_STATS, TRAIN_LOG):
+        (out / name).unlink(missing_ok=True)
+
+
 def fit_field(
     dataset: SweepDataset,
     config: FieldTrainConfig,
@@ -338,83 +301,63 @@ def fit_field(
 ) -> FittedField:
     """Fit a field to ``dataset`` and write FIELD_DIR ``out_dir`` (see ultron.fields.fitted).
 
-    With ``resume`` and an existing checkpoint of the same configuration in ``out_dir`` the run
-    continues from it (``iterations`` may be raised). ``progress`` receives a dict per step
-    (``step``, ``iterations``, ``loss``, ``psnr`` and, when checked, ``holdout_psnr``).
+    With ``resume`` and a checkpoint in ``out_dir`` the run continues from it, provided it was
+    fitted on the same dataset (field.json's ``dataset_sha256``, when recorded, equals
+    :meth:`SweepDataset.content_hash`) with the same configuration (``iterations`` and the
+    check / checkpoint / log intervals may differ); otherwise an :class:`UltronInputError`
+    naming field.json. Without ``resume``, or without a checkpoint, the run starts afresh and
+    first removes a previous fit's files from ``out_dir``.
+
+    Learning rate: update k (0-based) uses :func:`learning_rate_at` ``(config, k)`` =
+    lr · 0.1^(k / decay_steps), recomputed from k at every step. A run resumed at step k₀ with
+    a raised ``iterations`` (the grid backend's ``decay_steps`` unless ``lr_decay_steps`` is set)
+    therefore follows the schedule of the new total: its rate jumps at k₀ from the old
+    schedule's lr · 0.1^(k₀ / old) to the new one's lr · 0.1^(k₀ / new), and every later
+    rate, down to lr · 0.1 at the end, equals that of a fresh run of the new total. Adam's
+    moments and the batch generator continue from the checkpoint.
+
+    ``progress`` receives a dict per step (``step``, ``iterations``, ``loss``, ``psnr``, ``lr``
+    (the rate of the next update) and, when checked, ``holdout_psnr``).
     """
     if not isinstance(dataset, SweepDataset):
         raise argument_error("dataset", "expected a SweepDataset")
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise UltronInputError(out, "out", "exists and is not a directory")
+    dataset_sha256 = dataset.content_hash()
+    resuming = resume and check_resumable(out, config, dataset_sha256)
     frames = FrameSet.from_dataset(dataset, config.fit_shape, config.holdout_every)
+    if config.confidence_prior_weight > 0:
+        frames = frames.with_confidence()
     cube = UnitCube.from_bounds(field_of_view_bounds_mm(dataset.all_poses(), frames.probe))
     pixel_mm = min(frames.probe.axial_spacing_mm, frames.probe.lateral_spacing_mm)
     module, resolved = build_field(config.field, cube.half_extent_mm, pixel_mm, config.seed)
     module.train()
     optimizer = make_optimizer(module, config.lr)
-    scheduler = torch.optim.lr_scheduler.ExponentialLR(optimizer, 0.1 ** (1 / config.decay_steps))
     generator = torch.Generator().manual_seed(config.seed)
-    log: list[dict[str, Any]] = []
-    step = 0
-
-    if resume and (out / CHECKPOINT).is_file():
-        meta = read_field_json(out)
-        saved = meta.get("train", {})
-        try:  # fills entries added since (their defaults are the earlier behaviour)
-            saved = FieldTrainConfig.from_dict(saved).to_dict()
-        except (TypeError, UltronInputError):
-            pass
-        if _comparable(saved) != _comparable(config.to_dict()):
-            raise UltronInputError(
-                out / FIELD_JSON,
-                "train",
-                "checkpoint was fitted with a different configuration; use a new --out directory",
-            )
-        state = read_checkpoint(out)
-        module.load_state_dict(state["model"])
-        optimizer.load_state_dict(state["optimizer"])
-        scheduler.load_state_dict(state["scheduler"])
-        generator.set_state(state["generator"])
-        step = int(state["step"])
-        if (out / TRAIN_LOG).is_file():
-            lines = (out / TRAIN_LOG).read_text(encoding="utf-8").splitlines()
-            log = [json.loads(line) for line in lines if line.strip()]
+    step, log = _resume(out, module, optimizer, generator) if resuming else (0, [])
+    if not resuming:
+        _clear_field_dir(out)
     out.mkdir(parents=True, exist_ok=True)
     render_config = config.render.rescaled(dataset.probe, frames.probe)
     fitted = FittedField(module, resolved, cube, frames.probe, render_config)
 
     def save(at_step: int) -> None:
-        _save_checkpoint(
-            out,
-            {
-                "model": module.state_dict(),
-                "optimizer": optimizer.state_dict(),
-                "scheduler": scheduler.state_dict(),
-                "generator": generator.get_state(),
-                "step": at_step,
-            },
-        )
-        meta = _field_meta(config, resolved, render_config, frames, cube, at_step)
+        _save_checkpoint(out, module, optimizer, generator, at_step)
+        meta = _field_meta(config, resolved, render_config, frames, cube, at_step, dataset_sha256)
         atomic.write_json(out / FIELD_JSON, meta)
         atomic.write_text(out / TRAIN_LOG, "".join(json.dumps(e) + "\n" for e in log))
 
     started = time.perf_counter()
     while step < config.iterations:
         module.train()
+        _set_learning_rate(optimizer, learning_rate_at(config, step))
         hold = step < config.effective_scattering_warmup
         loss, mse = training_step(
             module, optimizer, frames, cube, render_config, config, generator, hold
         )
-        scheduler.step()
         step += 1
-        entry: dict[str, Any] = {
-            "step": step,
-            "loss": float(loss),
-            "psnr": 10 * math.log10(1 / max(float(mse), 1e-12)),
-            "lr": scheduler.get_last_lr()[0],
-            "elapsed_s": time.perf_counter() - started,
-        }
+        entry = _step_entry(config, step, loss, mse, started)
         last = step == config.iterations
         if step % config.check_every == 0 or last:
             metrics = evaluate_frames(fitted, frames, frames.holdout_index, config.max_check_frames)
@@ -446,11 +389,18 @@ def replace_stats(fitted: FittedField, stats: ThetaStatistics) -> FittedField:
 
 
 __all__ = [
+    "DEFAULT_LR",
     "FIELD_PRESETS",
+    "PAPER_ITERATIONS",
+    "PAPER_MLP_DECAY_STEPS",
+    "SCATTERER_MODES",
+    "SHADOW_WARMUP_ITERS",
     "FieldTrainConfig",
+    "check_resumable",
     "evaluate_frames",
     "field_preset",
     "fit_field",
+    "learning_rate_at",
     "make_optimizer",
     "sample_patches",
     "theta_statistics",

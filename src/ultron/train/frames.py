@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
@@ -10,6 +10,7 @@ import torch.nn.functional as F
 
 from ultron.data.dataset import ProbeGeometry, SweepDataset
 from ultron.errors import argument_error
+from ultron.train.visibility import confidence_map
 
 
 def _resample_axis(images: torch.Tensor, new_size: int, dim: int) -> torch.Tensor:
@@ -83,6 +84,13 @@ class FrameSet:
     probe: ProbeGeometry
     train_index: torch.Tensor  # (N_train,) int64
     holdout_index: torch.Tensor  # (N_holdout,) int64
+    confidence: torch.Tensor | None = None  # (N, H, W) float32 confidence maps, when asked
+
+    def with_confidence(self) -> FrameSet:
+        """These frames with their ultrasound confidence maps (at the fitting resolution,
+        :func:`ultron.train.visibility.confidence_map` with its default settings)."""
+        maps = np.stack([confidence_map(image.numpy()) for image in self.images])
+        return replace(self, confidence=torch.from_numpy(maps.astype(np.float32)))
 
     @classmethod
     def from_dataset(

@@ -1,4 +1,5 @@
-"""Image losses and metrics: Gaussian-window SSIM, MSE, PSNR, and the Ultra-NeRF regulariser."""
+"""Image losses and metrics: Gaussian-window SSIM, MSE, PSNR, the Ultra-NeRF regulariser and
+the confidence-map prior on the transmission."""
 
 from __future__ import annotations
 
@@ -96,3 +97,26 @@ def weighted_scattering_tv(scattering: torch.Tensor, reflection: torch.Tensor) -
     d_depth = (scattering[..., 1:, :] - scattering[..., :-1, :]).abs()
     d_lateral = (scattering[..., :, 1:] - scattering[..., :, :-1]).abs()
     return (weight[..., 1:, :] * d_depth).mean() + (weight[..., :, 1:] * d_lateral).mean()
+
+
+def confidence_transmission_prior(
+    transmission: torch.Tensor, confidence: torch.Tensor, margin: float
+) -> torch.Tensor:
+    """One-sided prior that the rendered transmission T does not exceed the image's ultrasound
+    confidence C (Karamalis et al. 2012) by more than ``margin``:
+
+        P = mean[ max(0, T − C − m)² ]
+
+    on (…, H, W) maps of equal shape. C is the random-walk confidence of the B-mode frame itself:
+    low under a strong reflector and deep in the frame. The prior only pulls T *down* where the
+    image says little signal can arrive; it never pushes T up (confidence is not a transmission
+    scale: it also falls with depth in lit tissue, which the margin absorbs).
+    """
+    if transmission.shape != confidence.shape:
+        raise argument_error(
+            "confidence",
+            f"shape {tuple(confidence.shape)} differs from transmission {tuple(transmission.shape)}",
+        )
+    if not (math.isfinite(margin) and 0 <= margin < 1):
+        raise argument_error("margin", f"expected a value in [0, 1), got {margin}")
+    return torch.relu(transmission - confidence - margin).pow(2).mean()

@@ -1,0 +1,120 @@
+"""Atomic writes: the user's umask decides the mode, orphaned temporary files are cleaned up."""
+
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import os
+import stat
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from ultron import atomic
+
+
+@contextlib.contextmanager
+def umask(mask: int):
+    previous = os.umask(mask)
+    try:
+        yield
+    finally:
+        os.umask(previous)
+
+
+def mode(path: Path) -> int:
+    return stat.S_IMODE(path.stat().st_mode)
+
+
+def age(path: Path, seconds: float) -> Path:
+    """Create ``path`` if missing and set its modification time ``seconds`` in the past."""
+    if not path.exists():
+        path.write_bytes(b"partial")
+    then = time.time() - seconds
+    os.utime(path, (then, then))
+    return path
+
+
+@pytest.mark.parametrize(("mask", "expected"), [(0o022, 0o644), (0o002, 0o664), (0o077, 0o600)])
+def test_written_files_honour_the_umask(tmp_path: Path, mask: int, expected: int) -> None:
+    with umask(mask):
+        assert atomic.current_umask() == mask
+        atomic.write_text(tmp_path / "a.txt", "x")
+        atomic.save_npy(tmp_path / "b.npy", np.zeros(3))
+        atomic.write_json(tmp_path / "a.txt", {"again": True})  # a replaced file too
+    assert mode(tmp_path / "a.txt") == expected
+    assert mode(tmp_path / "b.npy") == expected
+
+
+def test_umask_fallback_without_proc(monkeypatch) -> None:
+    real_open = open
+
+    def no_proc(path, *args, **kwargs):
+        if str(path).startswith("/proc/"):
+            raise FileNotFoundError(path)
+        return real_open(path, *args, **kwargs)
+
+    monkeypatch.setattr("builtins.open", no_proc)
+    with umask(0o027):
+        assert atomic.current_umask() == 0o027
+        assert os.umask(0o027) == 0o027  # restored
+
+
+def test_stale_temporary_files_of_the_target_are_removed(tmp_path: Path) -> None:
+    target = tmp_path / "field.json"
+    stale = age(tmp_path / ".field.json.ab_d12x9.tmp", 3600)
+    young = tmp_path / ".field.json.zzzzzzzz.tmp"
+    young.write_bytes(b"another writer, just started")
+    locked = age(tmp_path / ".field.json.lockedxx.tmp", 3600)
+    kept = [
+        young,
+        locked,
+        tmp_path / ".other.json.abcdefgh.tmp",  # another target's
+        tmp_path / ".field.json.tmp",  # not atomic's pattern
+        tmp_path / ".field.json.abcdefgh.tmp.bak",
+        tmp_path / "field.json.abcdefgh.tmp",
+    ]
+    for path in kept[2:]:
+        age(path, 3600)
+    (tmp_path / ".field.json.dir45678.tmp").mkdir()  # only regular files are removed
+    age(tmp_path / ".field.json.dir45678.tmp", 3600)
+    with open(locked, "rb") as handle:
+        fcntl.flock(handle, fcntl.LOCK_EX)  # a live writer's file, however old
+        atomic.write_json(target, {"ok": 1})
+    assert target.is_file() and not stale.exists()
+    assert all(path.exists() for path in kept)
+    assert (tmp_path / ".field.json.dir45678.tmp").is_dir()
+
+
+def test_orphan_of_a_killed_writer_is_removed_on_the_next_write(tmp_path: Path) -> None:
+    target = tmp_path / "checkpoint.pt"
+    code = (
+        "import os, signal, sys\n"
+        "from ultron import atomic\n"
+        "with atomic.atomic_open(sys.argv[1]) as handle:\n"
+        "    handle.write(b'half a checkpoint')\n"
+        "    handle.flush()\n"
+        "    os.kill(os.getpid(), signal.SIGKILL)\n"
+    )
+    result = subprocess.run([sys.executable, "-c", code, str(target)], check=False)
+    assert result.returncode == -9
+    orphans = list(tmp_path.glob(".checkpoint.pt.*.tmp"))
+    assert len(orphans) == 1 and not target.exists()
+    atomic.write_bytes(target, b"new")  # too young to be called stale: kept
+    assert orphans[0].exists()
+    age(orphans[0], atomic.STALE_AFTER_S + 5)
+    atomic.write_bytes(target, b"newer")
+    assert not orphans[0].exists() and target.read_bytes() == b"newer"
+
+
+def test_failed_write_leaves_no_temporary_file(tmp_path: Path) -> None:
+    (tmp_path / "a.bin").write_bytes(b"old")
+    with pytest.raises(RuntimeError), atomic.atomic_open(tmp_path / "a.bin") as handle:
+        handle.write(b"new")
+        raise RuntimeError("interrupted")
+    assert (tmp_path / "a.bin").read_bytes() == b"old"
+    assert [p.name for p in tmp_path.iterdir()] == ["a.bin"]

@@ -1,0 +1,122 @@
+"""Every numeric CLI option refuses negative, NaN, infinite and out-of-range values at once: one
+line on stderr naming the option, exit code 2, no traceback, nothing written."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from typer.testing import CliRunner
+
+from ultron.cli.common import MAX_SEED, check_range
+from ultron.cli.main import app
+from ultron.errors import UltronInputError
+
+runner = CliRunner()
+
+SIZE = ["--width-mm", "80", "--depth-mm", "140"]
+#: command → (arguments before the options, with {data} / {out} placeholders)
+COMMANDS = {
+    "fit-field": ["fit-field", "{data}", "--out", "{out}"],
+    "render": ["render", "{data}", "--dataset", "{data}", "--sweep", "row", "--out", "{out}.npy"],
+    "reconstruct": ["reconstruct", "{data}", "--out", "{out}"],
+    "finetune": ["finetune", "{data}", "{data}", "--out", "{out}"],
+    "demo": ["demo", "--out", "{out}"],
+    "evaluate": ["evaluate", "{data}/a.ply", "{data}/b.ply", "--out", "{out}.json"],
+    "import-ultranerf": ["import-ultranerf", "{data}", "--out", "{out}", *SIZE],
+    "simulate": ["simulate", "--out", "{out}"],
+    "benchmark": ["benchmark", "--out", "{out}"],
+}
+
+SEED_VALUES = ["-1", str(MAX_SEED + 1)]
+CASES = [
+    *[("fit-field", "--seed", v) for v in SEED_VALUES],
+    ("fit-field", "--holdout-every", "-1"),
+    ("fit-field", "--holdout-every", "1"),
+    ("fit-field", "--iters", "0"),
+    ("fit-field", "--iters", "-5"),
+    ("fit-field", "--scattering-floor", "nan"),
+    ("fit-field", "--scattering-floor", "1"),
+    ("fit-field", "--scattering-floor", "-0.1"),
+    ("fit-field", "--scattering-warmup", "-1"),
+    ("fit-field", "--check-every", "0"),
+    ("fit-field", "--threads", "0"),
+    ("render", "--seed", "-1"),
+    *[("reconstruct", "--seed", v) for v in SEED_VALUES],
+    ("reconstruct", "--label-fraction", "nan"),
+    ("reconstruct", "--label-fraction", "inf"),
+    ("reconstruct", "--label-fraction", "0"),
+    ("reconstruct", "--label-fraction", "1.5"),
+    ("reconstruct", "--field-iters", "0"),
+    ("reconstruct", "--occupancy-iters", "-1"),
+    ("reconstruct", "--points", "0"),
+    ("finetune", "--iters", "-1"),
+    ("finetune", "--label-fraction", "nan"),
+    ("finetune", "--seed", "-2"),
+    ("finetune", "--points", "-1"),
+    ("finetune", "--field-iters", "-1"),
+    ("demo", "--seed", "-1"),
+    ("evaluate", "--points", "0"),
+    ("evaluate", "--repeats", "-1"),
+    ("evaluate", "--seed", "-1"),
+    ("import-ultranerf", "--width-mm", "nan"),
+    ("import-ultranerf", "--width-mm", "-80"),
+    ("import-ultranerf", "--depth-mm", "inf"),
+    ("import-ultranerf", "--depth-mm", "0"),
+    ("import-ultranerf", "--orthonormalize-tol", "nan"),
+    ("import-ultranerf", "--orthonormalize-tol", "inf"),
+    ("import-ultranerf", "--orthonormalize-tol", "-0.1"),
+    ("import-ultranerf", "--orthonormalize-tol", "1"),
+    ("simulate", "--seed", "-1"),
+    ("simulate", "--frames", "0"),
+    ("simulate", "--step-mm", "nan"),
+    ("simulate", "--step-mm", "-1"),
+    ("simulate", "--probe-width-mm", "inf"),
+    ("simulate", "--depth-mm", "0"),
+    ("simulate", "--height-px", "0"),
+    ("simulate", "--width-px", "-1"),
+    ("simulate", "--pose-noise-mm", "nan"),
+    ("simulate", "--pose-noise-deg", "inf"),
+    ("simulate", "--label-noise-mm", "-1"),
+    ("simulate", "--label-missing", "nan"),
+    ("simulate", "--label-errors", "1.5"),
+    ("simulate", "--voxel-mm", "nan"),
+    ("simulate", "--voxel-mm", "3"),
+    ("benchmark", "--seeds", "0"),
+    ("benchmark", "--jobs", "0"),
+    ("benchmark", "--threads", "-1"),
+]
+
+
+def _snapshot(root: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(root)): p.read_bytes() for p in root.rglob("*") if p.is_file()}
+
+
+@pytest.mark.parametrize(("command", "option", "value"), CASES)
+def test_bad_numeric_option_is_refused(
+    tmp_path: Path, tiny_dataset_dir: Path, command: str, option: str, value: str
+) -> None:
+    out = tmp_path / "out"
+    args = [a.format(data=tiny_dataset_dir, out=out) for a in COMMANDS[command]]
+    before = _snapshot(tmp_path)
+    result = runner.invoke(app, [*args, option, value])
+    assert result.exit_code == 2, result.output
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1, lines
+    assert lines[0].startswith(f"error: argument: {option}: expected "), lines[0]
+    assert "Traceback" not in result.output and isinstance(result.exception, SystemExit)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["tiny"]  # no output created
+    assert _snapshot(tmp_path) == before  # nothing written
+
+
+def test_check_range_messages() -> None:
+    with pytest.raises(UltronInputError, match=r"^argument: --x: expected an integer ≥ 1, got 0$"):
+        check_range("--x", 0, 1)
+    with pytest.raises(UltronInputError, match=r"expected a finite number in \(0, 1\], got nan"):
+        check_range("--f", float("nan"), 0.0, 1.0, low_open=True)
+    with pytest.raises(UltronInputError, match=r"expected a finite number ≥ 0, got inf"):
+        check_range("--f", float("inf"), 0.0)
+    for ok in (None, 1.0, 0.5):  # None: the option was not given
+        check_range("--f", ok, 0.0, 1.0, low_open=True)
+    with pytest.raises(UltronInputError, match=r"in \[0, 4294967295\], got -1$"):
+        check_range("--seed", -1, 0, MAX_SEED)
