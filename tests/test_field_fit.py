@@ -25,7 +25,7 @@ from ultron.fields import (
     load_field,
 )
 from ultron.render import RenderConfig, pixel_points_mm, render_properties
-from ultron.train import FieldTrainConfig, fit_field, resample_frames
+from ultron.train import FieldTrainConfig, field_preset, fit_field, resample_frames
 
 
 @pytest.fixture(autouse=True)
@@ -324,6 +324,10 @@ def test_cli_fit_render_and_errors(tmp_path: Path) -> None:
 
 def test_confidence_prior_defaults_and_old_field_configs() -> None:
     assert FieldTrainConfig().confidence_prior_weight == 1.0
+    assert field_preset("default").confidence_prior_weight == 1.0
+    # the paper's configuration and the identifiable-heads preset fit without it
+    assert field_preset("paper").confidence_prior_weight == 0.0
+    assert field_preset("shadow").confidence_prior_weight == 0.0
     old = FieldTrainConfig().to_dict()
     del old["confidence_prior_weight"]  # a field.json written before the prior existed
     assert FieldTrainConfig.from_dict(old).confidence_prior_weight == 0.0
