@@ -49,8 +49,7 @@ def make_sweep(
     return Sweep(name=name, kind=kind, images=images, probe_to_world=poses, labels=label_array)
 
 
-@pytest.fixture
-def tiny_dataset() -> SweepDataset:
+def build_tiny_dataset() -> SweepDataset:
     """Two sweeps of 8 × 6 frames from a 12 mm × 16 mm probe."""
     probe = ProbeGeometry(width_mm=12.0, depth_mm=16.0, height_px=8, width_px=6)
     return SweepDataset(
@@ -58,6 +57,12 @@ def tiny_dataset() -> SweepDataset:
         sweeps=[make_sweep("row", "row", seed=1), make_sweep("column", "column", n=4, seed=2)],
         metadata={"origin": "test"},
     )
+
+
+@pytest.fixture
+def tiny_dataset() -> SweepDataset:
+    """Two sweeps of 8 × 6 frames from a 12 mm × 16 mm probe (:func:`build_tiny_dataset`)."""
+    return build_tiny_dataset()
 
 
 @pytest.fixture

@@ -57,6 +57,22 @@ def _not_a_mesh(root: Path) -> None:
     _edit_json(root, lambda m: m.update(reference_visible="reference_visible.ply"))
 
 
+def _symlink(path: Path, target: str) -> None:
+    """Make ``path`` a symlink to ``target`` (relative to its folder), replacing the file."""
+    path.unlink(missing_ok=True)
+    path.symlink_to(target)
+
+
+def _symlink_case(relative: str, target: str, problem: str) -> tuple[Callable, str, str]:
+    """A case making dataset file ``relative`` a symlink to ``target``."""
+    return (lambda r: _symlink(r / relative, target), relative.split("/")[-1], problem)
+
+
+def _dangling_reference(root: Path) -> None:
+    _symlink(root / "reference.ply", "gone.ply")
+    _edit_json(root, lambda m: m.update(reference="reference.ply"))
+
+
 # case name → (mutation, file expected in the message, field expected in the message)
 CASES: dict[str, tuple[Callable[[Path], None], str, str]] = {
     "missing_dataset_json": (
@@ -173,6 +189,15 @@ CASES: dict[str, tuple[Callable[[Path], None], str, str]] = {
         "reference_visible.ply",
         "not a readable PLY",
     ),
+    # symlinks are followed; a dangling one or a loop is an error, never "no such file"
+    "labels_dangling_symlink": _symlink_case("row/labels.npy", "gone.npy", "dangling symlink"),
+    "labels_symlink_loop": _symlink_case("row/labels.npy", "labels.npy", "symlink loop"),
+    "transmission_dangling_symlink": _symlink_case(
+        "row/transmission.npy", "gone.npy", "dangling symlink"
+    ),
+    "images_symlink_loop": _symlink_case("row/images.npy", "images.npy", "symlink loop"),
+    "dataset_json_dangling_symlink": _symlink_case("dataset.json", "gone.json", "dangling symlink"),
+    "reference_dangling_symlink": (_dangling_reference, "reference.ply", "dangling symlink"),
     "transmission_wrong_dtype": (
         lambda r: np.save(r / "row" / "transmission.npy", np.ones((3, 8, 6), np.float32)),
         "transmission.npy",

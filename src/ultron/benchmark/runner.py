@@ -110,11 +110,21 @@ def fit(job: FieldJob) -> bool:
     return False
 
 
+def _cell_done(out: str | Path) -> bool:
+    """Whether a cell's run.json exists; if not, an earlier failure's ``error.log`` (the only
+    file a failed cell leaves: a run replaces its directory as a whole, see
+    :mod:`ultron.methods.rundir`) is removed so that the run may take the directory."""
+    if (Path(out) / "run.json").is_file():
+        return True
+    (Path(out) / "error.log").unlink(missing_ok=True)
+    return False
+
+
 def reconstruct_cell(job: ReconstructJob) -> bool:
     """One ``reconstruct`` cell unless its run.json exists; True when skipped."""
     from ultron.methods.run import reconstruct
 
-    if (Path(job.out) / "run.json").is_file():
+    if _cell_done(job.out):
         return True
     reconstruct(job.dataset_dir, job.request, job.out, field_dir=job.field_dir)
     return False
@@ -122,7 +132,7 @@ def reconstruct_cell(job: ReconstructJob) -> bool:
 
 def finetune_cell(job: FinetuneJob) -> bool:
     """One Table 2 fine-tuning cell unless its run.json exists; True when skipped."""
-    if (Path(job.out) / "run.json").is_file():
+    if _cell_done(job.out):
         return True
     from ultron.methods.finetune import FinetuneConfig, finetune
 

@@ -47,11 +47,13 @@ def import_ultranerf(
         add_sweep_to_dataset,
         read_ultranerf,
     )
+    from ultron.outputs import check_output_dir
 
     check_range("--width-mm", width_mm, 0.0, low_open=True)
     check_range("--depth-mm", depth_mm, 0.0, low_open=True)
     tolerance_max = MAX_ORTHONORMALIZE_TOLERANCE
     check_range("--orthonormalize-tol", orthonormalize_tol, 0.0, tolerance_max, high_open=True)
+    check_output_dir(out)
 
     name = sweep_name or _safe_name(src)
     sweep, probe, report = read_ultranerf(src, width_mm, depth_mm, name, kind, orthonormalize_tol)
@@ -115,6 +117,25 @@ def info(
     ]
     for line in lines:
         console.print(line, highlight=False)
+    _warn_outliers(data)
+
+
+def _warn_outliers(data) -> None:
+    """Print a warning per outlier pose (:mod:`ultron.data.outliers`; at most 10, then a count):
+    reconstruct, finetune and fit-field refuse such a dataset."""
+    from ultron.data.outliers import pose_outliers
+
+    outliers = pose_outliers(data)
+    for outlier in outliers[:10]:
+        console.print(f"warning: outlier pose: {outlier.describe()}", highlight=False)
+    if len(outliers) > 10:
+        console.print(f"warning: {len(outliers) - 10} more outlier poses", highlight=False)
+    if outliers:
+        console.print(
+            "warning: reconstruct, finetune and fit-field refuse a dataset with outlier poses"
+            " (every grid is sized on the scanned volume)",
+            highlight=False,
+        )
 
 
 def register(app: typer.Typer) -> None:

@@ -39,8 +39,10 @@ def evaluate(
     from ultron import atomic
     from ultron.mesh.export import load_mesh
     from ultron.metrics.surface import MetricsConfig, evaluate_meshes
+    from ultron.outputs import check_output_file
     from ultron.report.tables import metrics_column_table
 
+    target = check_output_file(out or mesh.with_name(mesh.stem + ".metrics.json"), "--out")
     config = MetricsConfig(n_points=points, repeats=repeats, seed=seed)
     recon = load_mesh(mesh, allow_empty=True)
     ref = load_mesh(reference)
@@ -49,7 +51,6 @@ def evaluate(
     result["mesh"], result["reference"] = str(mesh), str(reference)
     result["reference_visible"] = None if reference_visible is None else str(reference_visible)
     console.print(metrics_column_table(result, title=f"{mesh.name} vs {reference.name} (mm)"))
-    target = out or mesh.with_name(mesh.stem + ".metrics.json")
     atomic.write_json(target, result)
     console.print(f"wrote {target}")
 

@@ -10,6 +10,7 @@ import typer
 
 from ultron.cli.common import check_count, check_range, check_seed, console, user_errors
 from ultron.errors import argument_error
+from ultron.outputs import check_output_dir, check_output_file
 
 
 def _parse_shape(text: str | None) -> tuple[int, int] | None:
@@ -116,11 +117,13 @@ def fit_field_command(
         )
     check_count("--check-every", check_every)
     check_count("--threads", threads)
+    check_output_dir(out)
 
     import torch
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
     from ultron.data.dataset import SweepDataset
+    from ultron.methods.resources import check_run_resources
     from ultron.train import field_preset, fit_field
     from ultron.train.field_fit import check_resumable
 
@@ -147,6 +150,7 @@ def fit_field_command(
     )
     if not no_resume:  # a checkpoint of another dataset or configuration: error before the bar
         check_resumable(out, config, data.content_hash())
+    check_run_resources(data, dataset, mesh=False, field_config=config)
     columns = (
         TextColumn("[bold]fit-field"),
         BarColumn(),
@@ -228,6 +232,9 @@ def render_command(
         raise argument_error("--poses/--dataset", "give exactly one of --poses or --dataset")
     if out.suffix != ".npy":
         raise argument_error("--out", f"expected a .npy file name, got {out}")
+    extras = (".theta.npy", ".transmission.npy", ".maps.json") if maps else ()
+    for target in (out, *(out.with_suffix(suffix) for suffix in extras)):
+        check_output_file(target, "--out")
     fitted = load_field(field_dir)
     if poses is not None:
         if sweep is not None:

@@ -65,6 +65,7 @@ def simulate(
     ] = False,
 ) -> None:
     """Simulate a tracked multi-sweep B-mode dataset of a vertebra phantom, with labels."""
+    from ultron.outputs import check_output_dir
     from ultron.phantom.dataset import MAX_VOXEL_MM
 
     check_seed("--seed", seed)
@@ -86,6 +87,7 @@ def simulate(
     check_range("--label-missing", label_missing, 0.0, 1.0)
     check_range("--label-errors", label_errors, 0.0, 1.0)
     check_range("--voxel-mm", voxel_mm, 0.0, MAX_VOXEL_MM, low_open=True)
+    check_output_dir(out)
 
     import time
 

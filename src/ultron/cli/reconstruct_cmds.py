@@ -9,13 +9,29 @@ import typer
 
 from ultron.cli.common import check_count, check_range, check_seed, console, user_errors
 
+MaxMemory = Annotated[
+    float | None,
+    typer.Option(
+        "--max-memory",
+        help="GiB the run's grids may take (estimated before any work) [default: the machine's"
+        " memory].",
+    ),
+]
 
-def _check_common(label_fraction: float, seed: int, field_iters: int | None, points: int) -> None:
+
+def _check_common(
+    label_fraction: float,
+    seed: int,
+    field_iters: int | None,
+    points: int,
+    max_memory: float | None = None,
+) -> None:
     """The numeric options reconstruct and finetune share."""
     check_range("--label-fraction", label_fraction, 0.0, 1.0, low_open=True)
     check_seed("--seed", seed)
     check_count("--field-iters", field_iters)
     check_count("--points", points)
+    check_range("--max-memory", max_memory, 0.0, low_open=True)
 
 
 def _field_progress():
@@ -188,9 +204,13 @@ def reconstruct(
             " differs); run.json records field_dataset_match false.",
         ),
     ] = False,
+    max_memory: MaxMemory = None,
 ) -> None:
-    """Reconstruct a bone surface: mesh.ply/.stl/.obj, occupancy.nii.gz, metrics.json, run.json."""
-    _check_common(label_fraction, seed, field_iters, points)
+    """Reconstruct a bone surface: mesh.ply/.stl/.obj, occupancy.nii.gz, metrics.json, run.json.
+
+    --out must be new, empty or an earlier reconstruct run, which the new run replaces as a
+    whole."""
+    _check_common(label_fraction, seed, field_iters, points, max_memory)
     check_count("--occupancy-iters", occupancy_iters, 0)
 
     from ultron.methods.run import reconstruct as run
@@ -209,6 +229,7 @@ def reconstruct(
             _field_config(field_iters, seed),
             progress=update,
             allow_other_field=allow_other_field,
+            max_memory_gib=max_memory,
         )
     _print_summary({method: summary})
     console.print(f"outputs in {out}")
@@ -236,11 +257,20 @@ def demo(
         int, typer.Option("--seed", help="Seed of simulation, labels and training.")
     ] = 0,
 ) -> None:
-    """Simulate L3, fit the acoustic field, run UltrON and UltrON w/o loss at 10%, compare."""
+    """Simulate L3, fit the acoustic field, run UltrON and UltrON w/o loss at 10%, compare.
+
+    --out/ultron and --out/ultron-noloss must be new, empty or earlier reconstruct runs."""
     check_seed("--seed", seed)
 
     from ultron.data.dataset import SweepDataset
     from ultron.methods.run import reconstruct as run
+    from ultron.methods.rundir import check_run_dir
+    from ultron.outputs import check_output_dir
+
+    labels = {"ultron": "UltrON (10%)", "ultron-noloss": "UltrON w/o loss (10%)"}
+    check_output_dir(out)
+    for method in labels:
+        check_run_dir(out / method, "reconstruct")
     from ultron.phantom import SimulationConfig, simulate_dataset
     from ultron.train.field_fit import fit_field
 
@@ -258,7 +288,6 @@ def demo(
         fit_field(dataset, _field_config(None, seed), field_dir, progress=update, resume=True)
     console.print(f"acoustic field → {field_dir}")
     summaries = {}
-    labels = {"ultron": "UltrON (10%)", "ultron-noloss": "UltrON w/o loss (10%)"}
     for method, label in labels.items():
         with console.status(f"{label}: occupancy, mesh, metrics"):
             summaries[label] = run(
@@ -311,10 +340,14 @@ def finetune(
             " dataset_sha256 differs); run.json records field_dataset_match false.",
         ),
     ] = False,
+    max_memory: MaxMemory = None,
 ) -> None:
     """Adapt a trained UltrON network to a new shape: freeze its last two layers, train the rest
-    on a few labelled frames through the new dataset's own acoustic field, mesh, evaluate."""
-    _check_common(label_fraction, seed, field_iters, points)
+    on a few labelled frames through the new dataset's own acoustic field, mesh, evaluate.
+
+    --out must be new, empty or an earlier finetune run, which the new run replaces as a
+    whole."""
+    _check_common(label_fraction, seed, field_iters, points, max_memory)
     check_count("--iters", iters, 0)
 
     from ultron.methods.finetune import FinetuneConfig
@@ -340,6 +373,7 @@ def finetune(
             _field_config(field_iters, seed),
             update,
             allow_other_field=allow_other_field,
+            max_memory_gib=max_memory,
         )
     name = f"fine-tuned ({label_fraction:g}, {iters} iter)" if iters else "w/o fine-tuning"
     _print_summary({name: summary})

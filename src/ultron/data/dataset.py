@@ -42,6 +42,7 @@ import numpy as np
 from ultron import atomic
 from ultron.data.validation import (
     LABEL_UNANNOTATED,
+    input_file,
     load_npy,
     validate_images,
     validate_labels,
@@ -242,8 +243,9 @@ class SweepDataset:
         """Read and validate a dataset directory. Raises :class:`UltronInputError` on bad input."""
         root = Path(path)
         meta_path = root / "dataset.json"
-        if not meta_path.is_file():
+        if not os.path.lexists(meta_path):
             raise UltronInputError(meta_path, "dataset.json", "file is missing (not a dataset)")
+        input_file(meta_path, "dataset.json")
         meta = _read_json(meta_path)
         fmt = meta.get("format")
         if fmt != FORMAT:
@@ -274,8 +276,8 @@ class SweepDataset:
         probe = ProbeGeometry(width_mm, depth_mm, int(shape[0]), int(shape[1]))
 
         reference_path = _reference_path(root, meta_path, meta, "reference")
-        if reference_path is not None and not reference_path.is_file():
-            raise UltronInputError(reference_path, "reference", "reference mesh file is missing")
+        if reference_path is not None:
+            validate_mesh_file(reference_path, "reference")
         visible_path = _reference_path(root, meta_path, meta, "reference_visible")
         if visible_path is not None:
             validate_mesh_file(visible_path, "reference_visible")
@@ -445,7 +447,7 @@ def _load_sweep(root: Path, meta_path: Path, index: int, entry: Any) -> Sweep:
 
     labels = None
     labels_path = folder / "labels.npy"
-    if labels_path.exists():
+    if input_file(labels_path, "labels", required=False):
         labels = load_npy(labels_path, "labels")
         validate_labels(labels, labels_path)
         _check_count(labels, images.shape[0], labels_path, "labels")
@@ -462,7 +464,7 @@ def _load_sweep(root: Path, meta_path: Path, index: int, entry: Any) -> Sweep:
         _check_count(true_poses, images.shape[0], true_path, "true_poses")
     transmission = None
     transmission_path = folder / TRANSMISSION_FILE
-    if transmission_path.exists():
+    if input_file(transmission_path, "transmission", required=False):
         transmission = load_npy(transmission_path, "transmission")
         validate_transmission(transmission, transmission_path, "transmission", images.shape)
     return Sweep(

@@ -16,7 +16,6 @@ SVD), the translation kept; larger deviations are refused as non-rigid.
 
 from __future__ import annotations
 
-import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -25,12 +24,14 @@ import numpy as np
 from ultron.data.dataset import ProbeGeometry, Sweep, SweepDataset
 from ultron.data.validation import (
     ROTATION_TOLERANCE,
+    input_file,
     load_npy,
     pose_errors,
     validate_images,
     validate_positive,
 )
 from ultron.errors import UltronInputError, argument_error
+from ultron.outputs import check_output_dir
 
 #: Largest rotation-block deviation the importer repairs (above it a pose is refused).
 DEFAULT_ORTHONORMALIZE_TOLERANCE = 0.05
@@ -98,25 +99,50 @@ def orthonormalize_poses(
     return repaired, ortho
 
 
-def _natural_key(path: Path) -> tuple[int, str]:
-    match = re.fullmatch(r"(\d+)", path.stem)
-    return (int(match.group(1)) if match else -1, path.stem)
+def numbered_frames(folder: Path) -> list[Path]:
+    """The frames ``0.png, 1.png, …, (N−1).png`` of ``folder`` in numeric order.
 
-
-def read_png_frames(folder: Path) -> np.ndarray:
-    """Read ``0.png, 1.png, …`` (numeric order) as uint8 (N, H, W) grey frames."""
-    from PIL import Image
-
-    files = sorted(folder.glob("*.png"), key=_natural_key)
+    Frame i is paired with pose i, so the numbering must be exactly 0 … N − 1: a gap (say
+    ``3.png`` renamed ``30.png``) would pair every later frame with the wrong pose, and two
+    names of one number (``3.png``, ``03.png``) are ambiguous; both are errors naming the first
+    missing index or the clashing files.
+    """
+    files = list(folder.glob("*.png"))
     if not files:
         raise UltronInputError(folder, "images", "no .png frames found")
-    non_numeric = [f.name for f in files if not f.stem.isdigit()]
+    non_numeric = sorted(f.name for f in files if not (f.stem.isascii() and f.stem.isdigit()))
     if non_numeric:
         raise UltronInputError(
             folder, "images", f"frame names must be 0.png, 1.png, …; found {non_numeric[:3]}"
         )
+    by_index: dict[int, Path] = {}
+    for file in sorted(files):
+        index = int(file.stem)
+        if index in by_index:
+            raise UltronInputError(
+                folder,
+                "images",
+                f"{by_index[index].name} and {file.name} both number frame {index}",
+            )
+        by_index[index] = file
+    missing = next((i for i in range(len(files)) if i not in by_index), None)
+    if missing is not None:
+        raise UltronInputError(
+            folder / f"{missing}.png", "images", f"frame {missing} is missing: {len(files)} frames"
+            f" must be numbered 0 … {len(files) - 1} (found up to {max(by_index)}.png), or"
+            " frames and poses would be paired wrongly",
+        )  # fmt: skip
+    return [by_index[i] for i in range(len(files))]
+
+
+def read_png_frames(folder: Path) -> np.ndarray:
+    """Read ``0.png, 1.png, …`` (:func:`numbered_frames`) as uint8 (N, H, W) grey frames."""
+    from PIL import Image
+
+    files = numbered_frames(folder)
     frames = []
     for file in files:
+        input_file(file, "image")
         try:
             with Image.open(file) as img:
                 array = np.asarray(img)
@@ -156,7 +182,7 @@ def read_ultranerf(
     validate_positive(depth_mm, "argument", "depth_mm")
     if not src.is_dir():
         raise UltronInputError(src, "SRC", "not a directory")
-    if (src / "images.npy").is_file():
+    if input_file(src / "images.npy", "images", required=False):
         images_path = src / "images.npy"
         images = load_npy(images_path, "images")
     elif (src / "images").is_dir():
@@ -207,7 +233,7 @@ def add_sweep_to_dataset(
     An existing dataset must have the same probe geometry; a sweep of the same name is an error
     unless ``replace`` is true, in which case it is replaced in place.
     """
-    out = Path(out)
+    out = check_output_dir(out, "out")
     if (out / "dataset.json").exists():
         dataset = SweepDataset.load(out)
         same = (

@@ -6,6 +6,8 @@ field and what was expected, so a user can fix the input without reading a trace
 
 from __future__ import annotations
 
+import errno
+import os
 from pathlib import Path
 
 import numpy as np
@@ -23,10 +25,30 @@ LABEL_UNANNOTATED = 255
 VALID_LABEL_VALUES = (LABEL_BACKGROUND, LABEL_TARGET, LABEL_UNANNOTATED)
 
 
+def input_file(path: Path, field: str, required: bool = True) -> Path | None:
+    """``path`` as an input file, symlinks followed: a regular file, or — when not
+    ``required`` — absent (None). A dangling symlink or a symlink loop is always an error naming
+    the file (never "absent"), as are a missing required file and a non-file."""
+    try:
+        os.stat(path)  # follows symlinks
+    except FileNotFoundError:
+        if os.path.islink(path):
+            target = os.readlink(path)
+            raise UltronInputError(path, field, f"dangling symlink (to {target!r})") from None
+        if required:
+            raise UltronInputError(path, field, "file is missing") from None
+        return None
+    except OSError as exc:
+        problem = "symlink loop" if exc.errno == errno.ELOOP else f"cannot be read ({exc.strerror})"
+        raise UltronInputError(path, field, problem) from None
+    if not os.path.isfile(path):
+        raise UltronInputError(path, field, "not a regular file")
+    return path
+
+
 def load_npy(path: Path, field: str) -> np.ndarray:
     """Load a ``.npy`` file without pickles, turning every failure into a clear error."""
-    if not path.is_file():
-        raise UltronInputError(path, field, "file is missing")
+    input_file(path, field)
     try:
         return np.load(path, allow_pickle=False)
     except (ValueError, EOFError, OSError) as exc:
@@ -155,8 +177,7 @@ def validate_transmission(
 def validate_mesh_file(path: Path, field: str) -> None:
     """A mesh file that exists, can be opened and is not empty (a PLY must start with ``ply``);
     its triangles are read only where it is used."""
-    if not path.is_file():
-        raise UltronInputError(path, field, "mesh file is missing")
+    input_file(path, field)
     try:
         with path.open("rb") as handle:
             head = handle.read(3)

@@ -210,19 +210,27 @@ def finetune(
     progress: Callable[[dict[str, Any]], None] | None = None,
     report: bool = True,
     allow_other_field: bool = False,
+    max_memory_gib: float | None = None,
 ) -> dict[str, Any]:
-    """Load MODEL_DIR's network and the new dataset's field, fine-tune, write DIR as
-    ``reconstruct`` does; returns the same summary (``out``, ``metrics``, ``timings_s``).
+    """Check everything cheap as ``reconstruct`` does (:func:`ultron.methods.run.prepare_run`;
+    DIR must be new, empty or an earlier ``finetune`` run), load MODEL_DIR's network and the
+    new dataset's field, fine-tune, write DIR as ``reconstruct`` does; returns the same summary
+    (``out``, ``metrics``, ``timings_s``).
 
     A given ``field_dir`` must have been fitted on the new dataset unless
     ``allow_other_field`` (see :func:`ultron.methods.run.load_or_fit_field`)."""
-    from ultron.methods.run import load_or_fit_field, write_outputs
+    from ultron.methods.run import load_or_fit_field, prepare_run, write_outputs
+    from ultron.train.field_fit import FieldTrainConfig
 
     timer = StageTimer()
     where = str(Path(model_dir) / NETWORK_FILE)
+    to_fit = (field_config or FieldTrainConfig()) if field_dir is None else None
     with timer.stage("load"):
+        dataset, references = prepare_run(
+            out_dir, "finetune", dataset_dir, (model_dir, field_dir), config.meshing.voxel_mm,
+            True, to_fit, max_memory_gib,
+        )  # fmt: skip
         network, meta = load_network(model_dir)
-        dataset = SweepDataset.load(dataset_dir)
         # the source the model was trained with (``field`` if not recorded)
         visibility = config.visibility or VisibilityConfig.from_dict(meta, where)
         truth = load_oracle_truth(visibility, dataset_dir, dataset) if config.iters > 0 else None
@@ -235,6 +243,7 @@ def finetune(
         dataset, fitted, network, spec, config, timer, visibility=visibility, truth=truth
     )
     identity = {
+        "command": "finetune",
         "method": "ultron-finetune",
         "label_fraction": config.label_fraction if config.iters > 0 else 0.0,
         "seed": config.seed,
@@ -242,4 +251,6 @@ def finetune(
         "model_dir": str(Path(model_dir).resolve()),
         "model_method": meta.get("method"),
     }
-    return write_outputs(out_dir, dataset, identity, result, timer, config.metrics, extra, report)
+    return write_outputs(
+        out_dir, dataset, identity, result, timer, config.metrics, extra, report, references
+    )

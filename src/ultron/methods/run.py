@@ -1,9 +1,14 @@
 """``reconstruct``: one dataset, one method, one label fraction → DIR with mesh, volume, metrics.
 
-Outputs (every file atomic): ``mesh.ply``, ``mesh.stl``, ``mesh.obj``, ``occupancy.nii.gz``
-(aligned with the mesh in 3D Slicer, see :mod:`ultron.mesh.export`), ``metrics.json`` when the
-dataset has a reference surface, and ``run.json`` (configuration, label selection, versions,
-timings per stage, peak memory). The reference is read only after the mesh exists, for metrics.
+Outputs: ``mesh.ply``, ``mesh.stl``, ``mesh.obj``, ``occupancy.nii.gz`` (aligned with the mesh
+in 3D Slicer, see :mod:`ultron.mesh.export`), ``metrics.json`` when the dataset has a reference
+surface, and ``run.json`` (the command, configuration, label selection, versions, timings per
+stage, peak memory), written into a staging directory that replaces DIR as a whole at the end
+(:mod:`ultron.methods.rundir`); ``report.html`` follows in DIR.
+
+Everything cheap is checked before any work: DIR (:func:`~ultron.methods.rundir.check_run_dir`),
+the dataset, the reference meshes (read then, used only for metrics after the mesh exists), the
+oracle's files, outlier poses and the grids' memory (:mod:`ultron.methods.resources`).
 """
 
 from __future__ import annotations
@@ -21,6 +26,8 @@ from ultron.mesh.export import load_mesh, save_mesh, save_volume_nifti
 from ultron.mesh.extract import extract_surface
 from ultron.methods.model_io import save_network
 from ultron.methods.on_method import ONConfig, reconstruct_on
+from ultron.methods.resources import check_run_resources
+from ultron.methods.rundir import check_run_dir, staged_run_dir
 from ultron.methods.runinfo import StageTimer, write_run_json
 from ultron.methods.ultron_method import Reconstruction, UltronConfig, reconstruct_ultron
 from ultron.metrics.surface import MetricsConfig, evaluate_meshes
@@ -118,6 +125,20 @@ def run_method(
     return Reconstruction(mesh=mesh, volume=compounded.volume, grid=compounded.grid, info=info)
 
 
+#: The reference mesh and its visible part (each None when the dataset has none).
+References = tuple[Any, Any]
+
+
+def load_references(dataset: SweepDataset) -> References:
+    """The dataset's reference and visible-reference meshes, read in full so that an unreadable
+    one is a one-line error naming the file before any work (they are used only for metrics)."""
+    visible = dataset.reference_visible_path
+    return (
+        None if dataset.reference is None else load_mesh(dataset.reference),
+        None if visible is None else load_mesh(visible),
+    )
+
+
 def write_outputs(
     out_dir: str | Path,
     dataset: SweepDataset,
@@ -127,52 +148,85 @@ def write_outputs(
     metrics_config: MetricsConfig,
     extra: dict[str, Any] | None = None,
     report: bool = True,
+    references: References | None = None,
 ) -> dict[str, Any]:
     """Write the mesh, volume, the trained network (``network.pt`` when the method has one, see
-    :mod:`ultron.methods.model_io`), metrics (with a reference) and, last, run.json; return the
-    summary. run.json therefore marks a finished run (the report aside).
+    :mod:`ultron.methods.model_io`), metrics (with a reference) and, last, run.json into a
+    staging directory that then replaces ``out_dir`` as a whole
+    (:func:`~ultron.methods.rundir.staged_run_dir`; ``out_dir`` must be new, empty or a run of
+    ``identity["command"]``); return the summary. run.json therefore marks a finished run.
 
-    ``identity`` (method, label_fraction, seed, …) heads run.json and tags metrics.json.
-    With ``report``, ``report.html`` follows run.json (:mod:`ultron.report.run_report`); its
-    time is in the returned timings, not in run.json.
+    ``identity`` (command, method, label_fraction, seed, …) heads run.json and tags
+    metrics.json; ``references`` are :func:`load_references`'s meshes (read here if None).
+    With ``report``, ``report.html`` follows in ``out_dir`` (:mod:`ultron.report.run_report`);
+    its time is in the returned timings, not in run.json.
     """
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    with timer.stage("write"):
-        for suffix in (".ply", ".stl", ".obj"):
-            save_mesh(result.mesh, out / f"mesh{suffix}")
-        save_volume_nifti(result.volume, result.grid, out / "occupancy.nii.gz")
-        if "network" in result.info:
-            meta = {"method": identity["method"], **result.info.get("model", {})}
-            save_network(out, result.info["network"], meta)
-    metrics = None
-    if dataset.reference is not None:
-        with timer.stage("metrics"):
-            visible = dataset.reference_visible_path
-            metrics = evaluate_meshes(
-                result.mesh,
-                load_mesh(dataset.reference),
-                metrics_config,
-                reference_visible=None if visible is None else load_mesh(visible),
-            )
-        metrics["method"] = identity["method"]
-        metrics["label_fraction"] = identity.get("label_fraction")
-        atomic.write_json(out / "metrics.json", metrics)
-    info = {k: v for k, v in result.info.items() if k not in ("network", "model")}
-    payload = {
-        **identity,
-        "mesh": {"vertices": len(result.mesh.vertices), "faces": len(result.mesh.faces),
-                 "area_mm2": float(result.mesh.area)},
-        **info,
-        **(extra or {}),
-    }  # fmt: skip
-    write_run_json(out, payload, timer)
+    identity = {"command": "reconstruct", **identity}
+    reference, visible = load_references(dataset) if references is None else references
+    with staged_run_dir(out, identity["command"]) as staging:
+        with timer.stage("write"):
+            for suffix in (".ply", ".stl", ".obj"):
+                save_mesh(result.mesh, staging / f"mesh{suffix}")
+            save_volume_nifti(result.volume, result.grid, staging / "occupancy.nii.gz")
+            if "network" in result.info:
+                meta = {"method": identity["method"], **result.info.get("model", {})}
+                save_network(staging, result.info["network"], meta)
+        metrics = None
+        if reference is not None:
+            with timer.stage("metrics"):
+                metrics = evaluate_meshes(
+                    result.mesh, reference, metrics_config, reference_visible=visible
+                )
+            metrics["method"] = identity["method"]
+            metrics["label_fraction"] = identity.get("label_fraction")
+            atomic.write_json(staging / "metrics.json", metrics)
+        info = {k: v for k, v in result.info.items() if k not in ("network", "model")}
+        payload = {
+            **identity,
+            "mesh": {"vertices": len(result.mesh.vertices), "faces": len(result.mesh.faces),
+                     "area_mm2": float(result.mesh.area)},
+            **info,
+            **(extra or {}),
+        }  # fmt: skip
+        write_run_json(staging, payload, timer)
     if report:
         from ultron.report.run_report import write_run_report
 
         with timer.stage("report"):
             write_run_report(out, dataset=dataset)
     return {"out": str(out), "metrics": metrics, "timings_s": dict(timer.seconds)}
+
+
+def prepare_run(
+    out_dir: str | Path,
+    kind: str,
+    dataset_dir: str | Path,
+    inputs: tuple[str | Path | None, ...] = (),
+    voxel_mm: float | None = None,
+    mesh: bool = True,
+    field_config: Any = None,
+    max_memory_gib: float | None = None,
+) -> tuple[SweepDataset, References]:
+    """The checks every run makes before any work, cheapest first: ``out_dir`` may hold this
+    ``kind`` of run (:func:`~ultron.methods.rundir.check_run_dir`; ``inputs`` may not lie in
+    it), the dataset loads, its reference meshes are readable, no pose is an outlier and the
+    grids fit the memory (:func:`~ultron.methods.resources.check_run_resources`). Returns the
+    dataset and its references."""
+    check_run_dir(out_dir, kind, (dataset_dir, *inputs))
+    dataset = SweepDataset.load(dataset_dir)
+    references = load_references(dataset)
+    check_run_resources(dataset, dataset_dir, voxel_mm, mesh, field_config, max_memory_gib)
+    return dataset, references
+
+
+def _meshing_voxel(request: ReconstructionRequest) -> float | None:
+    """The voxel ``request``'s method meshes at (None: the finer pixel spacing)."""
+    if request.method == "on":
+        return request.on.meshing.voxel_mm
+    if request.method == "compounding":
+        return request.compounding.voxel_mm
+    return request.ultron.voxel_mm
 
 
 def reconstruct(
@@ -184,15 +238,25 @@ def reconstruct(
     progress: Callable[[dict[str, Any]], None] | None = None,
     report: bool = True,
     allow_other_field: bool = False,
+    max_memory_gib: float | None = None,
 ) -> dict[str, Any]:
-    """Load the dataset, get the field (given, or fitted and cached), run, write DIR (with
-    ``report.html`` unless ``report`` is false).
+    """Check everything cheap (:func:`prepare_run`), get the field (given, or fitted and
+    cached), run, write DIR (with ``report.html`` unless ``report`` is false).
 
     A given ``field_dir`` must have been fitted on this dataset (see
-    :func:`load_or_fit_field`) unless ``allow_other_field``."""
+    :func:`load_or_fit_field`) unless ``allow_other_field``; ``max_memory_gib`` caps the
+    grids' estimated memory (default: this machine's)."""
+    from ultron.train.field_fit import FieldTrainConfig
+
     timer = StageTimer()
+    to_fit = None  # the field that may be fitted, whose grid is checked too
+    if request.method in FIELD_METHODS and field_dir is None:
+        to_fit = field_config or FieldTrainConfig()
     with timer.stage("load"):
-        dataset = SweepDataset.load(dataset_dir)
+        dataset, references = prepare_run(
+            out_dir, "reconstruct", dataset_dir, (field_dir,), _meshing_voxel(request),
+            request.method not in SDF_VIEWS, to_fit, max_memory_gib,
+        )  # fmt: skip
         # the oracle's files are checked before any work (field fit, outputs)
         truth = load_oracle_truth(request.ultron.visibility, dataset_dir, dataset)
     fitted, extra = None, {}
@@ -203,12 +267,15 @@ def reconstruct(
             )
     result = run_method(dataset, request, fitted, timer, truth)
     identity = {
+        "command": "reconstruct",
         "method": request.method,
         "label_fraction": request.label_fraction,
         "seed": request.seed,
         "dataset_dir": str(Path(dataset_dir).resolve()),
     }
-    return write_outputs(out_dir, dataset, identity, result, timer, request.metrics, extra, report)
+    return write_outputs(
+        out_dir, dataset, identity, result, timer, request.metrics, extra, report, references
+    )
 
 
 def load_or_fit_field(

@@ -1,0 +1,291 @@
+"""The bad-input corpus of the commands: outputs, references, importer numbering and
+resources. Every case exits 2 with one ``error:`` line on stderr naming the file or option, no
+traceback, and writes nothing (the directory tree, an earlier run included, is unchanged).
+
+Broken datasets (``ultron info``) are in ``test_bad_input.py`` and out-of-range numbers in
+``test_cli_numeric.py``; ``python benchmarks/bad_input_corpus.py`` runs all three corpora and
+prints their size and the number of tracebacks.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from ultron.cli.main import app
+
+runner = CliRunner()
+
+#: A PLY header with no body: passes the header check, fails when the mesh is read.
+TRUNCATED_PLY = "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\n"
+
+
+def _run_dir(path: Path, command: str, method: str = "compounding") -> Path:
+    """A directory that looks like an earlier run of ``command``."""
+    path.mkdir(parents=True)
+    run = {"command": command, "method": method}
+    (path / "run.json").write_text(json.dumps(run))
+    (path / "mesh.ply").write_text("old mesh\n")
+    return path
+
+
+def _foreign_dir(path: Path) -> Path:
+    path.mkdir(parents=True)
+    (path / "notes.txt").write_text("mine\n")
+    return path
+
+
+def _file(path: Path) -> Path:
+    path.write_text("a file\n")
+    return path
+
+
+def _edit_dataset(data: Path, change: Callable[[dict], None]) -> None:
+    meta = json.loads((data / "dataset.json").read_text())
+    change(meta)
+    (data / "dataset.json").write_text(json.dumps(meta))
+
+
+def _move_pose(data: Path, frame: int, offset_mm: float) -> None:
+    poses = np.load(data / "row" / "poses.npy")
+    poses[frame, 0, 3] += offset_mm
+    np.save(data / "row" / "poses.npy", poses)
+
+
+def _tiny_probe(data: Path) -> None:
+    """A 1 µm wide probe: 0.17 µm pixels."""
+    _edit_dataset(data, lambda m: m["probe"].update(width_mm=1e-3))
+
+
+def _bad_reference(data: Path) -> None:
+    (data / "reference.ply").write_text(TRUNCATED_PLY)
+    _edit_dataset(data, lambda m: m.update(reference="reference.ply"))
+
+
+def _ultranerf(tmp: Path, names: list[str]) -> Path:
+    """An Ultra-NeRF folder with PNG frames of these names and as many poses."""
+    from PIL import Image
+
+    src = tmp / "un"
+    (src / "images").mkdir(parents=True)
+    for name in names:
+        Image.fromarray(np.zeros((6, 4), np.uint8)).save(src / "images" / name)
+    np.save(src / "poses.npy", np.tile(np.eye(4), (len(names), 1, 1)))
+    return src
+
+
+def _after(_done: object, args: list[str]) -> list[str]:
+    """``args``, once the mutation evaluated before them (as the first argument) is done."""
+    return args
+
+
+def _import(src: Path, out: Path) -> list[str]:
+    return ["import-ultranerf", str(src), "--width-mm", "8", "--depth-mm", "12", "--out", str(out)]
+
+
+def _recon(data: Path, out: Path, *more: str) -> list[str]:
+    return ["reconstruct", str(data), "--method", "compounding", "--out", str(out), *more]
+
+
+def _finetune(model: Path, data: Path, out: Path) -> list[str]:
+    return ["finetune", str(model), str(data), "--out", str(out)]
+
+
+def _render(tmp: Path, out: Path, *more: str) -> list[str]:
+    return ["render", str(tmp / "field"), "--poses", str(tmp / "p.npy"), "--out", str(out), *more]
+
+
+def _evaluate(tmp: Path, *more: str) -> list[str]:
+    return ["evaluate", str(tmp / "m.ply"), str(tmp / "r.ply"), *more]
+
+
+def _dangling_poses(tmp: Path, _data: Path) -> list[str]:
+    src = _ultranerf(tmp, ["0.png", "1.png"])
+    (src / "poses.npy").unlink()
+    (src / "poses.npy").symlink_to(src / "gone.npy")
+    return _import(src, tmp / "ds")
+
+
+def _looping_images(tmp: Path, _data: Path) -> list[str]:
+    src = _ultranerf(tmp, ["0.png"])
+    (src / "images.npy").symlink_to(src / "images.npy")
+    return _import(src, tmp / "ds")
+
+
+#: case → (build the case in (tmp, dataset) and return the CLI arguments, hints the one error
+#: line must contain). Each case's mutations happen before the snapshot.
+CASES: dict[str, tuple[Callable[[Path, Path], list[str]], tuple[str, ...]]] = {
+    # 1. an output directory is owned by one run
+    "reconstruct_into_foreign_dir": (
+        lambda t, d: _recon(d, _foreign_dir(t / "out")),
+        ("out", "--out", "holds no run.json"),
+    ),
+    "reconstruct_into_finetune_run": (
+        lambda t, d: _recon(d, _run_dir(t / "out", "finetune", "ultron-finetune")),
+        ("out", "--out", "earlier finetune run"),
+    ),
+    "finetune_into_reconstruct_run": (
+        lambda t, d: _finetune(
+            _run_dir(t / "model", "reconstruct"), d, _run_dir(t / "out", "reconstruct")
+        ),
+        ("out", "--out", "earlier reconstruct run"),
+    ),
+    "reconstruct_out_holds_its_field": (
+        lambda t, d: _recon(
+            d, _run_dir(t / "out", "reconstruct"), "--field", str(_foreign_dir(t / "out" / "field"))
+        ),
+        ("out", "--out", "holds the input"),
+    ),
+    "demo_into_foreign_method_dir": (
+        lambda t, d: ["demo", "--out", str(_foreign_dir(t / "demo" / "ultron").parent)],
+        ("ultron", "--out", "holds no run.json"),
+    ),
+    # 2. everything cheap first: the output path, the reference
+    "reconstruct_out_is_a_file": (
+        lambda t, d: _recon(d, _file(t / "out")),
+        ("out", "--out", "not a directory"),
+    ),
+    "reconstruct_out_below_a_file": (
+        lambda t, d: _recon(d, _file(t / "out") / "sub"),
+        ("out", "--out", "cannot be created"),
+    ),
+    "reconstruct_unreadable_reference": (
+        lambda t, d: _after(_bad_reference(d), _recon(d, t / "out")),
+        ("reference.ply", "not a readable mesh"),
+    ),
+    "demo_out_is_a_file": (
+        lambda t, d: ["demo", "--out", str(_file(t / "demo"))],
+        ("demo", "--out", "not a directory"),
+    ),
+    # 3. a directory where a file is expected, or a file where a directory is expected
+    "finetune_out_is_a_file": (
+        lambda t, d: _finetune(_run_dir(t / "model", "reconstruct"), d, _file(t / "out")),
+        ("out", "--out", "not a directory"),
+    ),
+    "evaluate_out_is_a_dir": (
+        lambda t, d: _evaluate(t, "--out", str(_foreign_dir(t / "metrics.json"))),
+        ("metrics.json", "--out", "is a directory"),
+    ),
+    "evaluate_default_out_is_a_dir": (
+        lambda t, d: _after(_foreign_dir(t / "m.metrics.json"), _evaluate(t)),
+        ("m.metrics.json", "--out", "is a directory"),
+    ),
+    "render_out_is_a_dir": (
+        lambda t, d: _render(t, _foreign_dir(t / "frames.npy")),
+        ("frames.npy", "--out", "is a directory"),
+    ),
+    "render_maps_out_is_a_dir": (
+        lambda t, d: _after(_foreign_dir(t / "f.theta.npy"), _render(t, t / "f.npy", "--maps")),
+        ("f.theta.npy", "--out", "is a directory"),
+    ),
+    "import_out_is_a_file": (
+        lambda t, d: _import(_ultranerf(t, ["0.png"]), _file(t / "ds")),
+        ("ds", "--out", "not a directory"),
+    ),
+    "fit_field_out_is_a_file": (
+        lambda t, d: ["fit-field", str(d), "--out", str(_file(t / "field"))],
+        ("field", "--out", "not a directory"),
+    ),
+    "simulate_out_is_a_file": (
+        lambda t, d: ["simulate", "--out", str(_file(t / "sim"))],
+        ("sim", "--out", "not a directory"),
+    ),
+    # 4. importer numbering and symlinks
+    "import_png_gap": (
+        lambda t, d: _import(
+            _ultranerf(t, ["0.png", "1.png", "2.png", "30.png", "4.png"]), t / "ds"
+        ),
+        ("3.png", "frame 3 is missing"),
+    ),
+    "import_png_same_number_twice": (
+        lambda t, d: _import(_ultranerf(t, ["0.png", "1.png", "01.png"]), t / "ds"),
+        ("images", "01.png", "1.png", "both number frame 1"),
+    ),
+    "import_dangling_poses_symlink": (_dangling_poses, ("poses.npy", "dangling symlink")),
+    "import_images_symlink_loop": (_looping_images, ("images.npy", "symlink loop")),
+    # 5. resources, estimated before any allocation
+    "reconstruct_outlier_pose": (
+        lambda t, d: _after(_move_pose(d, 1, 1e6), _recon(d, t / "out")),
+        ("poses.npy", "sweep row, frame 1", "median position"),
+    ),
+    "finetune_outlier_pose": (
+        lambda t, d: _after(
+            _move_pose(d, 2, -1e6), _finetune(_run_dir(t / "model", "reconstruct"), d, t / "out")
+        ),
+        ("poses.npy", "sweep row, frame 2"),
+    ),
+    "fit_field_outlier_pose": (
+        lambda t, d: _after(_move_pose(d, 0, 1e6), ["fit-field", str(d), "--out", str(t / "f")]),
+        ("poses.npy", "sweep row, frame 0"),
+    ),
+    "reconstruct_tiny_probe": (
+        lambda t, d: _after(_tiny_probe(d), _recon(d, t / "out")),
+        ("dataset.json", "probe", "meshing grid", "0.001 mm wide / 6 columns"),
+    ),
+    "fit_field_tiny_probe": (
+        lambda t, d: _after(_tiny_probe(d), ["fit-field", str(d), "--out", str(t / "f")]),
+        ("dataset.json", "probe", "acoustic field", "nodes per side"),
+    ),
+    "reconstruct_over_max_memory": (
+        lambda t, d: _recon(d, t / "out", "--max-memory", "1e-6"),
+        ("dataset.json", "meshing grid", "--max-memory 1e-06 GiB"),
+    ),
+}
+
+
+def snapshot(root: Path) -> dict[str, object]:
+    """Every entry under ``root``: file bytes, ``dir``, or a symlink's target (not followed)."""
+    entries: dict[str, object] = {}
+    for folder, dirs, files in os.walk(root):
+        for name in dirs + files:
+            path = Path(folder) / name
+            key = str(path.relative_to(root))
+            if path.is_symlink():
+                entries[key] = f"link:{os.readlink(path)}"
+            elif path.is_dir():
+                entries[key] = "dir"
+            else:
+                entries[key] = path.read_bytes()
+    return entries
+
+
+def check_refused(result, hints: tuple[str, ...]) -> None:
+    """Exit 2, one ``error:`` line on stderr holding every hint, no traceback."""
+    assert result.exit_code == 2, result.output
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1, lines
+    assert lines[0].startswith("error: "), lines[0]
+    for hint in hints:
+        assert hint in lines[0], (hint, lines[0])
+    assert "Traceback" not in result.output and isinstance(result.exception, SystemExit)
+
+
+@pytest.mark.parametrize("case", sorted(CASES))
+def test_bad_input_is_refused(case: str, tmp_path: Path, tiny_dataset_dir: Path, monkeypatch):
+    monkeypatch.setenv("ULTRON_CACHE", str(tmp_path / "cache"))
+    build, hints = CASES[case]
+    args = build(tmp_path, tiny_dataset_dir)
+    before = snapshot(tmp_path)
+    check_refused(runner.invoke(app, args), hints)
+    assert snapshot(tmp_path) == before  # nothing written, an earlier run untouched
+
+
+def test_info_warns_about_outlier_poses(tiny_dataset_dir: Path):
+    _move_pose(tiny_dataset_dir, 1, 1e6)
+    result = runner.invoke(app, ["info", str(tiny_dataset_dir)], terminal_width=400)
+    assert result.exit_code == 0, result.output
+    warnings = [line for line in result.output.splitlines() if line.startswith("warning:")]
+    assert len(warnings) == 2, warnings
+    assert "sweep row, frame 1: pose translation (1e+06, 2, -0.5) mm" in warnings[0]
+    assert "refuse" in warnings[1]
+
+
+def test_info_quiet_without_outliers(tiny_dataset_dir: Path):
+    result = runner.invoke(app, ["info", str(tiny_dataset_dir)], terminal_width=400)
+    assert result.exit_code == 0 and "warning" not in result.output

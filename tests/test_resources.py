@@ -1,0 +1,93 @@
+"""Outlier poses and the grids' memory, estimated before anything is allocated."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from ultron.data.dataset import ProbeGeometry, SweepDataset
+from ultron.data.outliers import OUTLIER_FLOOR_MM, check_pose_outliers, pose_outliers
+from ultron.errors import UltronInputError
+from ultron.methods.resources import (
+    check_field_grid,
+    check_meshing_grid,
+    check_run_resources,
+    memory_limit,
+    meshing_grid_shape,
+)
+from ultron.methods.ultron_method import scan_grid
+from ultron.train.field_config import FieldTrainConfig
+
+
+def _moved(dataset: SweepDataset, sweep: int, frame: int, offset_mm: float) -> SweepDataset:
+    poses = dataset.sweeps[sweep].probe_to_world.copy()
+    poses[frame, :3, 3] += offset_mm
+    sweeps = list(dataset.sweeps)
+    sweeps[sweep] = replace(sweeps[sweep], probe_to_world=poses)
+    return replace(dataset, sweeps=sweeps)
+
+
+def _probe(dataset: SweepDataset, width_mm: float) -> SweepDataset:
+    probe = dataset.probe
+    return replace(
+        dataset, probe=ProbeGeometry(width_mm, probe.depth_mm, probe.height_px, probe.width_px)
+    )
+
+
+def test_outlier_poses(tiny_dataset: SweepDataset):
+    assert pose_outliers(tiny_dataset) == []
+    check_pose_outliers(tiny_dataset)
+    # 20 mm off stays within 10 × the median distance + 50 mm; 1e6 mm does not
+    assert pose_outliers(_moved(tiny_dataset, 1, 2, 20.0)) == []
+    moved = _moved(tiny_dataset, 1, 2, 1e6)
+    (outlier,) = pose_outliers(moved)
+    assert (outlier.sweep, outlier.frame) == ("column", 2)
+    assert outlier.distance_mm > 1e6 and outlier.threshold_mm >= OUTLIER_FLOOR_MM
+    with pytest.raises(UltronInputError, match=r"^ds/column/poses.npy: poses: sweep column, fr"):
+        check_pose_outliers(moved, "ds")
+    twice = _moved(moved, 0, 0, -1e6)
+    with pytest.raises(
+        UltronInputError, match=r"sweep row, frame 0: .*\(2 outlier frames in all\)"
+    ):
+        check_run_resources(twice, "ds", mesh=False)
+
+
+def test_meshing_grid_estimate_is_scan_grids_shape(tiny_dataset: SweepDataset):
+    for voxel in (None, 0.7):
+        shape, _, _ = meshing_grid_shape(tiny_dataset, voxel)
+        assert shape == scan_grid(tiny_dataset, voxel).shape
+    check_meshing_grid(tiny_dataset, "ds", None, None)
+
+
+def test_meshing_grid_too_large(tiny_dataset: SweepDataset):
+    small = _probe(tiny_dataset, 1e-3)  # 0.17 µm pixels
+    with pytest.raises(UltronInputError, match=r"^ds/dataset.json: probe: the meshing grid") as e:
+        check_meshing_grid(small, "ds", None, None)
+    assert "0.001 mm wide / 6 columns" in str(e.value) and "machine's memory" in str(e.value)
+    with pytest.raises(UltronInputError, match=r"^argument: voxel_mm: .*--max-memory 1e-06 GiB"):
+        check_meshing_grid(tiny_dataset, "ds", 0.5, 1e-6)
+    huge_voxels = _probe(tiny_dataset, 1e-300)  # the ratio overflows a float
+    with pytest.raises(UltronInputError, match="meshing grid"):
+        check_meshing_grid(huge_voxels, "ds", None, None)
+
+
+def test_field_grid(tiny_dataset: SweepDataset):
+    config = FieldTrainConfig()
+    check_field_grid(tiny_dataset, Path("ds"), config, None)
+    small = _probe(tiny_dataset, 1e-3)
+    with pytest.raises(UltronInputError, match=r"dataset.json: probe: acoustic field: .*nodes"):
+        check_field_grid(small, "ds", config, None)
+    with pytest.raises(UltronInputError, match=r"planes of \[\d+, \d+\] nodes .*--max-memory"):
+        check_field_grid(tiny_dataset, "ds", config, 1e-9)
+    mlp = replace(config, field=replace(config.field, backend="mlp"))
+    check_field_grid(small, "ds", mlp, None)  # no grid to size
+
+
+def test_memory_limit():
+    limit, name = memory_limit(None)
+    assert limit > 2**28 and "machine" in name
+    assert memory_limit(2.0) == (2.0 * 1024**3, "--max-memory 2 GiB")
+    assert np.isfinite(limit)
