@@ -3,6 +3,7 @@ voxels that some frame actually imaged."""
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
@@ -14,6 +15,23 @@ from ultron.data.geometry import as_bounds_mm, as_pose_tensor, pixel_to_world
 from ultron.errors import argument_error
 
 PointsFn = Callable[[torch.Tensor], torch.Tensor]
+
+
+def meshing_voxel_mm(probe: ProbeGeometry, voxel_mm: float | None) -> float:
+    """The meshing voxel: ``voxel_mm`` when given, else the probe's finer pixel spacing."""
+    return voxel_mm or min(probe.lateral_spacing_mm, probe.axial_spacing_mm)
+
+
+def grid_shape(
+    bounds_mm: np.ndarray | torch.Tensor, voxel_mm: float, pad_voxels: int = 2
+) -> tuple[int, int, int]:
+    """Voxels per axis of the grid of ``voxel_mm`` covering a (2, 3) [min, max] box, padded
+    by ``pad_voxels``: ceil(extent / voxel) + 1 + 2·pad, in Python integers (nothing allocated,
+    no overflow: a side whose ratio exceeds 1e30 counts as 1e30, so absurd grids can be sized
+    and refused before allocation)."""
+    box = as_bounds_mm(bounds_mm)
+    extent = (float(e) for e in box[1] - box[0])
+    return tuple(math.ceil(min(e / voxel_mm, 1e30)) + 1 + 2 * pad_voxels for e in extent)
 
 
 @dataclass(frozen=True)
@@ -42,8 +60,8 @@ class GridSpec:
         if not (np.isfinite(voxel_mm) and voxel_mm > 0):
             raise argument_error("voxel_mm", f"expected a positive voxel size, got {voxel_mm}")
         origin = box[0] - pad_voxels * voxel_mm
-        shape = np.ceil((box[1] - box[0]) / voxel_mm).astype(int) + 1 + 2 * pad_voxels
-        return cls(tuple(float(o) for o in origin), float(voxel_mm), tuple(int(s) for s in shape))
+        shape = grid_shape(box, voxel_mm, pad_voxels)
+        return cls(tuple(float(o) for o in origin), float(voxel_mm), shape)
 
     def to_dict(self) -> dict[str, object]:
         """JSON-able ``{"origin_mm": [...], "voxel_mm": v, "shape": [...]}`` (for run.json)."""

@@ -39,8 +39,6 @@ if TYPE_CHECKING:
 MESH_BYTES_PER_VOXEL = 64
 #: Bytes per value of the field's planes while fitting: float32 weight, gradient, Adam m and v.
 FIELD_BYTES_PER_VALUE = 16
-#: The meshing grid's padding, in voxels on each side (as ``GridSpec.from_bounds``).
-_PAD_VOXELS = 2
 _GIB = 1024**3
 
 
@@ -93,15 +91,12 @@ def meshing_grid_shape(
     """The shape ``scan_grid(dataset, voxel_mm)`` will have, computed with Python integers
     (no overflow, nothing allocated), its voxel and the scanned extent in mm."""
     from ultron.data.geometry import field_of_view_bounds_mm
+    from ultron.mesh.grid import grid_shape, meshing_voxel_mm
 
-    probe = dataset.probe
-    voxel = voxel_mm or min(probe.lateral_spacing_mm, probe.axial_spacing_mm)
-    bounds = field_of_view_bounds_mm(dataset.all_poses(), probe).numpy()
+    voxel = meshing_voxel_mm(dataset.probe, voxel_mm)
+    bounds = field_of_view_bounds_mm(dataset.all_poses(), dataset.probe).numpy()
     extent = tuple(float(e) for e in bounds[1] - bounds[0])
-    # a voxel so small that the ratio overflows is counted as 1e30 voxels per side
-    ratios = (min(e / voxel, 1e30) if voxel > 0 else 1e30 for e in extent)
-    sides = tuple(math.ceil(r) + 1 + 2 * _PAD_VOXELS for r in ratios)
-    return sides, voxel, extent  # type: ignore[return-value]
+    return grid_shape(bounds, voxel), voxel, extent  # type: ignore[return-value]
 
 
 def check_meshing_grid(

@@ -39,7 +39,12 @@ from ultron.errors import UltronInputError, argument_error
 from ultron.fields.context import ThetaContextConfig, theta_features
 from ultron.fields.occupancy import OccupancyNetwork
 from ultron.mesh.extract import ExtractionConfig, extract_surface
-from ultron.mesh.grid import GridSpec, evaluate_coarse_to_fine, field_of_view_mask
+from ultron.mesh.grid import (
+    GridSpec,
+    evaluate_coarse_to_fine,
+    field_of_view_mask,
+    meshing_voxel_mm,
+)
 from ultron.mesh.observed import ObservedSurfaceConfig, observed_points, observed_submesh
 from ultron.methods.runinfo import StageTimer
 from ultron.train.occupancy import OccupancyTrainConfig, OccupancyTrainingData, fit_occupancy
@@ -134,10 +139,8 @@ def elevation_half_thickness_mm(dataset: SweepDataset, voxel_mm: float) -> float
 
 def scan_grid(dataset: SweepDataset, voxel_mm: float | None) -> GridSpec:
     """The meshing grid over everything the probe saw, voxel ≤ the finer pixel spacing."""
-    probe = dataset.probe
-    voxel = voxel_mm or min(probe.lateral_spacing_mm, probe.axial_spacing_mm)
-    bounds = field_of_view_bounds_mm(dataset.all_poses(), probe).numpy()
-    return GridSpec.from_bounds(bounds, voxel)
+    bounds = field_of_view_bounds_mm(dataset.all_poses(), dataset.probe).numpy()
+    return GridSpec.from_bounds(bounds, meshing_voxel_mm(dataset.probe, voxel_mm))
 
 
 def occupancy_training_data(
