@@ -59,6 +59,40 @@ def _command_case(name: str) -> Builder:
     return lambda tmp, data: (build(tmp, data), hints)
 
 
+# --- import-plus: bad PLUS / Slicer recordings (tests/test_import_plus.py's BAD_CASES), a
+# fourth corpus kept in its own block ----------------------------------------------------------
+def _plus_case(name: str) -> Builder:
+    import test_import_plus
+
+    build, hints = test_import_plus.BAD_CASES[name]
+    return lambda tmp, data: (build(tmp), hints)
+
+
+def plus_cases() -> Iterator[Case]:
+    """The bad PLUS recordings and configurations of ``ultron import-plus``."""
+    import test_import_plus
+
+    for name in sorted(test_import_plus.BAD_CASES):
+        yield "import-plus", name, _plus_case(name)
+
+
+# --- compound: bad options, outputs and datasets of ``ultron compound``
+# (tests/test_compound.py's BAD_CASES), a block of its own ------------------------------------
+def _compound_case(name: str) -> Builder:
+    import test_compound
+
+    build, hints = test_compound.BAD_CASES[name]
+    return lambda tmp, data: (build(tmp, data), hints)
+
+
+def compound_cases() -> Iterator[Case]:
+    """The bad options, outputs and datasets of ``ultron compound``."""
+    import test_compound
+
+    for name in sorted(test_compound.BAD_CASES):
+        yield "compound", name, _compound_case(name)
+
+
 def cases() -> Iterator[Case]:
     """Every case of the three corpora."""
     for name in sorted(test_bad_input.CASES):
@@ -67,6 +101,8 @@ def cases() -> Iterator[Case]:
         yield "numeric", f"{command} {option} {value}", _numeric_case(command, option, value)
     for name in sorted(corpus.CASES):
         yield "commands", name, _command_case(name)
+    yield from plus_cases()
+    yield from compound_cases()
 
 
 def run_case(build: Builder) -> tuple[bool, str | None]:

@@ -105,6 +105,36 @@ def _evaluate(tmp: Path, *more: str) -> list[str]:
     return ["evaluate", str(tmp / "m.ply"), str(tmp / "r.ply"), *more]
 
 
+def _outlier_poses_file(tmp: Path, data: Path) -> None:
+    """tmp/p.npy: the dataset's 7 poses, frame 2 moved 1e6 mm."""
+    poses = np.concatenate([np.load(data / s / "poses.npy") for s in ("row", "column")])
+    poses[2, 0, 3] += 1e6
+    np.save(tmp / "p.npy", poses)
+
+
+def _fitted_field(tmp: Path, data: Path, iters: int) -> list[str]:
+    """``fit-field`` arguments into tmp/f, after a fit of ``iters`` steps there."""
+    args = ["fit-field", str(data), "--out", str(tmp / "f"), "--fit-shape", "8x8"]
+    assert runner.invoke(app, [*args, "--iters", str(iters)]).exit_code == 0
+    return args
+
+
+def _rocosdf_one_frame(tmp: Path, data: Path) -> list[str]:
+    """RoCoSDF on tmp/one: the dataset with its sweeps cut to their first (labelled) frame."""
+    from dataclasses import replace
+
+    from ultron.data.dataset import SweepDataset
+
+    dataset = SweepDataset.load(data)
+    sweeps = [
+        replace(s, images=s.images[:1], probe_to_world=s.probe_to_world[:1], labels=s.labels[:1])
+        for s in dataset.sweeps
+    ]
+    replace(dataset, sweeps=sweeps).save(tmp / "one")
+    return ["reconstruct", str(tmp / "one"), "--method", "rocosdf", "--label-fraction", "1",
+            "--out", str(tmp / "out")]  # fmt: skip
+
+
 def _dangling_poses(tmp: Path, _data: Path) -> list[str]:
     src = _ultranerf(tmp, ["0.png", "1.png"])
     (src / "poses.npy").unlink()
@@ -235,6 +265,27 @@ CASES: dict[str, tuple[Callable[[Path, Path], list[str]], tuple[str, ...]]] = {
     "reconstruct_over_max_memory": (
         lambda t, d: _recon(d, t / "out", "--max-memory", "1e-6"),
         ("dataset.json", "meshing grid", "--max-memory 1e-06 GiB"),
+    ),
+    "fit_field_over_max_memory": (
+        lambda t, d: ["fit-field", str(d), "--out", str(t / "f"), "--max-memory", "1e-6"],
+        ("dataset.json", "acoustic field", "fitting it needs", "--max-memory 1e-06 GiB"),
+    ),
+    "render_outlier_pose": (
+        lambda t, d: _after(_outlier_poses_file(t, d), _render(t, t / "f.npy")),
+        ("p.npy", "poses", "frame 2: pose translation (1e+06", "median position"),
+    ),
+    "rocosdf_one_frame_dataset": (
+        _rocosdf_one_frame,
+        ("one", "labels", "lie in one plane", "≥ 1 mm apart"),
+    ),
+    "fit_field_frames_below_ssim_window": (
+        lambda t, d: ["fit-field", str(d), "--out", str(t / "f")],
+        ("dataset.json", "probe", "8 × 6 px", "SSIM window"),
+    ),
+    # 6. a field fit's progress
+    "fit_field_iters_below_checkpoint": (
+        lambda t, d: [*_fitted_field(t, d, 4), "--iters", "2"],
+        ("f/field.json", "step", "checkpoint is at step 4", "--iters 2", "--no-resume"),
     ),
 }
 

@@ -65,3 +65,64 @@ def test_bad_config():
         CompoundingConfig(mode="median")
     with pytest.raises(UltronInputError, match="interpolation"):
         CompoundingConfig(interpolation="cubic")
+
+
+def test_label_signed_distance_by_hand():
+    from ultron.mesh.compounding import label_signed_distance
+
+    labels = np.zeros((8, 3), np.uint8)
+    labels[3:5] = 1  # a band of two rows
+    labels[7] = 255  # unannotated counts as not bone
+    distance = label_signed_distance(labels, (0.5, 1.0), clip_mm=1.0)
+    # rows 3–4 are bone: +0.5 mm to the nearest non-bone row; rows 2 and 5 are −0.5 mm, rows
+    # 1 and 6 −1.0 mm, row 0 clipped at −1
+    assert np.allclose(distance[:, 1], [-1.0, -1.0, -0.5, 0.5, 0.5, -0.5, -1.0, -1.0])
+    assert np.all(label_signed_distance(np.zeros((2, 2), np.uint8), (1, 1), 2.0) == -2.0)
+
+
+@pytest.fixture(scope="module")
+def band_dataset() -> SweepDataset:
+    """Frames in x–y planes every 8 mm in z; a 2 mm band of bone labels at depth 10–12 mm
+    (1 inside, 0 above and below): the label band sparse frames leave in a real sweep."""
+    probe = ProbeGeometry(width_mm=20.0, depth_mm=20.0, height_px=40, width_px=40)
+    z = np.arange(-16.0, 16.01, 8.0)
+    poses = np.tile(np.eye(4), (len(z), 1, 1))
+    poses[:, 2, 3] = z
+    points = frame_pixels_world(torch.as_tensor(poses), probe).numpy()
+    labels = ((points[..., 1] >= 10.0) & (points[..., 1] < 12.0)).astype(np.uint8)
+    images = np.zeros(labels.shape, np.uint8)
+    return SweepDataset(probe, [Sweep("row", "row", images, poses, labels)])
+
+
+def test_thin_band_is_filled_between_sparse_frames(band_dataset):
+    # a Gaussian-weighted average of 0/1 labels (the earlier filler) never reaches 0.5 across a
+    # 2 mm band; interpolating signed distances between the frames keeps it
+    selection = select_label_frames(band_dataset, 1.0, seed=0)
+    compounded = compound_labels(band_dataset, selection)
+    assert compounded.hole_fill_radius_mm == pytest.approx(4.0)
+    grid = compounded.grid
+    for z in (-12.0, -4.0, 2.0, 6.0):  # between frames
+        inside = np.rint(grid.world_to_index([0.0, 11.0, z])).astype(int)
+        above = np.rint(grid.world_to_index([0.0, 8.0, z])).astype(int)
+        assert compounded.volume[tuple(inside)] >= 0.5
+        assert compounded.volume[tuple(above)] < 0.5
+
+
+def test_reconstruction_keeps_the_surface_facing_the_probe(band_dataset):
+    from dataclasses import replace
+
+    from ultron.mesh.observed import ObservedSurfaceConfig
+    from ultron.methods.run import ReconstructionRequest, run_method
+    from ultron.methods.runinfo import StageTimer
+
+    request = ReconstructionRequest(method="compounding", label_fraction=1.0)
+    faced = run_method(band_dataset, request, None, StageTimer())
+    # the beam runs along +y: kept faces look back up the beam (normal y < 0), near y = 10
+    normals = faced.mesh.face_normals  # (the criterion is on vertex normals)
+    assert (normals[:, 1] < -np.cos(np.radians(70.0))).mean() > 0.95
+    assert (normals[:, 1] <= 0).all()  # (zero-area faces have a zero normal)
+    assert abs(np.median(faced.mesh.triangles_center[:, 1]) - 10.0) < 0.5
+    assert faced.info["faces_kept"] < faced.info["faces_extracted"]
+    every = replace(request, ultron=replace(request.ultron, observed=ObservedSurfaceConfig("all")))
+    closed = run_method(band_dataset, every, None, StageTimer())
+    assert (closed.mesh.face_normals[:, 1] > 0.9).any()  # the band's floor

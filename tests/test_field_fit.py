@@ -11,6 +11,7 @@ import pytest
 import torch
 from typer.testing import CliRunner
 
+from field_configs import quick_field_config
 from ultron.cli.main import app
 from ultron.data.dataset import ProbeGeometry, Sweep, SweepDataset
 from ultron.errors import UltronInputError
@@ -61,19 +62,9 @@ def tiny_dataset(n_frames: int = 20, probe: ProbeGeometry = PROBE) -> SweepDatas
 
 
 def quick_config(**overrides) -> FieldTrainConfig:
-    values = dict(
-        field=FieldConfig(grid=GridFieldConfig(cell_mm=0.5)),
-        iterations=20,
-        frames_per_batch=4,
-        patch_width=16,
-        holdout_every=5,
-        check_every=10,
-        checkpoint_every=10,
-        log_every=5,
-        train_scatterers="expected",
-    )
-    values.update(overrides)
-    return FieldTrainConfig(**values)
+    defaults = {"frames_per_batch": 4, "patch_width": 16, "check_every": 10,
+                "train_scatterers": "expected"}  # fmt: skip
+    return quick_field_config(0.5, **{**defaults, **overrides})
 
 
 # ----------------------------------------------------------------- building blocks

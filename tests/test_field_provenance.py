@@ -14,10 +14,10 @@ import pytest
 import torch
 from typer.testing import CliRunner
 
+from field_configs import quick_field_config
 from ultron.cli.main import app
 from ultron.data.dataset import ProbeGeometry, Sweep, SweepDataset
 from ultron.errors import UltronInputError
-from ultron.fields import FieldConfig, GridFieldConfig
 from ultron.fields.fitted import check_field_dataset
 from ultron.methods import run as run_module
 from ultron.methods.run import ReconstructionRequest, load_or_fit_field, reconstruct
@@ -49,18 +49,7 @@ def make_dataset(seed: int = 0, n: int = 10) -> SweepDataset:
 
 
 def quick_config(**overrides) -> FieldTrainConfig:
-    values = dict(
-        field=FieldConfig(grid=GridFieldConfig(cell_mm=1.0)),
-        iterations=20,
-        frames_per_batch=2,
-        patch_width=8,
-        holdout_every=5,
-        check_every=1000,
-        checkpoint_every=10,
-        log_every=5,
-    )
-    values.update(overrides)
-    return FieldTrainConfig(**values)
+    return quick_field_config(**overrides)
 
 
 def one_line_error(result, *needles: str) -> str:
@@ -237,7 +226,7 @@ def test_allowed_other_field_is_recorded_in_run_json(
     # so that only the field's path to run.json is exercised
     original = run_module.run_method
 
-    def compounding(dataset, request, fitted, timer, truth=None):
+    def compounding(dataset, request, fitted, timer, truth=None, dataset_name=None):
         assert fitted is not None  # the other dataset's field was loaded
         return original(dataset, replace(request, method="compounding"), None, timer)
 

@@ -32,6 +32,7 @@ from ultron.phantom import SimulationConfig, simulate_dataset
 from ultron.phantom.protocols import ScanConfig
 from ultron.train.field_fit import FieldTrainConfig, fit_field
 from ultron.train.occupancy import OccupancyTrainConfig
+from ultron.train.visibility import VisibilityConfig
 
 FAST_METRICS = MetricsConfig(n_points=3_000, repeats=1)
 TINY_FIELD = FieldTrainConfig(iterations=400, check_every=1000, checkpoint_every=1000)
@@ -90,6 +91,17 @@ def test_reconstruct_saves_a_loadable_network(shapes):
     run = json.loads((shapes["model"] / "run.json").read_text())
     assert Path(run["dataset_dir"]) == shapes["l3"].resolve()
     assert "network" not in run and "model" not in run
+
+
+def test_model_meta_records_the_negatives_and_finetuning_keeps_them():
+    model = ThetaModel(negatives="observed")
+    meta = model.to_meta(("attenuation",), VisibilityConfig())
+    assert meta["negatives"] == "observed"
+    assert ThetaModel.from_meta(meta) == model
+    assert FinetuneConfig().training(model).negatives == "observed"
+    # a network.pt written before the option existed was trained with T-weighted negatives
+    old = {k: v for k, v in meta.items() if k != "negatives"}
+    assert ThetaModel.from_meta(old).negatives == "weighted"
 
 
 def test_freezing_keeps_last_two_layers_bit_identical(shapes):

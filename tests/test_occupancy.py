@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 
@@ -13,6 +15,7 @@ from ultron.train.occupancy import (
     attenuation_compensated_bce,
     binary_cross_entropy,
     fit_occupancy,
+    observed_negatives_bce,
     parse_positive_weight,
     positive_class_weight,
 )
@@ -62,6 +65,59 @@ def test_gradcheck_float64():
 def test_shape_mismatch_is_an_error():
     with pytest.raises(UltronInputError, match="shapes differ"):
         attenuation_compensated_bce(torch.zeros(3), torch.zeros(2), torch.zeros(3))
+
+
+def test_observed_negatives_by_hand():
+    # y = 1 counts whatever T; y = 0 counts in full only where T ≥ 0.3; the mean runs over all
+    f = torch.tensor([0.8, 0.8, 0.4, 0.4], dtype=torch.float64)
+    t = torch.tensor([0.05, 1.0, 0.29, 0.3], dtype=torch.float64)
+    y = torch.tensor([1.0, 1.0, 0.0, 0.0], dtype=torch.float64)
+    expected = -(2 * math.log(0.8) + math.log(0.6)) / 4
+    torch.testing.assert_close(observed_negatives_bce(f, t, y), torch.tensor(expected).double())
+    weight = torch.tensor([2.0, 1.0, 1.0, 3.0], dtype=torch.float64)
+    expected = -(3 * math.log(0.8) + 3 * math.log(0.6)) / 4
+    torch.testing.assert_close(
+        observed_negatives_bce(f, t, y, weight=weight), torch.tensor(expected).double()
+    )
+    # τ = 0 keeps every label: plain BCE
+    torch.testing.assert_close(observed_negatives_bce(f, t, y, 0.0), binary_cross_entropy(f, y))
+
+
+def test_observed_negatives_gradcheck_and_shadow():
+    f = torch.rand(6, dtype=torch.float64).clamp(0.05, 0.95).requires_grad_()
+    t = torch.tensor([0.0, 0.1, 0.5, 0.9, 0.2, 1.0], dtype=torch.float64)
+    y = torch.tensor([0, 1, 0, 1, 0, 0], dtype=torch.float64)
+    assert torch.autograd.gradcheck(lambda a: observed_negatives_bce(a, t, y), (f,))
+    observed_negatives_bce(f, t, y).backward()
+    assert f.grad[0] == 0 and f.grad[4] == 0  # shadowed background: no gradient
+    assert f.grad[1] != 0 and f.grad[2] != 0  # a bone label in shadow still counts
+
+
+def test_observed_negatives_invalid_inputs():
+    f = torch.full((3,), 0.5)
+    with pytest.raises(UltronInputError, match="min_transmission"):
+        observed_negatives_bce(f, torch.ones(3), torch.zeros(3), math.nan)
+    with pytest.raises(UltronInputError, match="transmission"):
+        observed_negatives_bce(f, torch.ones(2), torch.zeros(3))
+    with pytest.raises(UltronInputError, match="negatives"):
+        OccupancyTrainConfig(negatives="some")
+    with pytest.raises(UltronInputError, match="observed_transmission"):
+        OccupancyTrainConfig(observed_transmission=1.5)
+
+
+def test_observed_negatives_train_through_shadow():
+    # as test_compensated_loss_ignores_shadowed_negatives, with negatives="observed"
+    data = _separable_data()
+    shadow = data.inputs[:, 0] > 0.6
+    labels = data.labels.clone()
+    labels[shadow] = 0
+    shadowed = OccupancyTrainingData(data.inputs, torch.where(shadow, 0.0, 1.0), labels)
+    config = OccupancyTrainConfig(
+        iters=300, batch_size=512, lr=1e-3, seed=1, network=SMALL, negatives="observed"
+    )
+    network, _ = fit_occupancy(shadowed, config)
+    with torch.no_grad():
+        assert float(network.occupancy(torch.tensor([[0.8, 0.0, 0.0]]))) > 0.5
 
 
 def test_balanced_positive_weight():
@@ -123,8 +179,9 @@ def test_compensated_loss_ignores_shadowed_negatives():
     results = {}
     for loss in ("ultron", "bce"):
         config = OccupancyTrainConfig(
-            iters=300, batch_size=512, lr=1e-3, loss=loss, seed=1, network=SMALL
-        )
+            iters=300, batch_size=512, lr=1e-3, loss=loss, seed=1, network=SMALL,
+            negatives="weighted",
+        )  # fmt: skip
         network, _ = fit_occupancy(shadowed, config)
         with torch.no_grad():
             results[loss] = float(network.occupancy(probe))

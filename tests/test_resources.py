@@ -9,12 +9,23 @@ import numpy as np
 import pytest
 
 from ultron.data.dataset import ProbeGeometry, SweepDataset
-from ultron.data.outliers import OUTLIER_FLOOR_MM, check_pose_outliers, pose_outliers
+from ultron.data.outliers import (
+    OUTLIER_FLOOR_MM,
+    check_pose_array_outliers,
+    check_pose_outliers,
+    pose_array_outliers,
+    pose_outliers,
+)
 from ultron.errors import UltronInputError
 from ultron.methods.resources import (
+    FIELD_BYTES_PER_VALUE,
+    FIELD_FIXED_BYTES,
+    FIELD_RENDER_BYTES_PER_SAMPLE,
+    FIELD_TRAIN_BYTES_PER_SAMPLE,
     check_field_grid,
     check_meshing_grid,
     check_run_resources,
+    field_fit_memory,
     memory_limit,
     meshing_grid_shape,
 )
@@ -55,6 +66,17 @@ def test_outlier_poses(tiny_dataset: SweepDataset):
         check_run_resources(twice, "ds", mesh=False)
 
 
+def test_outlier_poses_of_a_poses_file(tiny_dataset: SweepDataset):
+    poses = tiny_dataset.all_poses().copy()
+    assert pose_array_outliers(poses) == [] and pose_array_outliers(poses[:1]) == []
+    check_pose_array_outliers(poses, "p.npy")
+    poses[5, :3, 3] += 1e6
+    (outlier,) = pose_array_outliers(poses)
+    assert (outlier.sweep, outlier.frame) == ("", 5)
+    with pytest.raises(UltronInputError, match=r"^p.npy: poses: frame 5: pose translation \(1e"):
+        check_pose_array_outliers(poses, "p.npy")
+
+
 def test_meshing_grid_estimate_is_scan_grids_shape(tiny_dataset: SweepDataset):
     for voxel in (None, 0.7):
         shape, _, _ = meshing_grid_shape(tiny_dataset, voxel)
@@ -86,7 +108,37 @@ def test_field_grid(tiny_dataset: SweepDataset):
     check_field_grid(small, "ds", mlp, None)  # no grid to size
 
 
-def test_memory_limit():
+def test_field_fit_memory_estimate(tiny_dataset: SweepDataset):
+    """Planes, frames and working memory from the shapes alone (module doc 3)."""
+    config = FieldTrainConfig(fit_shape=(16, 12), frames_per_batch=4, patch_width=8)
+    memory = field_fit_memory(tiny_dataset, config)
+    (fine, coarse) = memory.resolutions
+    assert memory.planes == 3 * (8 * fine**2 + 4 * coarse**2) * FIELD_BYTES_PER_VALUE
+    # 7 frames of 16 × 12 with their confidence maps, the 4-frame sweep's 8 × 6 copies
+    assert memory.frames == 4 * (7 * 16 * 12 * 2 + 2 * 4 * 8 * 6)
+    train = 4 * 8 * 16 * FIELD_TRAIN_BYTES_PER_SAMPLE["grid"]
+    render = 8 * 16 * 12 * FIELD_RENDER_BYTES_PER_SAMPLE["grid"]
+    assert memory.working == max(train, render)
+    assert memory.total == memory.planes + memory.frames + memory.working + FIELD_FIXED_BYTES
+    mlp = replace(config, field=replace(config.field, backend="mlp"), confidence_prior_weight=0)
+    memory = field_fit_memory(tiny_dataset, mlp)
+    assert memory.planes == 0 and memory.resolutions == ()
+    assert memory.working == 4 * 8 * 16 * FIELD_TRAIN_BYTES_PER_SAMPLE["mlp"]
+    assert memory.frames == 4 * (7 * 16 * 12 + 2 * 4 * 8 * 6)  # no confidence maps
+    pattern = r"fitting it needs ≈ .* \(frames .*, working memory .*\), more than --max-memory"
+    with pytest.raises(UltronInputError, match=rf"^ds/dataset.json: probe: .*{pattern}"):
+        check_field_grid(tiny_dataset, "ds", mlp, 1e-9)
+
+
+def test_fit_frames_below_the_ssim_window(tiny_dataset: SweepDataset):
+    with pytest.raises(UltronInputError, match=r"^ds/dataset.json: probe: frames of 8 × 6 px"):
+        check_run_resources(tiny_dataset, "ds", mesh=False, field_config=FieldTrainConfig())
+    check_run_resources(
+        tiny_dataset, "ds", mesh=False, field_config=FieldTrainConfig(fit_shape=(8, 7))
+    )
+    with pytest.raises(UltronInputError, match="patch_width"):
+        FieldTrainConfig(patch_width=6)
+
     limit, name = memory_limit(None)
     assert limit > 2**28 and "machine" in name
     assert memory_limit(2.0) == (2.0 * 1024**3, "--max-memory 2 GiB")

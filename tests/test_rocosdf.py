@@ -19,6 +19,8 @@ from ultron.methods.rocosdf import (
     PRESETS,
     Normalisation,
     RoCoSDFConfig,
+    check_views_fusable,
+    cloud_thickness_mm,
     reconstruct_rocosdf,
     view_point_clouds,
 )
@@ -231,6 +233,28 @@ def test_view_without_bone_is_a_clear_error(tiny_dataset: SweepDataset):
     selection = select_label_frames(tiny_dataset, 1.0, 0)
     with pytest.raises(UltronInputError, match="no bone pixel"):
         view_point_clouds(tiny_dataset, selection)
+
+
+def test_a_view_in_one_plane_is_refused_before_any_fit(tiny_dataset: SweepDataset):
+    """One frame per view (the cause of a 400 s run: stage 2 finds almost no fused surface)."""
+    rng = np.random.default_rng(0)
+    plane = np.c_[rng.uniform(0, 30, (200, 2)), np.zeros(200)]
+    rotation = np.linalg.qr(rng.normal(size=(3, 3)))[0]  # an oblique plane
+    assert cloud_thickness_mm(plane @ rotation.T) < 1e-9
+    two_planes = np.r_[plane, plane + np.array([0.0, 0.0, 5.0])]
+    assert cloud_thickness_mm(two_planes) == pytest.approx(5.0)
+    selection = select_label_frames(tiny_dataset, 1.0, 0)
+    clouds = {"row": two_planes, "column": plane @ rotation.T}
+    with pytest.raises(UltronInputError, match=r"^ds: labels: .* the column view's bone points"):
+        check_views_fusable(tiny_dataset, selection, clouds, 0.5, "ds")
+    check_views_fusable(tiny_dataset, selection, {"row": two_planes}, 0.5)
+    one_frame = SweepDataset(
+        tiny_dataset.probe,
+        [replace(s, images=s.images[:1], probe_to_world=s.probe_to_world[:1],
+                 labels=s.labels[:1]) for s in tiny_dataset.sweeps],
+    )  # fmt: skip
+    with pytest.raises(UltronInputError, match="lie in one plane"):
+        reconstruct_rocosdf(one_frame, select_label_frames(one_frame, 1.0, 0), TINY)
 
 
 # --------------------------------------------------------------------------- end to end

@@ -1,4 +1,4 @@
-"""``ultron import-ultranerf`` and ``ultron info``."""
+"""``ultron import-ultranerf``, ``ultron import-plus`` and ``ultron info``."""
 
 from __future__ import annotations
 
@@ -77,6 +77,104 @@ def _safe_name(src: Path) -> str:
 
 
 @user_errors
+def import_plus(
+    sequence: Annotated[
+        Path,
+        typer.Argument(
+            help="PLUS / 3D Slicer sequence: .igs.mha, .seq.mha, .mha, .igs.nrrd, .seq.nrrd"
+            " (raw or compressed)."
+        ),
+    ],
+    config: Annotated[
+        Path,
+        typer.Option("--config", help="PLUS configuration XML holding the Image → Probe matrix."),
+    ],
+    out: Annotated[
+        Path, typer.Option("--out", help="Dataset directory (created, or extended by a new sweep).")
+    ],
+    to: Annotated[
+        str,
+        typer.Option("--to", help="World frame: Reference (moves with the patient) or Tracker."),
+    ] = "Reference",
+    sweep_name: Annotated[
+        str | None,
+        typer.Option("--sweep-name", help="Name of the new sweep [default: the file's stem]."),
+    ] = None,
+    kind: Annotated[
+        str, typer.Option("--kind", help="Sweep kind: row, column, tilted or other.")
+    ] = "other",
+    downsample: Annotated[
+        float,
+        typer.Option(
+            "--downsample",
+            help="Shrink frames by this factor ≥ 1 (area-averaged; spacings updated).",
+        ),
+    ] = 1.0,
+    replace: Annotated[
+        bool, typer.Option("--replace", help="Replace an existing sweep of the same name.")
+    ] = False,
+) -> None:
+    """Import a tracked PLUS / 3D Slicer recording as a sweep (repeat to add sweeps)."""
+    from ultron.data.dataset import SWEEP_KINDS
+    from ultron.data.importers import add_sweep_to_dataset
+    from ultron.data.plus import sequence_stem
+    from ultron.data.plus_import import read_plus
+    from ultron.errors import argument_error
+    from ultron.outputs import check_output_dir
+
+    check_range("--downsample", downsample, 1.0)
+    if kind not in SWEEP_KINDS:
+        raise argument_error("--kind", f"{kind!r} is not one of {', '.join(SWEEP_KINDS)}")
+    check_output_dir(out)
+    name = sweep_name or _safe_name(Path(sequence_stem(sequence)))
+    sweep, probe, report = read_plus(
+        sequence, config, to=to, name=name, kind=kind, downsample=downsample
+    )
+    dataset = add_sweep_to_dataset(
+        out, sweep, probe, replace=replace, sweep_metadata=report.metadata
+    )
+    for line in _plus_summary(report, probe):
+        console.print(line, highlight=False, soft_wrap=True)
+    console.print(
+        f"imported {report.n_frames} frames of {report.image_shape[0]}×{report.image_shape[1]}"
+        f" as sweep {name!r} ({kind}) into {out} ({len(dataset.sweeps)} sweep(s))",
+        highlight=False,
+        soft_wrap=True,
+    )
+
+
+def _plus_summary(report, probe) -> list[str]:
+    """The lines ``import-plus`` prints about the orientation, calibration, frames and world."""
+    fit = report.fit
+    flips = [axis for axis, flip in zip(("columns", "rows"), report.flips, strict=True) if flip]
+    height, width = report.file_shape
+    lines = [
+        f"frames: {report.n_frames_file} of {height}×{width} (rows × columns), orientation"
+        f" {report.orientation} → MF ({'flipped ' + ' and '.join(flips) if flips else 'no flip'})",
+        f"Image → {report.probe_frame}: {fit.spacing_mm[0]:.5f} mm per column ×"
+        f" {fit.spacing_mm[1]:.5f} mm per row; its image axes are {abs(fit.shear_deg):.2f}° from"
+        f" perpendicular: the rigid pose moves pixels by at most {fit.residual_max_mm:.3f} mm"
+        f" (RMS {fit.residual_rms_mm:.3f} mm) from PLUS's map",
+        f"world frame: {report.world} ({report.chain} · ImageToProbe)",
+    ]
+    if report.clip is not None:
+        (i0, j0), (w, h) = report.clip
+        lines.append(f"clip rectangle: origin ({i0}, {j0}), {w} × {h} pixels")
+    skipped = sum(report.skipped.values())
+    reasons = ", ".join(f"{n} × {reason}" for reason, n in sorted(report.skipped.items()))
+    lines.append(
+        f"skipped {skipped} of {report.n_frames_file} frames" + (f": {reasons}" if reasons else "")
+    )
+    if report.downsample != 1:
+        lines.append(f"downsampled by {report.downsample:g} to {probe.height_px}×{probe.width_px}")
+    lines.append(
+        f"probe: {probe.width_mm:.3f} mm wide × {probe.depth_mm:.3f} mm deep; pixel spacing"
+        f" {probe.lateral_spacing_mm:.5f} mm lateral × {probe.axial_spacing_mm:.5f} mm axial"
+    )
+    return lines
+
+
+@user_errors
 def info(
     dataset: Annotated[Path, typer.Argument(help="Dataset directory (ultron-sweeps/1).")],
 ) -> None:
@@ -140,4 +238,5 @@ def _warn_outliers(data) -> None:
 
 def register(app: typer.Typer) -> None:
     app.command("import-ultranerf")(import_ultranerf)
+    app.command("import-plus")(import_plus)
     app.command("info")(info)

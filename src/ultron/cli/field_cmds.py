@@ -4,13 +4,25 @@ from __future__ import annotations
 
 from dataclasses import replace
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 
-from ultron.cli.common import check_count, check_range, check_seed, console, user_errors
+from ultron.cli.common import (
+    check_count,
+    check_range,
+    check_seed,
+    console,
+    err_console,
+    user_errors,
+)
 from ultron.errors import argument_error
 from ultron.outputs import check_output_dir, check_output_file
+
+if TYPE_CHECKING:
+    import numpy as np
+
+    from ultron.fields.fitted import FitProgress
 
 
 def _parse_shape(text: str | None) -> tuple[int, int] | None:
@@ -88,6 +100,22 @@ def fit_field_command(
     check_every: Annotated[
         int, typer.Option("--check-every", help="Held-out check every N steps.")
     ] = 250,
+    checkpoint_every: Annotated[
+        int | None,
+        typer.Option(
+            "--checkpoint-every",
+            help="Save checkpoint.pt (with train_log.jsonl and field.json) every N steps and at"
+            " the last; an interrupted fit resumes from the latest (default: the preset's, 500).",
+        ),
+    ] = None,
+    max_memory: Annotated[
+        float | None,
+        typer.Option(
+            "--max-memory",
+            help="GiB the fit may take: its planes, frames and working memory are estimated"
+            " before any work (default: the machine's memory, or the cgroup's limit).",
+        ),
+    ] = None,
     threads: Annotated[
         int | None, typer.Option("--threads", help="torch CPU threads (default: torch's choice).")
     ] = None,
@@ -104,7 +132,8 @@ def fit_field_command(
 
     An existing checkpoint in --out is resumed if it was fitted on the same dataset (content
     hash in field.json) with the same settings; a larger --iters continues on the learning-rate
-    schedule of the new total."""
+    schedule of the new total, one below the checkpoint's step is an error (--no-resume starts
+    afresh)."""
     check_count("--iters", iters)
     check_range("--scattering-floor", scattering_floor, 0.0, 1.0, high_open=True)
     check_count("--scattering-warmup", scattering_warmup, 0)
@@ -116,6 +145,8 @@ def fit_field_command(
             "--holdout-every", "expected 0 (none) or an integer ≥ 2 (1 holds out every frame)"
         )
     check_count("--check-every", check_every)
+    check_count("--checkpoint-every", checkpoint_every)
+    check_range("--max-memory", max_memory, 0.0, low_open=True)
     check_count("--threads", threads)
     check_output_dir(out)
 
@@ -135,6 +166,7 @@ def fit_field_command(
         "iterations": iters,
         "scattering_warmup_iters": scattering_warmup,
         "confidence_prior_weight": confidence_prior,
+        "checkpoint_every": checkpoint_every,
     }
     if scattering_floor is not None:
         base = field_preset(preset).field.heads
@@ -150,7 +182,7 @@ def fit_field_command(
     )
     if not no_resume:  # a checkpoint of another dataset or configuration: error before the bar
         check_resumable(out, config, data.content_hash())
-    check_run_resources(data, dataset, mesh=False, field_config=config)
+    check_run_resources(data, dataset, mesh=False, field_config=config, max_memory_gib=max_memory)
     columns = (
         TextColumn("[bold]fit-field"),
         BarColumn(),
@@ -224,7 +256,6 @@ def render_command(
 
     from ultron import atomic
     from ultron.data.dataset import SweepDataset
-    from ultron.data.validation import load_npy, validate_poses
     from ultron.fields import load_field
     from ultron.fields.fitted import check_field_dataset
 
@@ -235,15 +266,9 @@ def render_command(
     extras = (".theta.npy", ".transmission.npy", ".maps.json") if maps else ()
     for target in (out, *(out.with_suffix(suffix) for suffix in extras)):
         check_output_file(target, "--out")
+    pose_array = _read_poses(poses, sweep) if poses is not None else None
     fitted = load_field(field_dir)
-    if poses is not None:
-        if sweep is not None:
-            raise argument_error("--sweep", "only valid with --dataset")
-        pose_array = load_npy(poses, "poses")
-        if pose_array.ndim == 2:
-            pose_array = pose_array[None]
-        validate_poses(pose_array, poses, "poses")
-    else:
+    if pose_array is None:
         if sweep is None:
             raise argument_error("--sweep", "required with --dataset")
         data = SweepDataset.load(dataset)
@@ -259,10 +284,40 @@ def render_command(
     else:
         images = fitted.render(pose_array, seed=seed, expected=expected)
     atomic.save_npy(out, np.asarray(images, dtype=np.float32))
+    _warn_unfinished(field_dir, fitted.fit_progress)
     what = "expected" if expected else f"seed {seed}"
     console.print(
         f"rendered {images.shape[0]} frames of {images.shape[1]}×{images.shape[2]} ({what}) to {out}"
         + (f" (+ θ {list(fitted.channels)} and T maps)" if maps else ""),
+        highlight=False,
+    )
+
+
+def _read_poses(poses: Path, sweep: str | None) -> np.ndarray:
+    """``--poses``' (N, 4, 4) probe-to-world poses (one (4, 4) pose: N = 1), checked like a
+    dataset's: rigid and finite, no outlier frame (:mod:`ultron.data.outliers`)."""
+    from ultron.data.outliers import check_pose_array_outliers
+    from ultron.data.validation import load_npy, validate_poses
+
+    if sweep is not None:
+        raise argument_error("--sweep", "only valid with --dataset")
+    pose_array = load_npy(poses, "poses")
+    if pose_array.ndim == 2:
+        pose_array = pose_array[None]
+    validate_poses(pose_array, poses, "poses")
+    check_pose_array_outliers(pose_array, poses)
+    return pose_array
+
+
+def _warn_unfinished(field_dir: Path, progress: FitProgress | None) -> None:
+    """One ``warning:`` line on stderr when the field's fit stopped before its iterations."""
+    if progress is None or progress.finished:
+        return
+    err_console.print(
+        f"warning: {field_dir / 'field.json'}: the field's fit stopped at step {progress.step}"
+        f" of {progress.iterations} (interrupted?), so these frames come from an unfinished"
+        " field; run `ultron fit-field` again with the same --out to finish it",
+        markup=False,
         highlight=False,
     )
 

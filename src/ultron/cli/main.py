@@ -11,6 +11,7 @@ from ultron.cli import (
     field_cmds,
     phantom_cmds,
     reconstruct_cmds,
+    volume_cmds,
 )
 
 app = typer.Typer(
@@ -26,6 +27,7 @@ eval_cmds.register(app)
 field_cmds.register(app)
 phantom_cmds.register(app)
 reconstruct_cmds.register(app)
+volume_cmds.register(app)
 benchmark_cmds.register(app)
 
 

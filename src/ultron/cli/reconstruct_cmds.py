@@ -13,8 +13,8 @@ MaxMemory = Annotated[
     float | None,
     typer.Option(
         "--max-memory",
-        help="GiB the run's grids may take (estimated before any work) [default: the machine's"
-        " memory].",
+        help="GiB the run's grids may take, estimated before any work (default: the machine's"
+        " memory).",
     ),
 ]
 
@@ -75,6 +75,7 @@ def _request(
     surface: str = "observed",
     theta_context: str = "1,2",
     positive_weight: str = "1",
+    negatives: str = "observed",
 ):
     from dataclasses import replace
 
@@ -88,7 +89,7 @@ def _request(
     from ultron.train.visibility import visibility_config
 
     occupancy = OccupancyTrainConfig(
-        seed=seed, positive_weight=parse_positive_weight(positive_weight)
+        seed=seed, positive_weight=parse_positive_weight(positive_weight), negatives=negatives
     )
     if occupancy_iters is not None:
         occupancy = replace(occupancy, iters=occupancy_iters)
@@ -175,8 +176,9 @@ def reconstruct(
         str,
         typer.Option(
             "--surface",
-            help="ultron*: observed (keep the faces some frame saw facing the probe with"
-            " T ≥ 0.3 above them, default) or all (the closed iso-surface).",
+            help="ultron* and compounding: observed (keep the faces some frame saw facing the"
+            " probe with T ≥ 0.3 above them — compounding: T = 1 —, default) or all (the"
+            " closed iso-surface).",
         ),
     ] = "observed",
     theta_context: Annotated[
@@ -196,6 +198,15 @@ def reconstruct(
             " accurate surface, e.g. for very short runs).",
         ),
     ] = "1",
+    negatives: Annotated[
+        str,
+        typer.Option(
+            "--negatives",
+            help="ultron: background labels in the compensated loss: 'observed' (full weight"
+            " where T ≥ 0.3, none below: only observed free space is evidence) or 'weighted'"
+            " (scaled by T: the paper's BCE(T·f, y)).",
+        ),
+    ] = "observed",
     allow_other_field: Annotated[
         bool,
         typer.Option(
@@ -217,7 +228,7 @@ def reconstruct(
 
     request = _request(
         method, label_fraction, seed, occupancy_iters, points, preset, visibility,
-        oracle_transmission, surface, theta_context, positive_weight,
+        oracle_transmission, surface, theta_context, positive_weight, negatives,
     )  # fmt: skip
     bar, update = _field_progress()
     with bar:

@@ -13,6 +13,7 @@ from ultron.data.geometry import (
     scanline_sample_points,
 )
 from ultron.data.importers import add_sweep_to_dataset, read_ultranerf
+from ultron.data.plus_import import read_plus
 
 __all__ = [
     "FORMAT",
@@ -27,6 +28,7 @@ __all__ = [
     "frame_pixels_world",
     "pixel_to_world",
     "probe_points_mm",
+    "read_plus",
     "read_ultranerf",
     "sample_depths_mm",
     "scanline_rays",

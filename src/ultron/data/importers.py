@@ -18,6 +18,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -227,11 +228,14 @@ def add_sweep_to_dataset(
     probe: ProbeGeometry,
     replace: bool = False,
     tolerance_mm: float = 1e-9,
+    sweep_metadata: dict[str, Any] | None = None,
 ) -> SweepDataset:
     """Add ``sweep`` to the dataset at ``out`` (created if absent) and save it atomically.
 
     An existing dataset must have the same probe geometry; a sweep of the same name is an error
-    unless ``replace`` is true, in which case it is replaced in place.
+    unless ``replace`` is true, in which case it is replaced in place. ``sweep_metadata`` (the
+    import's provenance) is kept in ``dataset.json``'s metadata under ``"imports"`` → sweep
+    name; a replaced sweep's earlier entry is dropped.
     """
     out = check_output_dir(out, "out")
     if (out / "dataset.json").exists():
@@ -258,11 +262,36 @@ def add_sweep_to_dataset(
             sweeps.insert(names.index(sweep.name), sweep)
         else:
             sweeps.append(sweep)
-        dataset = SweepDataset(dataset.probe, sweeps, dataset.reference, dataset.metadata)
+        dataset = SweepDataset(
+            dataset.probe,
+            sweeps,
+            dataset.reference,
+            _with_import(dataset.metadata, sweep.name, sweep_metadata),
+            reference_visible_path=dataset.reference_visible_path,
+        )
         dataset.save(out, only_sweeps=[sweep.name])
         return dataset
     if out.exists() and any(out.iterdir()):
         raise UltronInputError(out, "out", "exists, is not empty and holds no dataset.json")
-    dataset = SweepDataset(probe=probe, sweeps=[sweep])
+    metadata = _with_import({}, sweep.name, sweep_metadata)
+    dataset = SweepDataset(probe=probe, sweeps=[sweep], metadata=metadata)
     dataset.save(out)
     return dataset
+
+
+def _with_import(
+    metadata: dict[str, Any], name: str, entry: dict[str, Any] | None
+) -> dict[str, Any]:
+    """``metadata`` with ``imports[name]`` set to ``entry`` (removed when None)."""
+    imports = metadata.get("imports")
+    if not isinstance(imports, dict):
+        if entry is None:
+            return metadata
+        imports = {}
+    imports = {key: value for key, value in imports.items() if key != name}
+    if entry is not None:
+        imports[name] = entry
+    updated = {key: value for key, value in metadata.items() if key != "imports"}
+    if imports:
+        updated["imports"] = imports
+    return updated

@@ -40,24 +40,27 @@ class PoseOutlier:
     threshold_mm: float
 
     def describe(self) -> str:
-        """``sweep row, frame 3: pose translation (1e+06, 0, 0) mm lies 1e+06 mm from …``."""
+        """``sweep row, frame 3: pose translation (1e+06, 0, 0) mm lies 1e+06 mm from …``
+        (without the sweep for poses of no sweep, ``sweep`` empty)."""
         x, y, z = self.translation_mm
+        sweep = f"sweep {self.sweep}, " if self.sweep else ""
         return (
-            f"sweep {self.sweep}, frame {self.frame}: pose translation ({x:.4g}, {y:.4g}, {z:.4g})"
+            f"{sweep}frame {self.frame}: pose translation ({x:.4g}, {y:.4g}, {z:.4g})"
             f" mm lies {self.distance_mm:.4g} mm from the median position of all frames, more"
             f" than {OUTLIER_FACTOR:g} × their median distance {self.median_distance_mm:.3g} mm"
             f" + {OUTLIER_FLOOR_MM:g} mm = {self.threshold_mm:.4g} mm"
         )
 
 
-def pose_outliers(dataset: SweepDataset) -> list[PoseOutlier]:
-    """Every outlier frame of ``dataset`` (module doc), in sweep and frame order."""
-    translations = dataset.all_poses()[:, :3, 3]
+def _outliers(poses: np.ndarray, names: np.ndarray, frames: np.ndarray) -> list[PoseOutlier]:
+    """The outliers (module doc) among ``poses`` (N, 4, 4) mm, frame i named by
+    (``names[i]``, ``frames[i]``)."""
+    translations = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)[:, :3, 3]
+    if translations.shape[0] == 0:
+        return []
     distance = np.linalg.norm(translations - np.median(translations, axis=0), axis=1)
     median_distance = float(np.median(distance))
     threshold = OUTLIER_FACTOR * median_distance + OUTLIER_FLOOR_MM
-    names = np.concatenate([[s.name] * s.n_frames for s in dataset.sweeps])
-    frames = np.concatenate([np.arange(s.n_frames) for s in dataset.sweeps])
     return [
         PoseOutlier(
             str(names[i]),
@@ -69,6 +72,20 @@ def pose_outliers(dataset: SweepDataset) -> list[PoseOutlier]:
         )
         for i in np.flatnonzero(distance > threshold)
     ]
+
+
+def pose_outliers(dataset: SweepDataset) -> list[PoseOutlier]:
+    """Every outlier frame of ``dataset`` (module doc), in sweep and frame order."""
+    names = np.concatenate([[s.name] * s.n_frames for s in dataset.sweeps])
+    frames = np.concatenate([np.arange(s.n_frames) for s in dataset.sweeps])
+    return _outliers(dataset.all_poses(), names, frames)
+
+
+def pose_array_outliers(poses: np.ndarray) -> list[PoseOutlier]:
+    """Every outlier among poses (N, 4, 4) of no sweep (e.g. ``ultron render --poses``), by
+    the same rule (module doc), in frame order; their ``sweep`` is empty."""
+    n = int(np.asarray(poses).reshape(-1, 4, 4).shape[0])
+    return _outliers(poses, np.full(n, ""), np.arange(n))
 
 
 def check_pose_outliers(dataset: SweepDataset, root: str | Path | None = None) -> None:
@@ -85,4 +102,19 @@ def check_pose_outliers(dataset: SweepDataset, root: str | Path | None = None) -
         "poses",
         f"{first.describe()}{more}; a tracking glitch or a unit error? Every grid is sized on"
         " the scanned volume: fix or remove the frame (`ultron info` lists the outliers)",
+    )
+
+
+def check_pose_array_outliers(poses: np.ndarray, where: str | Path) -> None:
+    """Refuse poses (N, 4, 4) of no sweep holding an outlier (:func:`pose_array_outliers`): a
+    one-line error naming ``where`` (the file they came from) and the first outlier frame."""
+    outliers = pose_array_outliers(poses)
+    if not outliers:
+        return
+    more = f" ({len(outliers)} outlier frames in all)" if len(outliers) > 1 else ""
+    raise UltronInputError(
+        where,
+        "poses",
+        f"{outliers[0].describe()}{more}; a tracking glitch or a unit error? Fix or remove"
+        " the frame",
     )

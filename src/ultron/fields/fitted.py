@@ -6,10 +6,16 @@ FIELD_DIR layout (written by :func:`ultron.train.fit_field`, every file atomical
                       :meth:`SweepDataset.content_hash`; absent in fields fitted before it was
                       recorded), field config (sizes resolved), render config, probe geometry
                       the field was fitted at, world ↔ unit-cube transform, training config, step
-    checkpoint.pt     {"model", "optimizer", "step", "generator"} (torch.save; older ones also
-                      hold an unused "scheduler")
+    checkpoint.pt     {"model", "optimizer", "step", "iterations", "generator"} (torch.save;
+                      "iterations" is the configured total, absent in older ones, which may
+                      also hold an unused "scheduler")
     theta_stats.json  per-channel mean / std of θ over the training frames (stage 2 normalises θ)
-    train_log.jsonl   one JSON object per logged step
+    train_log.jsonl   one JSON object per logged step, every one up to the checkpoint's step
+                      (written before the checkpoint, so it may run ahead of it by one
+                      checkpoint interval after a kill; a resumed fit drops those entries)
+
+A fit saves its files in the order train_log.jsonl, checkpoint.pt, field.json: the checkpoint
+is the commit point, and its ``step`` is the authority on the progress (:class:`FitProgress`).
 """
 
 from __future__ import annotations
@@ -36,6 +42,20 @@ FIELD_JSON = "field.json"
 CHECKPOINT = "checkpoint.pt"
 THETA_STATS = "theta_stats.json"
 TRAIN_LOG = "train_log.jsonl"
+#: Frames rendered at once by :meth:`FittedField.render` / :meth:`FittedField.render_maps`.
+RENDER_CHUNK_FRAMES = 8
+
+
+@dataclass(frozen=True)
+class FitProgress:
+    """How far a field's fit got: the checkpoint's ``step`` of ``iterations`` configured."""
+
+    step: int
+    iterations: int
+
+    @property
+    def finished(self) -> bool:
+        return self.step >= self.iterations
 
 
 @dataclass(frozen=True)
@@ -96,6 +116,7 @@ class FittedField:
         probe: ProbeGeometry,
         render_config: RenderConfig,
         theta_stats: ThetaStatistics | None = None,
+        fit_progress: FitProgress | None = None,
     ) -> None:
         self.field = field.eval()
         self.field_config = field_config
@@ -103,6 +124,8 @@ class FittedField:
         self.probe = probe
         self.render_config = render_config
         self.theta_stats = theta_stats
+        #: the fit's progress where known (:func:`load_field` reads it from the checkpoint)
+        self.fit_progress = fit_progress
 
     @property
     def channels(self) -> tuple[str, ...]:
@@ -167,7 +190,7 @@ class FittedField:
         probe_to_world: np.ndarray | torch.Tensor,
         seed: int = 0,
         expected: bool = False,
-        chunk_frames: int = 8,
+        chunk_frames: int = RENDER_CHUNK_FRAMES,
     ) -> np.ndarray:
         """B-mode frames (N, H, W) float32 in [0, 1] at the field's probe geometry.
 
@@ -185,7 +208,7 @@ class FittedField:
         probe_to_world: np.ndarray | torch.Tensor,
         seed: int = 0,
         expected: bool = False,
-        chunk_frames: int = 8,
+        chunk_frames: int = RENDER_CHUNK_FRAMES,
     ) -> FieldMaps:
         """B-mode plus θ maps (N, H, W, C) and the transmission T (N, H, W) per frame."""
         poses = self._poses(probe_to_world)
@@ -346,4 +369,20 @@ def load_field(field_dir: str | Path) -> FittedField:
     stats_path = root / THETA_STATS
     if stats_path.is_file():
         stats = ThetaStatistics.from_dict(json.loads(stats_path.read_text(encoding="utf-8")))
-    return FittedField(module, field_config, unit_cube, probe, render_config, stats)
+    progress = fit_progress(meta, checkpoint)
+    return FittedField(module, field_config, unit_cube, probe, render_config, stats, progress)
+
+
+def fit_progress(meta: dict[str, Any], checkpoint: dict[str, Any]) -> FitProgress | None:
+    """The fit's progress: the checkpoint's ``step`` of its ``iterations`` (field.json's
+    ``train.iterations`` for a checkpoint from before it was saved); None if either is
+    missing or not an integer."""
+    step = checkpoint.get("step")
+    iterations = checkpoint.get("iterations")
+    if iterations is None:
+        train = meta.get("train")
+        iterations = train.get("iterations") if isinstance(train, dict) else None
+    values = (step, iterations)
+    if any(isinstance(v, bool) or not isinstance(v, int) for v in values):
+        return None
+    return FitProgress(int(step), int(iterations))

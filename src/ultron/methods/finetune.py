@@ -92,6 +92,7 @@ class FinetuneConfig:
         return OccupancyTrainConfig(
             loss=model.loss,
             positive_weight=model.positive_weight,
+            negatives=model.negatives,
             iters=self.iters,
             batch_size=self.batch_size,
             lr=self.lr,

@@ -13,9 +13,14 @@ refuses such a run at once with a one-line error saying which input made it so:
    volumes, the masks, marching cubes and the constrained smoothing's arrays; ≈ 0.4 GB for the
    demo's 6 M voxels, whose meshing stage measured 0.77 GB peak RSS including the process —
    against the memory limit;
-3. for a field that will be fitted, the grid backend's planes (finest cell = pixel spacing at
-   the fit resolution; at most ``fields.grid.MAX_RESOLUTION`` nodes per side) at
-   :data:`FIELD_BYTES_PER_VALUE` bytes per plane value (weight, gradient, Adam's two moments).
+3. for a field that will be fitted (:func:`field_fit_memory`): the grid backend's planes
+   (finest cell = pixel spacing at the fit resolution; at most ``fields.grid.MAX_RESOLUTION``
+   nodes per side) at :data:`FIELD_BYTES_PER_VALUE` bytes per plane value (weight, gradient,
+   Adam's two moments), the frames at the fit resolution (float32, twice with the confidence
+   prior's maps, plus the largest sweep's float32 copy while resampling), the larger of a
+   training step's and a no-gradient render chunk's working memory (samples ×
+   :data:`FIELD_TRAIN_BYTES_PER_SAMPLE` / :data:`FIELD_RENDER_BYTES_PER_SAMPLE`) and
+   :data:`FIELD_FIXED_BYTES`. The process itself (Python, torch: ≈ 0.4 GB) is not counted.
 
 The memory limit is ``--max-memory`` (GiB) where given, else this machine's memory (physical
 memory, or the cgroup's limit where lower).
@@ -25,6 +30,7 @@ from __future__ import annotations
 
 import math
 import os
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -39,6 +45,17 @@ if TYPE_CHECKING:
 MESH_BYTES_PER_VOXEL = 64
 #: Bytes per value of the field's planes while fitting: float32 weight, gradient, Adam m and v.
 FIELD_BYTES_PER_VALUE = 16
+#: A field fit's working memory per rendered sample, bytes, per backend: a training step keeps
+#: the autograd tape of its patches' samples (frames_per_batch × patch_width × rows); peak RSS
+#: grew by ≈ 0.86 kB (grid) and ≈ 8.7 kB (the paper's 8 × 128 MLP) per sample with the batch
+#: (L3 phantom, 128 × 96 frames, torch 2 on CPU). Rounded up.
+FIELD_TRAIN_BYTES_PER_SAMPLE = {"grid": 1024, "mlp": 10 * 1024}
+#: … and the no-gradient renders of the held-out checks and θ statistics (RENDER_CHUNK_FRAMES
+#: whole frames at once): ≈ 0.37 kB (grid) and ≈ 2.0 kB (MLP) per sample measured.
+FIELD_RENDER_BYTES_PER_SAMPLE = {"grid": 512, "mlp": 2560}
+#: A field fit's working memory independent of its size (optimiser, allocator): ≈ 65 MiB
+#: measured above the import baseline for a one-frame-batch fit of a 4-frame dataset.
+FIELD_FIXED_BYTES = 64 * 1024**2
 _GIB = 1024**3
 
 
@@ -123,6 +140,62 @@ def check_meshing_grid(
     )  # fmt: skip
 
 
+@dataclass(frozen=True)
+class FieldFitMemory:
+    """A field fit's estimated memory (bytes, module doc 3) and its grid's plane sides."""
+
+    resolutions: tuple[int, ...]
+    planes: float
+    frames: float
+    working: float
+    fixed: float = FIELD_FIXED_BYTES
+
+    @property
+    def total(self) -> float:
+        return self.planes + self.frames + self.working + self.fixed
+
+    def describe(self) -> str:
+        """``planes of [237, 59] nodes per side 21.2 MiB, frames 28.1 MiB, …, fixed 64 MiB``."""
+        planes = f"planes of {list(self.resolutions)} nodes per side" if self.resolutions else ""
+        parts = [(planes, self.planes), ("frames", self.frames)]
+        parts += [("working memory", self.working), ("fixed", self.fixed)]
+        return ", ".join(f"{name} {_size(n)}" for name, n in parts if name)
+
+
+def field_fit_memory(dataset: SweepDataset, config: FieldTrainConfig) -> FieldFitMemory:
+    """The memory a fit of ``config`` to ``dataset`` will take (module doc 3), from the
+    dataset's shapes and the options alone. Raises the grid's :class:`UltronInputError` when
+    its finest plane would exceed ``MAX_RESOLUTION`` nodes per side."""
+    from ultron.data.geometry import UnitCube, field_of_view_bounds_mm
+    from ultron.fields.fitted import RENDER_CHUNK_FRAMES
+    from ultron.train.frames import resampled_probe
+
+    backend = config.field.backend
+    probe = resampled_probe(dataset.probe, config.fit_shape)
+    resolutions: tuple[int, ...] = ()
+    values = 0
+    if backend == "grid":
+        cube = UnitCube.from_bounds(field_of_view_bounds_mm(dataset.all_poses(), probe))
+        pixel = min(probe.axial_spacing_mm, probe.lateral_spacing_mm)
+        grid_config = config.field.grid
+        resolutions = grid_config.resolved(cube.half_extent_mm, pixel).resolutions or ()
+        channels = [grid_config.features] + [grid_config.coarse_features] * (len(resolutions) - 1)
+        values = sum(3 * c * r * r for c, r in zip(channels, resolutions, strict=True))
+    rows, cols = probe.image_shape
+    native = max((s.n_frames for s in dataset.sweeps), default=0) * math.prod(
+        dataset.probe.image_shape
+    )
+    maps = 2 if config.confidence_prior_weight > 0 else 1
+    n_frames = sum(s.n_frames for s in dataset.sweeps)
+    frames = 4.0 * (n_frames * rows * cols * maps + 2 * native)
+    train = config.frames_per_batch * min(config.patch_width, cols) * rows
+    working = max(
+        float(train) * FIELD_TRAIN_BYTES_PER_SAMPLE[backend],
+        float(RENDER_CHUNK_FRAMES * rows * cols) * FIELD_RENDER_BYTES_PER_SAMPLE[backend],
+    )
+    return FieldFitMemory(resolutions, float(values) * FIELD_BYTES_PER_VALUE, frames, working)
+
+
 def check_field_grid(
     dataset: SweepDataset,
     root: str | Path,
@@ -130,15 +203,10 @@ def check_field_grid(
     max_memory_gib: float | None,
 ) -> None:
     """Refuse a field fit of ``config`` whose grid planes (module doc, 3) exceed the backend's
-    largest side or the memory limit."""
-    from ultron.data.geometry import UnitCube, field_of_view_bounds_mm
+    largest side, or whose estimated memory (:func:`field_fit_memory`) exceeds the limit."""
     from ultron.train.frames import resampled_probe
 
-    if config.field.backend != "grid":
-        return
     probe = resampled_probe(dataset.probe, config.fit_shape)
-    cube = UnitCube.from_bounds(field_of_view_bounds_mm(dataset.all_poses(), probe))
-    pixel = min(probe.axial_spacing_mm, probe.lateral_spacing_mm)
     where = Path(root) / "dataset.json"
     cause = (
         f"the finest cell is the probe's finer pixel spacing at the fit resolution"
@@ -146,19 +214,22 @@ def check_field_grid(
         " `ultron fit-field` and pass it with --field"
     )
     try:
-        grid = config.field.grid.resolved(cube.half_extent_mm, pixel)
+        memory = field_fit_memory(dataset, config)
     except UltronInputError as exc:
         raise UltronInputError(where, "probe", f"acoustic field: {exc.problem}; {cause}") from None
-    grid_config = config.field.grid
-    channels = [grid_config.features] + [grid_config.coarse_features] * (len(grid.resolutions) - 1)
-    values = sum(3 * c * r * r for c, r in zip(channels, grid.resolutions, strict=True))
-    needed = float(values) * FIELD_BYTES_PER_VALUE
     limit, limit_name = memory_limit(max_memory_gib)
-    if needed > limit:
-        raise UltronInputError(
-            where, "probe", f"acoustic field: planes of {list(grid.resolutions)} nodes per side"
-            f" need ≈ {_size(needed)} to fit, more than {limit_name}; {cause}",
-        )  # fmt: skip
+    if memory.total <= limit:
+        return
+    if memory.planes < max(memory.frames, memory.working):
+        n_frames = sum(s.n_frames for s in dataset.sweeps)
+        cause = (
+            f"{n_frames} frames of {probe.height_px} × {probe.width_px} px at the fit"
+            " resolution; fit at a smaller --fit-shape"
+        )
+    raise UltronInputError(
+        where, "probe", f"acoustic field: fitting it needs ≈ {_size(memory.total)}"
+        f" ({memory.describe()}), more than {limit_name}; {cause}",
+    )  # fmt: skip
 
 
 def check_run_resources(
@@ -171,10 +242,13 @@ def check_run_resources(
 ) -> None:
     """Before any work: no outlier pose, the meshing grid (when ``mesh``: every method but
     RoCoSDF/UNSR, whose grid has a fixed resolution) and a field to fit (``field_config``,
-    when one may be fitted) within the memory limit. ``root`` is the dataset
-    directory, named in the errors."""
+    when one may be fitted) within the memory limit, the latter's frames no smaller than the
+    loss's SSIM window. ``root`` is the dataset directory, named in the errors."""
+    from ultron.train.field_fit import check_fit_frames
+
     check_pose_outliers(dataset, root)
     if mesh:
         check_meshing_grid(dataset, root, voxel_mm, max_memory_gib)
     if field_config is not None:
         check_field_grid(dataset, root, field_config, max_memory_gib)
+        check_fit_frames(dataset.probe, field_config, Path(root) / "dataset.json")

@@ -19,6 +19,13 @@ lattice anchored at the world origin, shared by both groups) and replaced by the
 occupied voxels — the code's input is the segmented volumetric mask as a point cloud. No hole
 filling is done between frames: each voxel holds what was observed.
 
+RoCoSDF (two views) refuses a view whose bone points lie in one plane (:func:`check_views_fusable`):
+from a single frame (or frames at one position) the view's SDF is a thin shell around a planar
+curve, the fused f_csg has a zero level only where the two shells cross, and stage 2's
+near-surface sampling then accepts 40–55 of 200,000 candidates per round (≈ 2,600 on the
+60-frame L3 at 10 % labels; 0 with one frame per sweep): it would run all 200 rounds (≈ 3.6 s
+each on one busy core: ≈ 12 min) after stage 1's usual minutes, measured on one-frame L3.
+
 Normalisation (:class:`Normalisation`): ONE transform for all views, u = (x − c)/s with c the
 centre of the union's bounding box and s its largest extent (mm), so the data lies in
 [−0.5, 0.5]³; every output is mapped back to mm. UNSR on a single view uses the same
@@ -286,6 +293,48 @@ def view_point_clouds(
     return clouds
 
 
+#: A view's bone points must span at least this many voxels (or finest pixel spacings, without
+#: voxels) across their thinnest direction: one plane's voxel centres span up to √3 voxels.
+MIN_THICKNESS_VOXELS = 2.0
+
+
+def cloud_thickness_mm(points_mm: np.ndarray) -> float:
+    """Extent (mm) of points (N, 3) along their thinnest principal direction (0 for < 3)."""
+    points = np.asarray(points_mm, dtype=np.float64).reshape(-1, 3)
+    if len(points) < 3:
+        return 0.0
+    centred = points - points.mean(axis=0)
+    _, vectors = np.linalg.eigh(centred.T @ centred)
+    return float(np.ptp(centred @ vectors[:, 0]))
+
+
+def check_views_fusable(
+    dataset: SweepDataset,
+    selection: FrameSelection,
+    clouds_mm: dict[str, np.ndarray],
+    voxel_mm: float | None,
+    dataset_name: str | None = None,
+) -> None:
+    """Refuse (one-line :class:`UltronInputError`) a view whose bone points lie in one plane:
+    RoCoSDF's fusion needs each view spread across frames at different positions (module doc)."""
+    probe = dataset.probe
+    spacing = voxel_mm or min(probe.axial_spacing_mm, probe.lateral_spacing_mm)
+    needed = MIN_THICKNESS_VOXELS * spacing
+    for view, points in clouds_mm.items():
+        thickness = cloud_thickness_mm(points)
+        if thickness >= needed:
+            continue
+        names = [s.name for s in dataset.sweeps if s.kind in VIEW_KINDS[view]]
+        n_frames = sum(len(selection.frames.get(name, ())) for name in names)
+        raise UltronInputError(
+            dataset_name or "dataset", "labels", f"RoCoSDF fuses two views, but the {view}"
+            f" view's bone points lie in one plane ({thickness:.2g} mm across it, from"
+            f" {n_frames} selected frame(s) of sweeps {names}), so its fusion would find almost"
+            f" no surface and run for many minutes; each view needs bone labelled in frames"
+            f" ≥ {needed:g} mm apart: use more frames (--label-fraction) or unsr-row / unsr-col",
+        )  # fmt: skip
+
+
 # ---------------------------------------------------------------------------------- meshing
 def _stage_generator(seed: int, label: str) -> torch.Generator:
     """An independent generator per stage, so ``unsr-row`` reproduces RoCoSDF's row field."""
@@ -348,6 +397,26 @@ def mesh_sdf(
 
 
 # ----------------------------------------------------------------------------- reconstruct
+def _input_clouds(
+    dataset: SweepDataset,
+    selection: FrameSelection,
+    config: RoCoSDFConfig,
+    views: tuple[str, ...],
+    dataset_name: str | None,
+) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+    """(the ``views``' bone clouds in mm, checked to be fusable for RoCoSDF, and the clouds
+    that set the normalisation: UNSR on one view normalises like RoCoSDF when it can)."""
+    clouds_mm = view_point_clouds(dataset, selection, config.voxel_mm, views, dataset_name)
+    if len(views) > 1:
+        check_views_fusable(dataset, selection, clouds_mm, config.voxel_mm, dataset_name)
+    frame_clouds = dict(clouds_mm)
+    for other in VIEWS:
+        if other not in frame_clouds:
+            with contextlib.suppress(UltronInputError):
+                frame_clouds |= view_point_clouds(dataset, selection, config.voxel_mm, (other,))
+    return clouds_mm, frame_clouds
+
+
 def reconstruct_rocosdf(
     dataset: SweepDataset,
     selection: FrameSelection,
@@ -376,17 +445,11 @@ def reconstruct_rocosdf(
         return timer.stage(name) if timer is not None else contextlib.nullcontext()
 
     with stage("rocosdf_points"):
-        clouds_mm = view_point_clouds(dataset, selection, config.voxel_mm, views, dataset_name)
-        frame_clouds = dict(clouds_mm)
-        for other in VIEWS:  # UNSR on one view still normalises like RoCoSDF when it can
-            if other not in frame_clouds:
-                with contextlib.suppress(UltronInputError):
-                    frame_clouds |= view_point_clouds(dataset, selection, config.voxel_mm, (other,))
+        clouds_mm, frame_clouds = _input_clouds(dataset, selection, config, views, dataset_name)
         normalisation = Normalisation.from_points(frame_clouds.values())
         clouds_unit = {v: normalisation.to_unit(p) for v, p in clouds_mm.items()}
         frame_unit = [normalisation.to_unit(p) for p in frame_clouds.values()]
-    stage1: dict[str, Any] = {}
-    fits = {}
+    fits, stage1 = {}, {}
     with stage("rocosdf_stage1"):
         for view in views:
             fit = fit_view_sdf(
@@ -417,11 +480,7 @@ def reconstruct_rocosdf(
                 _stage_generator(seed, "stage2"),
                 candidate_bounds=data_box_unit(frame_unit, config.mesh_margin),
             )
-        info["stage2"] = {
-            "n_grid": samples.n_grid,
-            "n_surface": samples.n_surface,
-            "rounds": samples.rounds,
-        }
+        info["stage2"] = {k: getattr(samples, k) for k in ("n_grid", "n_surface", "rounds")}
         with stage("rocosdf_stage3"):
             refined = fit_refined_sdf(
                 samples, config.refine, _stage_generator(seed, "stage3"), progress

@@ -24,6 +24,7 @@ from ultron.errors import argument_error
 from ultron.mesh.compounding import CompoundingConfig, compound_labels
 from ultron.mesh.export import load_mesh, save_mesh, save_volume_nifti
 from ultron.mesh.extract import extract_surface
+from ultron.mesh.observed import ObservedSurfaceConfig
 from ultron.methods.model_io import save_network
 from ultron.methods.on_method import ONConfig, reconstruct_on
 from ultron.methods.resources import check_run_resources
@@ -78,9 +79,11 @@ def run_method(
     fitted,
     timer: StageTimer,
     truth: dict[str, Any] | None = None,
+    dataset_name: str | None = None,
 ) -> Reconstruction:
     """Reconstruct with ``request.method`` (``fitted`` is the acoustic field, for UltrON;
-    ``truth`` the oracle's true transmission per sweep, see :mod:`ultron.train.visibility`)."""
+    ``truth`` the oracle's true transmission per sweep, see :mod:`ultron.train.visibility`;
+    ``dataset_name``, e.g. its directory, names the dataset in RoCoSDF's input errors)."""
     from ultron.data.labels import select_label_frames
 
     if request.method in FIELD_METHODS:
@@ -110,19 +113,56 @@ def run_method(
             request.seed,
             SDF_VIEWS[request.method],
             timer=timer,
+            dataset_name=dataset_name,
         )
     with timer.stage("labels"):
         selection = select_label_frames(dataset, request.label_fraction, request.seed)
     with timer.stage("mesh"):
         compounded = compound_labels(dataset, selection, request.compounding)
         mesh = extract_surface(compounded.volume, compounded.grid, request.ultron.extraction)
+    with timer.stage("mesh_observed"):
+        mesh, surface_info = keep_faced_surface(
+            mesh, dataset, compounded.grid.voxel_mm, request.ultron.observed
+        )
     info = {
+        **surface_info,
         "selection": selection.to_dict(),
         "n_label_frames": selection.n_frames,
         "hole_fill_radius_mm": compounded.hole_fill_radius_mm,
         "compounding_config": request.compounding.__dict__,
     }
     return Reconstruction(mesh=mesh, volume=compounded.volume, grid=compounded.grid, info=info)
+
+
+def keep_faced_surface(
+    mesh, dataset: SweepDataset, voxel_mm: float, observed: ObservedSurfaceConfig
+) -> tuple[Any, dict[str, Any]]:
+    """Label compounding's observed surface (``--surface observed``, the default): the faces
+    some frame saw facing the probe (:mod:`ultron.mesh.observed`'s criterion with T ≡ 1 — the
+    baseline has no transmission — over every frame, in the slab UltrON's crop uses). It drops
+    the floor and walls of the compounded label band, which no frame sees from above. When no
+    face is kept the whole iso-surface is, and ``surface_fallback`` says so."""
+    import numpy as np
+
+    from ultron.mesh.observed import observed_points, observed_submesh
+    from ultron.methods.ultron_method import elevation_half_thickness_mm
+
+    info: dict[str, Any] = {"surface": observed.to_dict(), "faces_extracted": len(mesh.faces)}
+    if observed.surface == "all" or len(mesh.faces) == 0:
+        return mesh, info | {"faces_kept": len(mesh.faces)}
+    probe = dataset.probe
+    ones = np.broadcast_to(np.ones((1, *probe.image_shape), np.float32),
+                           (dataset.n_frames, *probe.image_shape))  # fmt: skip
+    seen = observed_points(
+        np.asarray(mesh.vertices), np.asarray(mesh.vertex_normals), dataset.all_poses(), probe,
+        ones, elevation_half_thickness_mm(dataset, voxel_mm), observed.max_incidence_deg,
+        observed.min_transmission,
+    )  # fmt: skip
+    kept = observed_submesh(mesh, seen)
+    info |= {"observation_transmission": "none (T = 1)"}
+    if len(kept.faces) == 0:
+        return mesh, info | {"faces_kept": len(mesh.faces), "surface_fallback": "all"}
+    return kept, info | {"faces_kept": len(kept.faces)}
 
 
 #: The reference mesh and its visible part (each None when the dataset has none).
@@ -255,17 +295,20 @@ def reconstruct(
     with timer.stage("load"):
         dataset, references = prepare_run(
             out_dir, "reconstruct", dataset_dir, (field_dir,), _meshing_voxel(request),
-            request.method not in SDF_VIEWS, to_fit, max_memory_gib,
+            request.method not in SDF_VIEWS, None, max_memory_gib,
         )  # fmt: skip
-        # the oracle's files are checked before any work (field fit, outputs)
+        # the oracle's files (an input) before the field to fit (its memory and frame size)
         truth = load_oracle_truth(request.ultron.visibility, dataset_dir, dataset)
+        if to_fit is not None:
+            check_run_resources(dataset, dataset_dir, mesh=False, field_config=to_fit,
+                                max_memory_gib=max_memory_gib)  # fmt: skip
     fitted, extra = None, {}
     if request.method in FIELD_METHODS:
         with timer.stage("field"):
             fitted, extra = load_or_fit_field(
                 dataset_dir, dataset, field_dir, field_config, progress, allow_other_field
             )
-    result = run_method(dataset, request, fitted, timer, truth)
+    result = run_method(dataset, request, fitted, timer, truth, dataset_name=str(dataset_dir))
     identity = {
         "command": "reconstruct",
         "method": request.method,

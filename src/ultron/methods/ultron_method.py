@@ -8,7 +8,10 @@
    fitted field by default, or the frame's confidence map, the annotation, or — diagnostic
    only — the simulator's true T). 3. Fit f_ω with the attenuation-compensated BCE
    (``ultron``) or plain BCE (``ultron-noloss``, which ignores T but records its source), both
-   unweighted as in the paper (``OccupancyTrainConfig.positive_weight``). 4. Evaluate
+   unweighted as in the paper (``OccupancyTrainConfig.positive_weight``). By default the
+   compensated loss keeps a background label at full weight where T ≥ 0.3 and drops it below
+   (``OccupancyTrainConfig.negatives="observed"``: only observed free space is evidence);
+   ``negatives="weighted"`` scales it by T, the paper's BCE(T·f, y). 4. Evaluate
    f(g(x)) on a grid over the scanned region (voxel = the finer pixel spacing), zero outside
    every frame's field of view, and mesh it. 5. Keep the observed surface
    (:mod:`ultron.mesh.observed`, ``surface="observed"``, the default): the faces that some frame
@@ -97,6 +100,7 @@ class ThetaModel:
     loss: str = "ultron"
     context: ThetaContextConfig = field(default_factory=ThetaContextConfig)
     positive_weight: float | None = 1.0
+    negatives: str = "observed"
 
     def to_meta(self, channels: Sequence[str], visibility: VisibilityConfig) -> dict[str, Any]:
         """The ``meta`` of the network's ``network.pt`` (θ ``channels``, T's source)."""
@@ -106,17 +110,19 @@ class ThetaModel:
             "theta_context": self.context.to_dict(),
             "loss": self.loss,
             "positive_weight": self.positive_weight,
+            "negatives": self.negatives,
             **visibility.to_dict(),
         }
 
     @classmethod
     def from_meta(cls, meta: dict[str, Any]) -> ThetaModel:
         """From ``network.pt``'s meta; missing keys are the pre-context defaults (θ alone,
-        balanced loss)."""
+        balanced loss, background labels weighted by T)."""
         return cls(
             loss=meta.get("loss", "ultron"),
             context=ThetaContextConfig.from_dict(meta.get("theta_context")),
             positive_weight=meta.get("positive_weight"),
+            negatives=meta.get("negatives", "weighted"),
         )
 
 
@@ -296,7 +302,10 @@ def reconstruct_ultron(
         "grid": grid.to_dict(),
     }
     model = ThetaModel(
-        occupancy_config.loss, config.context, occupancy_config.positive_weight
+        occupancy_config.loss,
+        config.context,
+        occupancy_config.positive_weight,
+        occupancy_config.negatives,
     ).to_meta(fitted.channels, config.visibility)
     return Reconstruction(
         mesh=mesh, volume=volume, grid=grid, info=info | {"network": network, "model": model}

@@ -21,6 +21,10 @@ PAPER_MLP_DECAY_STEPS = 250_000
 #: How scatterers enter training renders: drawn per step (Ultra-NeRF) or their expectation.
 SCATTERER_MODES = ("sample", "expected")
 
+#: Fitted frames and training patches need this many pixels on each side: the SSIM window of
+#: the loss and the held-out checks (:func:`ultron.train.losses.ssim_map`'s default).
+MIN_FIT_SIDE = 7
+
 
 @dataclass(frozen=True)
 class FieldTrainConfig:
@@ -80,14 +84,21 @@ class FieldTrainConfig:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 0:
                 raise argument_error(name, f"expected an integer ≥ 0, got {value!r}")
+        if self.patch_width < MIN_FIT_SIDE:
+            raise argument_error(
+                "patch_width",
+                f"expected ≥ {MIN_FIT_SIDE} (the SSIM window), got {self.patch_width}",
+            )
         if self.learning_rate is not None and not self.learning_rate > 0:
             raise argument_error("learning_rate", f"expected > 0, got {self.learning_rate}")
         if self.lr_decay_steps is not None and self.lr_decay_steps < 1:
             raise argument_error("lr_decay_steps", "expected ≥ 1")
         if self.fit_shape is not None:
             shape = tuple(int(s) for s in self.fit_shape)
-            if len(shape) != 2 or min(shape) < 7:
-                raise argument_error("fit_shape", f"expected (H, W) with both ≥ 7, got {shape}")
+            if len(shape) != 2 or min(shape) < MIN_FIT_SIDE:
+                raise argument_error(
+                    "fit_shape", f"expected (H, W) with both ≥ {MIN_FIT_SIDE}, got {shape}"
+                )
             object.__setattr__(self, "fit_shape", shape)
         if self.train_scatterers not in SCATTERER_MODES:
             raise argument_error(
@@ -211,6 +222,7 @@ def comparable_config(config: dict[str, Any]) -> dict[str, Any]:
 __all__ = [
     "DEFAULT_LR",
     "FIELD_PRESETS",
+    "MIN_FIT_SIDE",
     "PAPER_ITERATIONS",
     "PAPER_MLP_DECAY_STEPS",
     "SCATTERER_MODES",

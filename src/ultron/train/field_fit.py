@@ -5,7 +5,9 @@ scanlines from random training frames (so the PSF and the SSIM see 2D neighbourh
 minimises 0.75·(1 − SSIM) + 0.25·MSE plus the backend's smoothness prior and the optional
 β-weighted TV of φ, with Adam and an exponential learning-rate decay (×0.1 over
 ``decay_steps``, a function of the step: :func:`learning_rate_at`). Seeded by one integer;
-checkpoints (model, optimiser, generator, step) make a run resumable, bit-identically, and
+checkpoints (model, optimiser, generator, step) make a run resumable, bit-identically (every
+``checkpoint_every`` steps and at the end, with the training log written just before each, so
+that a resumed run's log holds every entry up to the checkpoint exactly once), and
 field.json records the dataset's content hash (``dataset_sha256``,
 :meth:`SweepDataset.content_hash`) so that a checkpoint is never resumed on another dataset.
 
@@ -38,7 +40,7 @@ import numpy as np
 import torch
 
 from ultron import atomic
-from ultron.data.dataset import SweepDataset
+from ultron.data.dataset import ProbeGeometry, SweepDataset
 from ultron.data.geometry import UnitCube, field_of_view_bounds_mm
 from ultron.errors import UltronInputError, argument_error
 from ultron.fields.base import AcousticField
@@ -59,6 +61,7 @@ from ultron.render.renderer import RenderConfig, render_field
 from ultron.train.field_config import (
     DEFAULT_LR,
     FIELD_PRESETS,
+    MIN_FIT_SIDE,
     PAPER_ITERATIONS,
     PAPER_MLP_DECAY_STEPS,
     SCATTERER_MODES,
@@ -68,7 +71,7 @@ from ultron.train.field_config import (
     field_preset,
     learning_rate_at,
 )
-from ultron.train.frames import FrameSet
+from ultron.train.frames import FrameSet, resampled_probe
 from ultron.train.losses import (
     METRIC_SSIM_K2,
     confidence_transmission_prior,
@@ -159,12 +162,14 @@ def _save_checkpoint(
     optimizer: torch.optim.Optimizer,
     generator: torch.Generator,
     step: int,
+    iterations: int,
 ) -> None:
     state = {
         "model": module.state_dict(),
         "optimizer": optimizer.state_dict(),
         "generator": generator.get_state(),
         "step": step,
+        "iterations": iterations,
     }
     buffer = io.BytesIO()
     torch.save(state, buffer)
@@ -238,12 +243,42 @@ def theta_statistics(
     return ThetaStatistics(fitted.channels, tuple(flat.mean(0).tolist()), tuple(std.tolist()))
 
 
+def check_fit_frames(
+    probe: ProbeGeometry, config: FieldTrainConfig, where: str | Path = "dataset"
+) -> None:
+    """Refuse frames smaller than the loss's SSIM window (:data:`MIN_FIT_SIDE` px on each side)
+    at the fit resolution, naming ``where`` (the dataset's dataset.json) and its probe."""
+    rows, cols = resampled_probe(probe, config.fit_shape).image_shape
+    if min(rows, cols) < MIN_FIT_SIDE:
+        raise UltronInputError(
+            where,
+            "probe",
+            f"frames of {rows} × {cols} px at the fit resolution are smaller than the SSIM"
+            f" window of the loss ({MIN_FIT_SIDE} px on each side); fit at a --fit-shape of"
+            f" at least {MIN_FIT_SIDE}x{MIN_FIT_SIDE}",
+        )
+
+
+def _check_step(out: Path, step: object, iterations: int) -> None:
+    """Refuse to resume a checkpoint at ``step`` beyond ``iterations`` (a shorter fit than the
+    checkpoint's cannot be had by resuming it, and silently returning the longer one would
+    mislabel it)."""
+    if isinstance(step, int) and not isinstance(step, bool) and step > iterations:
+        raise UltronInputError(
+            out / FIELD_JSON,
+            "step",
+            f"the checkpoint is at step {step}, beyond --iters {iterations}; pass --no-resume"
+            f" to fit afresh with {iterations} iterations, or --iters ≥ {step} to resume",
+        )
+
+
 def check_resumable(out_dir: str | Path, config: FieldTrainConfig, dataset_sha256: str) -> bool:
     """Whether :func:`fit_field` (with ``resume``) would continue a checkpoint in ``out_dir``:
     False without one; True if it was fitted on the dataset of content hash ``dataset_sha256``
-    (:meth:`SweepDataset.content_hash`) with a comparable configuration; otherwise a one-line
-    :class:`UltronInputError` naming field.json. A field.json without ``dataset_sha256`` (from
-    before it was recorded) is not checked for the dataset."""
+    (:meth:`SweepDataset.content_hash`) with a comparable configuration and is not beyond
+    ``config.iterations`` (field.json's ``step``; :func:`fit_field` checks the checkpoint's own
+    again); otherwise a one-line :class:`UltronInputError` naming field.json. A field.json
+    without ``dataset_sha256`` (from before it was recorded) is not checked for the dataset."""
     out = Path(out_dir)
     if not (out / CHECKPOINT).is_file():
         return False
@@ -267,22 +302,48 @@ def check_resumable(out_dir: str | Path, config: FieldTrainConfig, dataset_sha25
             "train",
             "checkpoint was fitted with a different configuration; use a new --out directory",
         )
+    _check_step(out, meta.get("step"), config.iterations)
     return True
 
 
+def _read_log(out: Path, step: int) -> list[dict[str, Any]]:
+    """FIELD_DIR ``out``'s training log up to ``step``: the log is saved before the checkpoint
+    (:func:`fit_field`), so after a kill between the two it may hold entries beyond the
+    checkpoint, which the resumed run computes again."""
+    path = out / TRAIN_LOG
+    if not path.is_file():
+        return []
+    entries = []
+    for number, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1):
+        if not line.strip():
+            continue
+        try:
+            entry = json.loads(line)
+        except json.JSONDecodeError as exc:
+            raise UltronInputError(path, f"line {number}", f"not valid JSON ({exc})") from None
+        if not isinstance(entry, dict) or not isinstance(entry.get("step"), int):
+            raise UltronInputError(path, f"line {number}", "expected an object with a step")
+        if entry["step"] <= step:
+            entries.append(entry)
+    return entries
+
+
 def _resume(
-    out: Path, module: AcousticField, optimizer: torch.optim.Optimizer, generator: torch.Generator
+    out: Path,
+    module: AcousticField,
+    optimizer: torch.optim.Optimizer,
+    generator: torch.Generator,
+    iterations: int,
 ) -> tuple[int, list[dict[str, Any]]]:
-    """Load FIELD_DIR ``out``'s checkpoint into the run's state; returns (step, log)."""
+    """Load FIELD_DIR ``out``'s checkpoint into the run's state; returns (step, log). A
+    checkpoint beyond ``iterations`` is an error (before anything is loaded or written)."""
     state = read_checkpoint(out)
+    step = int(state["step"])
+    _check_step(out, step, iterations)
     module.load_state_dict(state["model"])
     optimizer.load_state_dict(state["optimizer"])
     generator.set_state(state["generator"])
-    log = []
-    if (out / TRAIN_LOG).is_file():
-        lines = (out / TRAIN_LOG).read_text(encoding="utf-8").splitlines()
-        log = [json.loads(line) for line in lines if line.strip()]
-    return int(state["step"]), log
+    return step, _read_log(out, step)
 
 
 def _clear_field_dir(out: Path) -> None:
@@ -290,6 +351,36 @@ def _clear_field_dir(out: Path) -> None:
     an interrupted fresh run never leaves a mix of two runs (or an old checkpoint to resume)."""
     for name in (CHECKPOINT, FIELD_JSON, THETA_STATS, TRAIN_LOG):
         (out / name).unlink(missing_ok=True)
+
+
+def _prepare(
+    dataset: SweepDataset, config: FieldTrainConfig
+) -> tuple[FrameSet, UnitCube, AcousticField, FieldConfig]:
+    """The fit's frames (with confidence maps where the prior needs them), unit cube and
+    freshly initialised field (in training mode) with its resolved configuration."""
+    frames = FrameSet.from_dataset(dataset, config.fit_shape, config.holdout_every)
+    if config.confidence_prior_weight > 0:
+        frames = frames.with_confidence()
+    cube = UnitCube.from_bounds(field_of_view_bounds_mm(dataset.all_poses(), frames.probe))
+    pixel_mm = min(frames.probe.axial_spacing_mm, frames.probe.lateral_spacing_mm)
+    module, resolved = build_field(config.field, cube.half_extent_mm, pixel_mm, config.seed)
+    return frames, cube, module.train(), resolved
+
+
+def _check_and_log(
+    fitted: FittedField,
+    frames: FrameSet,
+    config: FieldTrainConfig,
+    entry: dict[str, Any],
+    log: list[dict[str, Any]],
+) -> None:
+    """Add the held-out check to ``entry`` at its steps, and ``entry`` to ``log`` at its."""
+    step, last = entry["step"], entry["step"] == config.iterations
+    if step % config.check_every == 0 or last:
+        metrics = evaluate_frames(fitted, frames, frames.holdout_index, config.max_check_frames)
+        entry.update({f"holdout_{k}": v for k, v in metrics.items()})
+    if step % config.log_every == 0 or last or "holdout_psnr" in entry:
+        log.append(entry)
 
 
 def fit_field(
@@ -303,10 +394,13 @@ def fit_field(
 
     With ``resume`` and a checkpoint in ``out_dir`` the run continues from it, provided it was
     fitted on the same dataset (field.json's ``dataset_sha256``, when recorded, equals
-    :meth:`SweepDataset.content_hash`) with the same configuration (``iterations`` and the
-    check / checkpoint / log intervals may differ); otherwise an :class:`UltronInputError`
-    naming field.json. Without ``resume``, or without a checkpoint, the run starts afresh and
-    first removes a previous fit's files from ``out_dir``.
+    :meth:`SweepDataset.content_hash`) with the same configuration (the check / checkpoint /
+    log intervals may differ, and ``iterations`` may, but not below the checkpoint's step);
+    otherwise an :class:`UltronInputError` naming field.json. Without ``resume``, or without
+    a checkpoint, the run starts afresh and first removes a previous fit's files from
+    ``out_dir``. A save (every ``checkpoint_every`` steps and at the last) writes
+    train_log.jsonl, then checkpoint.pt, then field.json; a resumed run keeps the log's
+    entries up to the checkpoint's step, so its log holds every logged step once.
 
     Learning rate: update k (0-based) uses :func:`learning_rate_at` ``(config, k)`` =
     lr · 0.1^(k / decay_steps), recomputed from k at every step. A run resumed at step k₀ with
@@ -324,29 +418,26 @@ def fit_field(
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise UltronInputError(out, "out", "exists and is not a directory")
+    check_fit_frames(dataset.probe, config)
     dataset_sha256 = dataset.content_hash()
     resuming = resume and check_resumable(out, config, dataset_sha256)
-    frames = FrameSet.from_dataset(dataset, config.fit_shape, config.holdout_every)
-    if config.confidence_prior_weight > 0:
-        frames = frames.with_confidence()
-    cube = UnitCube.from_bounds(field_of_view_bounds_mm(dataset.all_poses(), frames.probe))
-    pixel_mm = min(frames.probe.axial_spacing_mm, frames.probe.lateral_spacing_mm)
-    module, resolved = build_field(config.field, cube.half_extent_mm, pixel_mm, config.seed)
-    module.train()
+    frames, cube, module, resolved = _prepare(dataset, config)
     optimizer = make_optimizer(module, config.lr)
     generator = torch.Generator().manual_seed(config.seed)
-    step, log = _resume(out, module, optimizer, generator) if resuming else (0, [])
+    step, log = (
+        _resume(out, module, optimizer, generator, config.iterations) if resuming else (0, [])
+    )
     if not resuming:
         _clear_field_dir(out)
     out.mkdir(parents=True, exist_ok=True)
     render_config = config.render.rescaled(dataset.probe, frames.probe)
     fitted = FittedField(module, resolved, cube, frames.probe, render_config)
 
-    def save(at_step: int) -> None:
-        _save_checkpoint(out, module, optimizer, generator, at_step)
+    def save(at_step: int) -> None:  # the log first: it may run ahead, never fall behind
+        atomic.write_text(out / TRAIN_LOG, "".join(json.dumps(e) + "\n" for e in log))
+        _save_checkpoint(out, module, optimizer, generator, at_step, config.iterations)
         meta = _field_meta(config, resolved, render_config, frames, cube, at_step, dataset_sha256)
         atomic.write_json(out / FIELD_JSON, meta)
-        atomic.write_text(out / TRAIN_LOG, "".join(json.dumps(e) + "\n" for e in log))
 
     started = time.perf_counter()
     while step < config.iterations:
@@ -358,15 +449,10 @@ def fit_field(
         )
         step += 1
         entry = _step_entry(config, step, loss, mse, started)
-        last = step == config.iterations
-        if step % config.check_every == 0 or last:
-            metrics = evaluate_frames(fitted, frames, frames.holdout_index, config.max_check_frames)
-            entry.update({f"holdout_{k}": v for k, v in metrics.items()})
-        if step % config.log_every == 0 or last or "holdout_psnr" in entry:
-            log.append(entry)
+        _check_and_log(fitted, frames, config, entry, log)
         if progress is not None:
             progress({"iterations": config.iterations, **entry})
-        if step % config.checkpoint_every == 0 or last:
+        if step % config.checkpoint_every == 0 or step == config.iterations:
             save(step)
     if not (out / CHECKPOINT).is_file():
         save(step)
@@ -396,6 +482,7 @@ __all__ = [
     "SCATTERER_MODES",
     "SHADOW_WARMUP_ITERS",
     "FieldTrainConfig",
+    "check_fit_frames",
     "check_resumable",
     "evaluate_frames",
     "field_preset",

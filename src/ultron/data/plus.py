@@ -1,0 +1,479 @@
+"""Reading what PLUS and 3D Slicer write: tracked ultrasound sequences and PLUS configurations.
+
+A *sequence* (``.igs.mha``, ``.seq.mha``, ``.mha``/``.mhd``, ``.igs.nrrd``, ``.seq.nrrd``,
+``.nrrd``/``.nhdr``; raw or compressed) holds N 2D frames and per-frame fields named
+``Seq_Frame<NNNN>_<Field>``: tracking transforms ``<From>To<To>Transform`` (16 numbers, a
+row-major 4 × 4 matrix, mm), their ``…TransformStatus`` (``OK``, ``INVALID``, ``MISSING`` …),
+``Timestamp`` and the image status (``ImageStatus`` in MetaImage, ``Status`` in NRRD). The
+header gives ``UltrasoundImageOrientation`` (``ultrasound image orientation`` in NRRD).
+
+How each format is read:
+
+- **MetaImage** (``.mha``/``.mhd``) by a small, validated header reader of this module plus
+  numpy / zlib for the payload: the header is plain ``Key = Value`` text up to
+  ``ElementDataFile``, the payload raw bytes or one zlib stream (``CompressedData = True``).
+  SimpleITK 2.5 would also return the per-frame fields (as metadata strings), but it is not a
+  dependency of ultron (≈ 260 MB installed) and reports a truncated payload as "No such file
+  or directory".
+- **NRRD** (``.nrrd``/``.nhdr``) with pynrrd, which returns the per-frame ``key:=value`` fields
+  as strings and decodes raw and gzip payloads (also detached data files).
+
+The configuration is read by :mod:`ultron.data.plus_config`.
+
+Every problem is an :class:`~ultron.errors.UltronInputError` naming the file and the field.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+import zlib
+from collections.abc import Iterator, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ultron.data.validation import input_file
+from ultron.errors import UltronInputError
+
+#: File name endings read as sequences (longest first, so that a stem drops the whole ending).
+SEQUENCE_SUFFIXES = (
+    ".igs.mha",
+    ".seq.mha",
+    ".igs.mhd",
+    ".seq.mhd",
+    ".igs.nrrd",
+    ".seq.nrrd",
+    ".igs.nhdr",
+    ".seq.nhdr",
+    ".mha",
+    ".mhd",
+    ".nrrd",
+    ".nhdr",
+)
+_METAIMAGE_SUFFIXES = (".mha", ".mhd")
+
+#: PLUS's orientation strings of B-mode frames → (flip columns, flip rows) to reach MF, the
+#: orientation PLUS holds B-mode frames in and its Image → Probe calibration refers to. First
+#: letter: image x (columns) towards the Marked or Unmarked side of the transducer; second:
+#: image y (rows) towards Far (deeper) or Near. A third letter (Ascending / Descending) orders
+#: the slices of a 3D frame: for 2D frames it changes nothing (PLUS: MFA = MF, UFD = UF).
+ORIENTATION_FLIPS: dict[str, tuple[bool, bool]] = {
+    **dict.fromkeys(("MF", "MFA", "MFD"), (False, False)),
+    **dict.fromkeys(("MN", "MNA", "MND"), (False, True)),
+    **dict.fromkeys(("UF", "UFA", "UFD"), (True, False)),
+    **dict.fromkeys(("UN", "UNA", "UND"), (True, True)),
+}
+#: PLUS's orientations of RF data (scanlines along image x) and 3D frames in slice-first order.
+RF_ORIENTATIONS = ("FM", "FU", "NM", "NU", "AMF")
+#: Image statuses and transform statuses that mean "valid".
+STATUS_OK = "OK"
+#: Image-status field names: MetaImage sequences write ``ImageStatus``, NRRD ones ``Status``.
+IMAGE_STATUS_FIELDS = ("ImageStatus", "Status")
+
+_FRAME_FIELD = re.compile(r"^seq_frame(\d+)_(.+)$", re.IGNORECASE)
+_NAN_TOKEN = re.compile(r"^[-+]?nan(\(.*\))?$", re.IGNORECASE)
+_MAX_HEADER_LINE = 1 << 20
+_UINT8_NAMES = ("uchar", "unsigned char", "uint8", "uint8_t")
+
+
+@dataclass(frozen=True)
+class SequenceFile:
+    """The frames and fields of one sequence file.
+
+    ``pixels`` is uint8 (N, H, W) in the file's orientation (row = image y, column = image x);
+    ``fields`` are the header fields other than per-frame ones; ``frame_fields[k]`` holds frame
+    k's fields, named without their ``Seq_Frame<NNNN>_`` prefix. ``size_field`` names the field
+    holding the frame count (``DimSize`` or ``sizes``) for messages.
+    """
+
+    path: Path
+    pixels: np.ndarray
+    orientation: str
+    fields: Mapping[str, str]
+    frame_fields: tuple[Mapping[str, str], ...]
+    size_field: str
+
+    @property
+    def n_frames(self) -> int:
+        return int(self.pixels.shape[0])
+
+    def field(self, name: str) -> str | None:
+        """A header field by name, ignoring case and spaces (``UltrasoundImageType`` matches
+        NRRD's ``ultrasound image type``)."""
+        return _lookup(self.fields, name)
+
+    def frame_field_key(self, frame: int, name: str) -> str:
+        """The header key of frame ``frame``'s field ``name``, as PLUS writes it."""
+        return f"Seq_Frame{frame:04d}_{name}"
+
+    def transform_names(self) -> list[str]:
+        """The per-frame transforms some frame has (``ProbeToTracker`` for the field
+        ``ProbeToTrackerTransform``), sorted."""
+        names = {
+            key[: -len("Transform")]
+            for fields in self.frame_fields
+            for key in fields
+            if key.endswith("Transform") and len(key) > len("Transform")
+        }
+        return sorted(names)
+
+
+# --------------------------------------------------------------------------- helpers
+def _normal_key(name: str) -> str:
+    return name.replace(" ", "").replace("_", "").lower()
+
+
+def _lookup(fields: Mapping[str, str], name: str) -> str | None:
+    wanted = _normal_key(name)
+    for key, value in fields.items():
+        if _normal_key(key) == wanted:
+            return value
+    return None
+
+
+def sequence_stem(path: str | Path) -> str:
+    """The file name without its sequence ending (``a.igs.mha`` → ``a``)."""
+    name = Path(path).name
+    lower = name.lower()
+    for suffix in SEQUENCE_SUFFIXES:
+        if lower.endswith(suffix) and len(name) > len(suffix):
+            return name[: -len(suffix)]
+    return Path(path).stem
+
+
+def parse_matrix(text: str, where: str | Path, field: str) -> np.ndarray:
+    """A row-major 4 × 4 matrix from 16 whitespace-separated numbers (NaN allowed: a frame's
+    transform may be NaN when its status is not OK)."""
+    tokens = text.split()
+    if len(tokens) != 16:
+        raise UltronInputError(
+            where,
+            field,
+            f"expected 16 numbers (a row-major 4 × 4 matrix), got {len(tokens)}",
+        )
+    values = []
+    for token in tokens:
+        if _NAN_TOKEN.match(token):
+            values.append(math.nan)
+            continue
+        try:
+            values.append(float(token))
+        except ValueError:
+            raise UltronInputError(where, field, f"{token!r} is not a number") from None
+    return np.array(values, dtype=np.float64).reshape(4, 4)
+
+
+def orientation_flips(orientation: str | None, where: str | Path, field: str) -> tuple[bool, bool]:
+    """(flip columns, flip rows) that bring frames of ``orientation`` to MF (see
+    :data:`ORIENTATION_FLIPS`); an unknown, missing or RF orientation is an error."""
+    if orientation is None:
+        raise UltronInputError(
+            where, field, f"missing; expected one of {', '.join(sorted(ORIENTATION_FLIPS))}"
+        )
+    key = orientation.strip().upper()
+    if key in ORIENTATION_FLIPS:
+        return ORIENTATION_FLIPS[key]
+    if key in RF_ORIENTATIONS:
+        raise UltronInputError(
+            where,
+            field,
+            f"{orientation!r} is PLUS's orientation of RF scanlines or slice-first 3D frames;"
+            " only B-mode frames (MF, MN, UF, UN and their 3-letter forms) can be imported",
+        )
+    raise UltronInputError(
+        where,
+        field,
+        f"unknown orientation {orientation!r}; expected one of"
+        f" {', '.join(sorted(ORIENTATION_FLIPS))}",
+    )
+
+
+def _split_frame_fields(
+    fields: Mapping[str, str], n_frames: int, path: Path, size_field: str
+) -> tuple[dict[str, str], tuple[dict[str, str], ...]]:
+    """Header fields → (non-frame fields, per-frame fields); a frame number beyond the frame
+    count of ``size_field`` is an error."""
+    plain: dict[str, str] = {}
+    frames: list[dict[str, str]] = [{} for _ in range(n_frames)]
+    for key, value in fields.items():
+        match = _FRAME_FIELD.match(key)
+        if match is None:
+            plain[key] = value
+            continue
+        frame = int(match.group(1))
+        if frame >= n_frames:
+            raise UltronInputError(
+                path,
+                key,
+                f"frame {frame} is beyond the {n_frames} frames of {size_field}"
+                f" (frame count does not match the per-frame fields)",
+            )
+        frames[frame][match.group(2)] = value
+    return plain, tuple(frames)
+
+
+def _frame_axes(
+    sizes: list[int], kinds: list[str] | None, path: Path, size_field: str, kinds_field: str
+) -> tuple[int, int, int | None]:
+    """File axes (0 = fastest) of image x, image y and the frame list (None: one frame)."""
+    if kinds is None:  # PLUS: without Kinds the last axis lists the frames
+        kinds = ["domain"] * len(sizes)
+        if len(sizes) > 2:
+            kinds[-1] = "list"
+    if len(kinds) != len(sizes):
+        raise UltronInputError(
+            path, kinds_field, f"{len(kinds)} kinds for the {len(sizes)} axes of {size_field}"
+        )
+    lists = [i for i, kind in enumerate(kinds) if kind.lower() in ("list", "time")]
+    domains = [i for i, kind in enumerate(kinds) if kind.lower() in ("domain", "space")]
+    other = [kind for kind in kinds if kind.lower() not in ("list", "time", "domain", "space")]
+    if other or len(lists) > 1 or len(domains) < 2:
+        raise UltronInputError(
+            path,
+            kinds_field,
+            f"axes {kinds} are not 2D frames: expected two spatial axes and at most one frame"
+            " list (no vector or colour axis)",
+        )
+    thick = [sizes[i] for i in domains[2:] if sizes[i] != 1]
+    if thick:
+        raise UltronInputError(
+            path, size_field, f"frames are 3D ({sizes}); only 2D frames can be imported"
+        )
+    return domains[0], domains[1], (lists[0] if lists else None)
+
+
+def _arrange_frames(flat: np.ndarray, sizes: list[int], axes: tuple[int, int, int | None]):
+    """Raw values (fastest axis first in the file) → (N, H, W)."""
+    x_axis, y_axis, list_axis = axes
+    nd = len(sizes)
+    array = flat.reshape(sizes[::-1])
+    order = [nd - 1 - a for a in (list_axis, y_axis, x_axis) if a is not None]
+    rest = [k for k in range(nd) if k not in order]
+    array = array.transpose(order + rest)
+    n = sizes[list_axis] if list_axis is not None else 1
+    return np.ascontiguousarray(array.reshape(n, sizes[y_axis], sizes[x_axis]))
+
+
+# --------------------------------------------------------------------------- MetaImage
+def _header_lines(path: Path) -> Iterator[tuple[int, str, int]]:
+    """(line number, text, offset after the line) of a MetaImage header, up to and including
+    ``ElementDataFile``."""
+    try:
+        with path.open("rb") as handle:
+            for number in range(1, 10**9):
+                raw = handle.readline(_MAX_HEADER_LINE)
+                if not raw:
+                    return
+                if not raw.endswith(b"\n") and len(raw) == _MAX_HEADER_LINE:
+                    raise UltronInputError(
+                        path, "header", f"line {number} is too long: not a MetaImage header"
+                    )
+                yield number, raw.decode("latin-1").strip(), handle.tell()
+    except OSError as exc:
+        raise UltronInputError(path, "header", f"cannot be read ({exc.strerror})") from None
+
+
+def read_metaimage_header(path: Path) -> tuple[dict[str, str], int]:
+    """The ``Key = Value`` fields of a MetaImage header (in order) and the byte offset where a
+    ``LOCAL`` payload starts (right after the ``ElementDataFile`` line)."""
+    fields: dict[str, str] = {}
+    for number, line, offset in _header_lines(path):
+        if not line:
+            continue
+        key, sep, value = line.partition("=")
+        key, value = key.strip(), value.strip()
+        if not sep or not key or not key.replace("_", "").isalnum():
+            raise UltronInputError(
+                path, "header", f"line {number} is not 'Key = Value': not a MetaImage header"
+            )
+        if key in fields:
+            raise UltronInputError(path, key, f"given twice (line {number})")
+        fields[key] = value
+        if key.lower() == "elementdatafile":
+            return fields, offset
+    raise UltronInputError(
+        path, "ElementDataFile", "missing: the header never ends (not a MetaImage sequence?)"
+    )
+
+
+def _int_list(fields: Mapping[str, str], name: str, path: Path) -> list[int] | None:
+    value = _lookup(fields, name)
+    if value is None:
+        return None
+    try:
+        numbers = [int(token) for token in value.split()]
+    except ValueError:
+        raise UltronInputError(path, name, f"expected integers, got {value!r}") from None
+    if not numbers or min(numbers) < 1:
+        raise UltronInputError(path, name, f"expected positive integers, got {value!r}")
+    return numbers
+
+
+def _metaimage_layout(fields: Mapping[str, str], path: Path) -> tuple[list[int], tuple]:
+    sizes = _int_list(fields, "DimSize", path)
+    if sizes is None:
+        raise UltronInputError(path, "DimSize", "missing: the frame size and count are unknown")
+    ndims = _int_list(fields, "NDims", path)
+    if ndims is not None and ndims != [len(sizes)]:
+        raise UltronInputError(path, "DimSize", f"has {len(sizes)} sizes but NDims is {ndims}")
+    element = (_lookup(fields, "ElementType") or "").upper()
+    if element != "MET_UCHAR":
+        raise UltronInputError(
+            path, "ElementType", f"{element or 'missing'}; expected MET_UCHAR (8-bit B-mode)"
+        )
+    channels = _lookup(fields, "ElementNumberOfChannels")
+    if channels not in (None, "1"):
+        raise UltronInputError(
+            path, "ElementNumberOfChannels", f"{channels}; expected 1 (grey B-mode)"
+        )
+    if (_lookup(fields, "BinaryData") or "True").lower() != "true":
+        raise UltronInputError(path, "BinaryData", "only binary pixel data can be read")
+    kinds = _lookup(fields, "Kinds")
+    axes = _frame_axes(sizes, kinds.split() if kinds else None, path, "DimSize", "Kinds")
+    return sizes, axes
+
+
+def _payload_source(fields: Mapping[str, str], path: Path, offset: int) -> tuple[Path, int]:
+    data_file = _lookup(fields, "ElementDataFile") or ""
+    if data_file.upper() == "LOCAL":
+        return path, offset
+    if data_file.upper() == "LIST" or "%" in data_file or not data_file:
+        raise UltronInputError(
+            path, "ElementDataFile", f"{data_file!r}: only LOCAL or one data file is supported"
+        )
+    source = path.parent / data_file
+    input_file(source, "ElementDataFile")
+    return source, 0
+
+
+def _inflate(compressed: bytes, n_bytes: int, path: Path) -> bytes:
+    """One zlib (or gzip) stream that must decode to exactly ``n_bytes``."""
+    inflater = zlib.decompressobj(zlib.MAX_WBITS | 32)
+    try:
+        data = inflater.decompress(compressed, n_bytes + 1)
+    except zlib.error as exc:
+        raise UltronInputError(
+            path, "CompressedData", f"corrupt compressed payload (zlib: {exc})"
+        ) from None
+    if len(data) > n_bytes:
+        raise UltronInputError(
+            path, "CompressedData", f"payload holds more than the {n_bytes} bytes of DimSize"
+        )
+    if len(data) < n_bytes or not inflater.eof:
+        raise UltronInputError(
+            path,
+            "CompressedData",
+            f"truncated compressed payload: it decodes to {len(data)} of the {n_bytes} bytes"
+            " DimSize needs",
+        )
+    return data
+
+
+def _read_metaimage_payload(
+    fields: Mapping[str, str], path: Path, offset: int, n_bytes: int
+) -> np.ndarray:
+    source, start = _payload_source(fields, path, offset)
+    compressed = (_lookup(fields, "CompressedData") or "False").lower() == "true"
+    with source.open("rb") as handle:
+        handle.seek(start)
+        if not compressed:
+            data = handle.read(n_bytes)
+            if len(data) < n_bytes:
+                raise UltronInputError(
+                    path,
+                    "ElementDataFile",
+                    f"truncated payload: {len(data)} of the {n_bytes} bytes DimSize needs",
+                )
+            return np.frombuffer(data, dtype=np.uint8)
+        size = _lookup(fields, "CompressedDataSize")
+        limit = -1
+        if size is not None:
+            if not size.strip().isdigit():
+                raise UltronInputError(path, "CompressedDataSize", f"{size!r} is not a size")
+            limit = int(size)
+        blob = handle.read(limit)
+        if limit >= 0 and len(blob) < limit:
+            raise UltronInputError(
+                path,
+                "CompressedDataSize",
+                f"truncated compressed payload: {len(blob)} of {limit} bytes present",
+            )
+    return np.frombuffer(_inflate(blob, n_bytes, path), dtype=np.uint8)
+
+
+def _read_metaimage(path: Path) -> SequenceFile:
+    fields, offset = read_metaimage_header(path)
+    sizes, axes = _metaimage_layout(fields, path)
+    n_frames = sizes[axes[2]] if axes[2] is not None else 1
+    plain, frames = _split_frame_fields(fields, n_frames, path, "DimSize")
+    orientation = _lookup(plain, "UltrasoundImageOrientation")
+    orientation_flips(orientation, path, "UltrasoundImageOrientation")
+    flat = _read_metaimage_payload(plain, path, offset, math.prod(sizes))
+    pixels = _arrange_frames(flat, sizes, axes)
+    return SequenceFile(path, pixels, str(orientation), plain, frames, "DimSize")
+
+
+# --------------------------------------------------------------------------- NRRD
+def _nrrd_header(path: Path, handle) -> dict[str, object]:
+    import nrrd
+
+    try:
+        header = nrrd.read_header(handle)
+    except (nrrd.NRRDError, ValueError, UnicodeDecodeError) as exc:
+        raise UltronInputError(path, "header", f"not a readable NRRD header ({exc})") from None
+    if "sizes" not in header:
+        raise UltronInputError(path, "sizes", "missing: the frame size and count are unknown")
+    if str(header.get("type", "")).lower() not in _UINT8_NAMES:
+        raise UltronInputError(
+            path, "type", f"{header.get('type', 'missing')}; expected uint8 (B-mode)"
+        )
+    return header
+
+
+def _read_nrrd(path: Path) -> SequenceFile:
+    import nrrd
+
+    with path.open("rb") as handle:
+        header = _nrrd_header(path, handle)
+        sizes = [int(s) for s in np.atleast_1d(header["sizes"])]
+        if not sizes or min(sizes) < 1:
+            raise UltronInputError(path, "sizes", f"expected positive sizes, got {sizes}")
+        kinds = header.get("kinds")
+        axes = _frame_axes(
+            sizes, [str(k) for k in kinds] if kinds else None, path, "sizes", "kinds"
+        )
+        n_frames = sizes[axes[2]] if axes[2] is not None else 1
+        text = {str(k): str(v) for k, v in header.items()}
+        plain, frames = _split_frame_fields(text, n_frames, path, "sizes")
+        orientation = _lookup(plain, "UltrasoundImageOrientation")
+        orientation_flips(orientation, path, "ultrasound image orientation")
+        try:
+            data = nrrd.read_data(header, handle, str(path), index_order="F")
+        except (nrrd.NRRDError, OSError, EOFError, zlib.error, ValueError) as exc:
+            raise UltronInputError(path, "data", f"truncated or corrupt payload ({exc})") from None
+    flat = np.asarray(data, dtype=np.uint8).reshape(-1, order="F")
+    if flat.size != math.prod(sizes):
+        raise UltronInputError(
+            path, "data", f"truncated payload: {flat.size} of {math.prod(sizes)} values"
+        )
+    pixels = _arrange_frames(flat, sizes, axes)
+    return SequenceFile(path, pixels, str(orientation), plain, frames, "sizes")
+
+
+def read_sequence(path: str | Path) -> SequenceFile:
+    """Read a PLUS / Slicer sequence file (MetaImage or NRRD, by its ending)."""
+    path = Path(path)
+    input_file(path, "SEQUENCE")
+    lower = path.name.lower()
+    try:
+        if lower.endswith(_METAIMAGE_SUFFIXES):
+            return _read_metaimage(path)
+        if lower.endswith((".nrrd", ".nhdr")):
+            return _read_nrrd(path)
+    except OSError as exc:
+        raise UltronInputError(path, "SEQUENCE", f"cannot be read ({exc.strerror})") from None
+    raise UltronInputError(
+        path, "SEQUENCE", f"unknown file type; expected one of {', '.join(SEQUENCE_SUFFIXES)}"
+    )

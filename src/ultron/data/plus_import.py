@@ -1,0 +1,437 @@
+"""Build an ``ultron-sweeps/1`` sweep from a PLUS / 3D Slicer recording.
+
+PLUS places pixel (i, j) of frame k (i: column, j: row of the MF-oriented frame) at
+
+    x = (To)ToTracker⁻¹ · ProbeToTracker · ImageToProbe · [i, j, 0, 1]ᵀ
+
+(``To`` = Reference by default; a file that records ``ProbeTo<To>`` directly is read as it is).
+ultron's format places pixel (r, c) at probe point ((c − W/2)·s_x, r·s_y, 0) of a rigid
+probe-to-world pose, so the affine ImageToProbe (it holds the pixel scale and, from a
+calibration fit, usually a small shear) is factored into a rigid pose and two pixel spacings
+(:func:`fit_image_plane`): the least-squares fit over the frame's pixels, exact wherever
+ImageToProbe is a scaled rotation; the shear it cannot represent is reported as the largest and
+RMS displacement of a pixel, in mm. Frames are flipped to MF (PLUS's orientation of B-mode
+frames, row 0 at the transducer face as the format wants), clipped to the configuration's clip
+rectangle and optionally area-downsampled with the spacings updated.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from collections import Counter
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ultron.data.dataset import ProbeGeometry, Sweep
+from ultron.data.plus import (
+    IMAGE_STATUS_FIELDS,
+    STATUS_OK,
+    SequenceFile,
+    orientation_flips,
+    parse_matrix,
+    read_sequence,
+)
+from ultron.data.plus_config import PlusConfig, read_config
+from ultron.data.validation import ROTATION_TOLERANCE, pose_errors
+from ultron.errors import UltronInputError, argument_error
+
+#: Largest angle (degrees) between the calibration's image axes and a right angle that is
+#: factored into a rigid pose; beyond it the matrix is refused as far from a scaled rotation.
+MAX_SHEAR_DEG = 10.0
+#: The frame a tracker reports in; ``--to X`` other than it composes XToTracker⁻¹ · …ToTracker.
+TRACKER = "Tracker"
+#: The source frame of a transform name: PLUS splits at the "To" followed by a capital.
+_FROM = re.compile(r"^(.+?)To(?=[A-Z])")
+#: Frames resampled per chunk when downsampling (bounds the float64 working memory).
+_CHUNK_FRAMES = 16
+
+
+@dataclass(frozen=True)
+class ImagePlaneFit:
+    """Image → probe as a rigid pose and pixel spacings.
+
+    ``rotation`` columns are the probe-frame directions of image x (columns), image y (rows)
+    and their cross product; ``origin_mm`` is the fitted probe point of pixel (0, 0):
+    pixel (i, j) ↦ origin + i·s_x·r₁ + j·s_y·r₂. ``shear_deg`` is the angle between the
+    calibration's image axes minus 90°; ``residual_max_mm`` / ``residual_rms_mm`` the largest
+    (at a corner) and RMS distance over the frame's pixels between this map and the
+    calibration's own.
+    """
+
+    rotation: np.ndarray
+    origin_mm: np.ndarray
+    spacing_mm: tuple[float, float]
+    shear_deg: float
+    residual_max_mm: float
+    residual_rms_mm: float
+
+    def image_to_probe(self) -> np.ndarray:
+        """The fitted calibration as PLUS writes one: pixel (i, j, 0, 1) → probe (4 × 4)."""
+        matrix = np.eye(4)
+        matrix[:3, 0] = self.spacing_mm[0] * self.rotation[:, 0]
+        matrix[:3, 1] = self.spacing_mm[1] * self.rotation[:, 1]
+        matrix[:3, 2] = self.rotation[:, 2]
+        matrix[:3, 3] = self.origin_mm
+        return matrix
+
+    def dataset_probe_to_probe(self, width_px: int) -> np.ndarray:
+        """The rigid map from ultron's probe frame of a ``width_px``-column frame (x lateral
+        from the centre column, y along the beam) to PLUS's probe frame (4 × 4)."""
+        pose = np.eye(4)
+        pose[:3, :3] = self.rotation
+        pose[:3, 3] = self.origin_mm + (width_px / 2) * self.spacing_mm[0] * self.rotation[:, 0]
+        return pose
+
+
+def _fit_angle(a: float, b: float, shear: float) -> float:
+    """Rotation α of r₁ away from image x (towards image y) that minimises the weighted
+    residual a²·sin²α + b²·sin²(shear − α): tan 2α = b² sin 2δ / (a² + b² cos 2δ)."""
+    return 0.5 * math.atan2(b * b * math.sin(2 * shear), a * a + b * b * math.cos(2 * shear))
+
+
+def fit_image_plane(
+    matrix: np.ndarray, width_px: int, height_px: int, where: str | Path, field_name: str
+) -> ImagePlaneFit:
+    """Factor the calibration ``matrix`` (pixel → probe, 4 × 4) of a ``height_px`` ×
+    ``width_px`` frame into a rigid pose and pixel spacings.
+
+    Only its first two columns (the image axes a_x, a_y) and translation act on pixels. The fit
+    minimises the mean squared displacement of the frame's pixels: with the residual zero at
+    the centre pixel, it is |u|²·var_c + |v|²·var_r (u = a_x − s_x r₁, v = a_y − s_y r₂; var
+    the variance of the column / row index over the frame), a Procrustes problem with one free
+    angle in the image plane (:func:`_fit_angle`); the optimal spacings are s_x = a_x·r₁,
+    s_y = a_y·r₂. An exact scaled rotation is reproduced exactly.
+    """
+    ax, ay, t = (np.asarray(matrix[:3, k], dtype=np.float64) for k in (0, 1, 3))
+    nx, ny = float(np.linalg.norm(ax)), float(np.linalg.norm(ay))
+    normal = np.cross(ax, ay)
+    if not (nx > 0 and ny > 0 and np.linalg.norm(normal) > 1e-9 * nx * ny):
+        raise UltronInputError(
+            where, field_name, "image axes are zero or parallel (not a calibration)"
+        )
+    e1, n = ax / nx, normal / np.linalg.norm(normal)
+    e2 = np.cross(n, e1)
+    shear = math.atan2(float(ay @ e2), float(ay @ e1)) - math.pi / 2
+    var_c, var_r = (width_px**2 - 1) / 12, (height_px**2 - 1) / 12
+    alpha = _fit_angle(nx * math.sqrt(var_c), ny * math.sqrt(var_r), shear)
+    r1 = math.cos(alpha) * e1 + math.sin(alpha) * e2
+    r2 = np.cross(n, r1)
+    sx, sy = float(ax @ r1), float(ay @ r2)
+    u, v = ax - sx * r1, ay - sy * r2
+    centre_c, centre_r = (width_px - 1) / 2, (height_px - 1) / 2
+    corners = [(dc, dr) for dc in (-centre_c, centre_c) for dr in (-centre_r, centre_r)]
+    residual_max = max(float(np.linalg.norm(dc * u + dr * v)) for dc, dr in corners)
+    residual_rms = math.sqrt(float(u @ u) * var_c + float(v @ v) * var_r)
+    if abs(math.degrees(shear)) > MAX_SHEAR_DEG or min(sx, sy) <= 0:
+        raise UltronInputError(
+            where,
+            field_name,
+            f"far from a scaled rotation: its image axes are {abs(math.degrees(shear)):.2f}°"
+            f" from perpendicular (at most {MAX_SHEAR_DEG:g}° is factored into a rigid pose);"
+            f" a rigid pose would move pixels by up to {residual_max:.3g} mm",
+        )
+    return ImagePlaneFit(
+        rotation=np.stack([r1, r2, n], axis=1),
+        origin_mm=t + centre_c * u + centre_r * v,
+        spacing_mm=(sx, sy),
+        shear_deg=math.degrees(shear),
+        residual_max_mm=residual_max,
+        residual_rms_mm=residual_rms,
+    )
+
+
+# --------------------------------------------------------------------------- downsampling
+def downsampled_shape(height: int, width: int, factor: float) -> tuple[int, int]:
+    """(H', W') of frames downsampled by ``factor`` ≥ 1 (rounded, at least 1)."""
+    return max(1, round(height / factor)), max(1, round(width / factor))
+
+
+def _box_resample(values: np.ndarray, new_len: int) -> np.ndarray:
+    """Area-resample the last axis of ``values`` (length L) to ``new_len`` ≤ L samples at
+    positions k·L/new_len (the format's pixel positions of the new grid): each is the mean of
+    the pixel-constant signal over a window of L/new_len pixels centred there, edges extended."""
+    length = values.shape[-1]
+    if new_len == length:
+        return values
+    step = length / new_len
+    cumulative = np.concatenate(
+        [np.zeros((*values.shape[:-1], 1)), np.cumsum(values, axis=-1)], axis=-1
+    )
+
+    def integral(x: np.ndarray) -> np.ndarray:  # ∫ from −0.5 to x of the signal
+        inside = np.clip(x, -0.5, length - 0.5)
+        k = np.clip(np.floor(inside + 0.5).astype(np.int64), 0, length - 1)
+        value = cumulative[..., k] + (inside + 0.5 - k) * values[..., k]
+        below = np.minimum(x + 0.5, 0.0) * values[..., :1]
+        above = np.maximum(x - (length - 0.5), 0.0) * values[..., -1:]
+        return value + below + above
+
+    centres = np.arange(new_len) * step
+    return (integral(centres + step / 2) - integral(centres - step / 2)) / step
+
+
+def downsample_frames(frames: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """Anti-aliased (area-averaging) downsampling of uint8 (N, H, W) frames to (N, H', W'):
+    new pixel (r', c') is the mean over a (H/H') × (W/W') pixel window centred on old position
+    (r'·H/H', c'·W/W'), where the format places it, so the field of view (width and depth in
+    mm) is unchanged and the spacings grow by W/W' and H/H'."""
+    n, height, width = frames.shape
+    if (height, width) == tuple(shape):
+        return frames
+    out = np.empty((n, *shape), dtype=np.uint8)
+    for start in range(0, n, _CHUNK_FRAMES):
+        chunk = frames[start : start + _CHUNK_FRAMES].astype(np.float64)
+        chunk = _box_resample(chunk, shape[1])
+        chunk = np.swapaxes(_box_resample(np.swapaxes(chunk, 1, 2), shape[0]), 1, 2)
+        out[start : start + _CHUNK_FRAMES] = np.clip(np.rint(chunk), 0, 255).astype(np.uint8)
+    return out
+
+
+# --------------------------------------------------------------------------- tracking
+@dataclass(frozen=True)
+class WorldPoses:
+    """Per frame: the probe → world matrix (NaN where invalid), whether the frame is valid,
+    and why the others were skipped (reason → count)."""
+
+    probe_to_world: np.ndarray
+    valid: np.ndarray
+    skipped: Counter[str]
+    description: str
+
+
+def _status(seq: SequenceFile, frame: int, name: str) -> str:
+    """A frame's status field ``name`` (OK when absent: older PLUS files have none)."""
+    return seq.frame_fields[frame].get(name, STATUS_OK).strip() or STATUS_OK
+
+
+def _frame_matrix(seq: SequenceFile, frame: int, transform: str) -> tuple[np.ndarray, bool]:
+    """(matrix, status OK) of frame ``frame``'s ``<transform>Transform``; a malformed matrix is
+    an error whatever its status, a non-finite or non-rigid one only with status OK."""
+    key = f"{transform}Transform"
+    text = seq.frame_fields[frame].get(key)
+    label = seq.frame_field_key(frame, key)
+    if text is None:
+        have = sum(key in fields for fields in seq.frame_fields)
+        raise UltronInputError(
+            seq.path,
+            seq.size_field,
+            f"{seq.n_frames} frames, but {key} is given for {have}"
+            f" ({label} is missing): frame count does not match the transform fields",
+        )
+    matrix = parse_matrix(text, seq.path, label)
+    ok = _status(seq, frame, f"{key}Status").upper() == STATUS_OK
+    if ok:
+        if not np.isfinite(matrix).all():
+            raise UltronInputError(seq.path, label, "holds NaN or inf but its status is OK")
+        if np.abs(matrix[3] - (0.0, 0.0, 0.0, 1.0)).max() > 1e-6:
+            raise UltronInputError(seq.path, label, f"last row is {matrix[3].tolist()}")
+        ortho, det = (float(e[0]) for e in pose_errors(matrix[None]))
+        if max(ortho, det) > ROTATION_TOLERANCE:
+            raise UltronInputError(
+                seq.path,
+                label,
+                f"not rigid: rotation block deviates from orthonormal by {ortho:.2e}"
+                f" (det error {det:.2e}; at most {ROTATION_TOLERANCE:g})",
+            )
+        matrix[3] = (0.0, 0.0, 0.0, 1.0)
+    return matrix, ok
+
+
+def _affine_inverse(matrix: np.ndarray) -> np.ndarray:
+    """Inverse of an affine 4 × 4 with its last row exactly (0, 0, 0, 1)."""
+    inverse = np.eye(4)
+    inverse[:3, :3] = np.linalg.inv(matrix[:3, :3])
+    inverse[:3, 3] = -inverse[:3, :3] @ matrix[:3, 3]
+    return inverse
+
+
+def transform_chain(seq: SequenceFile, probe: str, target: str) -> tuple[str, ...]:
+    """The per-frame transforms giving probe → ``target``: ``(ProbeToTarget,)``, or
+    ``(ProbeToTracker, TargetToTracker)`` composed as TargetToTracker⁻¹ · ProbeToTracker."""
+    names = seq.transform_names()
+    direct = f"{probe}To{target}"
+    if direct in names:
+        return (direct,)
+    via = (f"{probe}To{TRACKER}", f"{target}To{TRACKER}")
+    if target != TRACKER and all(name in names for name in via):
+        return via
+    wanted = direct if target == TRACKER else f"{direct}, or {via[0]} and {via[1]}"
+    raise UltronInputError(
+        seq.path,
+        "--to",
+        f"{target}: the sequence has no {wanted} transform"
+        f" (it has {', '.join(names) or 'no transforms'})",
+    )
+
+
+def world_poses(seq: SequenceFile, chain: tuple[str, ...]) -> WorldPoses:
+    """Probe → world of every frame along ``chain`` (:func:`transform_chain`); frames whose
+    image status or a used transform's status is not OK are marked invalid and counted."""
+    poses = np.full((seq.n_frames, 4, 4), np.nan)
+    valid = np.zeros(seq.n_frames, dtype=bool)
+    skipped: Counter[str] = Counter()
+    for frame in range(seq.n_frames):
+        matrices = [_frame_matrix(seq, frame, name) for name in chain]
+        reasons = []
+        image_status = next((f for f in IMAGE_STATUS_FIELDS if f in seq.frame_fields[frame]), None)
+        if image_status and _status(seq, frame, image_status).upper() != STATUS_OK:
+            reasons.append(f"{image_status} {_status(seq, frame, image_status)}")
+        for name, (_, ok) in zip(chain, matrices, strict=True):
+            if not ok:
+                key = f"{name}TransformStatus"
+                reasons.append(f"{key} {_status(seq, frame, key)}")
+        if reasons:
+            skipped.update(reasons[:1])
+            continue
+        pose = matrices[0][0]
+        if len(chain) == 2:
+            pose = _affine_inverse(matrices[1][0]) @ pose
+        poses[frame], valid[frame] = pose, True
+    text = chain[0] if len(chain) == 1 else f"{chain[1]}⁻¹ · {chain[0]}"
+    return WorldPoses(poses, valid, skipped, text)
+
+
+# --------------------------------------------------------------------------- the import
+@dataclass(frozen=True)
+class PlusImportReport:
+    """What :func:`read_plus` did, for the CLI's summary and the dataset's metadata."""
+
+    n_frames_file: int
+    n_frames: int
+    skipped: dict[str, int]
+    file_shape: tuple[int, int]
+    image_shape: tuple[int, int]
+    orientation: str
+    flips: tuple[bool, bool]
+    probe_frame: str
+    world: str
+    chain: str
+    clip: tuple[tuple[int, int], tuple[int, int]] | None
+    fit: ImagePlaneFit
+    downsample: float
+    metadata: dict[str, Any] = field(default_factory=dict)
+
+
+def _probe_frame(seq: SequenceFile, config: PlusConfig) -> str:
+    """The frame the calibration maps the image to (Probe, unless the configuration
+    calibrates the image to another frame that the sequence tracks)."""
+    tracked = {match.group(1) for name in seq.transform_names() if (match := _FROM.match(name))}
+    candidates = sorted(config.image_to, key=lambda name: (name != "Probe", name))
+    for name in candidates:
+        if name in tracked:
+            return name
+    raise UltronInputError(
+        seq.path,
+        "transforms",
+        f"no per-frame transform from {' or '.join(candidates)} (the frame the configuration's"
+        f" Image → {candidates[0]} calibration maps to); the sequence has"
+        f" {', '.join(seq.transform_names()) or 'no transforms'}",
+    )
+
+
+def _oriented_clipped(seq: SequenceFile, config: PlusConfig) -> tuple[np.ndarray, tuple | None]:
+    """Frames flipped to MF and clipped to the configuration's clip rectangle."""
+    flip_columns, flip_rows = orientation_flips(seq.orientation, seq.path, "orientation")
+    frames = seq.pixels[:, :: -1 if flip_rows else 1, :: -1 if flip_columns else 1]
+    if config.clip_origin is None or config.clip_size is None:
+        return np.ascontiguousarray(frames), None
+    (i0, j0), (w, h) = config.clip_origin, config.clip_size
+    height, width = frames.shape[1:]
+    if i0 + w > width or j0 + h > height:
+        raise UltronInputError(
+            config.path,
+            "VolumeReconstruction ClipRectangleSize",
+            f"clip rectangle origin ({i0}, {j0}) size {w} × {h} exceeds the {width} × {height}"
+            f" frames of {seq.path.name}",
+        )
+    clipped = np.ascontiguousarray(frames[:, j0 : j0 + h, i0 : i0 + w])
+    return clipped, ((i0, j0), (w, h))
+
+
+def read_plus(
+    sequence: str | Path,
+    config: str | Path,
+    *,
+    to: str = "Reference",
+    name: str = "sweep",
+    kind: str = "other",
+    downsample: float = 1.0,
+) -> tuple[Sweep, ProbeGeometry, PlusImportReport]:
+    """Read a PLUS / Slicer sequence and its PLUS configuration as one :class:`Sweep` in the
+    ``to`` frame (Reference or Tracker, or any frame the file tracks) and its probe geometry.
+
+    Frames with an image or transform status other than OK are skipped (counted in the
+    report); every other problem is an :class:`UltronInputError` naming file and field.
+    """
+    if isinstance(downsample, bool) or not (math.isfinite(downsample) and downsample >= 1):
+        raise argument_error("--downsample", f"expected a finite number ≥ 1, got {downsample!r}")
+    target = to[:1].upper() + to[1:]
+    if not target.isascii() or not target.isalnum():
+        raise argument_error("--to", f"expected a frame name such as Reference, got {to!r}")
+    plus_config = read_config(config)
+    seq = read_sequence(sequence)
+    probe_frame = _probe_frame(seq, plus_config)
+    chain = transform_chain(seq, probe_frame, target)
+    world = world_poses(seq, chain)
+    if not world.valid.any():
+        reasons = ", ".join(f"{n} × {r}" for r, n in world.skipped.most_common())
+        raise UltronInputError(
+            seq.path, "frames", f"all {seq.n_frames} frames are invalid ({reasons})"
+        )
+    frames, clip = _oriented_clipped(seq, plus_config)
+    calibration = plus_config.image_to[probe_frame].copy()
+    if clip is not None:
+        calibration[:3, 3] += clip[0][0] * calibration[:3, 0] + clip[0][1] * calibration[:3, 1]
+    height, width = frames.shape[1:]
+    label = f"Transform Image → {probe_frame}"
+    fit = fit_image_plane(calibration, width, height, plus_config.path, label)
+    poses = world.probe_to_world[world.valid] @ fit.dataset_probe_to_probe(width)
+    shape = downsampled_shape(height, width, downsample)
+    images = downsample_frames(frames[world.valid], shape)
+    probe = ProbeGeometry(width * fit.spacing_mm[0], height * fit.spacing_mm[1], *shape)
+    sweep = Sweep(name=name, kind=kind, images=images, probe_to_world=poses)
+    report = PlusImportReport(
+        n_frames_file=seq.n_frames,
+        n_frames=int(world.valid.sum()),
+        skipped=dict(world.skipped),
+        file_shape=(int(seq.pixels.shape[1]), int(seq.pixels.shape[2])),
+        image_shape=shape,
+        orientation=seq.orientation,
+        flips=orientation_flips(seq.orientation, seq.path, "orientation"),
+        probe_frame=probe_frame,
+        world=target,
+        chain=world.description,
+        clip=clip,
+        fit=fit,
+        downsample=float(downsample),
+    )
+    metadata = _import_metadata(seq, plus_config, report, np.flatnonzero(world.valid))
+    return sweep, probe, replace(report, metadata=metadata)
+
+
+def _import_metadata(
+    seq: SequenceFile, config: PlusConfig, report: PlusImportReport, frames: np.ndarray
+) -> dict[str, Any]:
+    """Provenance of an imported sweep, kept in ``dataset.json``'s metadata."""
+    fit = report.fit
+    return {
+        "source": "plus",
+        "sequence": seq.path.name,
+        "config": config.path.name,
+        "world": report.world,
+        "transforms": report.chain,
+        "orientation": report.orientation,
+        "clip": None if report.clip is None else {"origin": report.clip[0], "size": report.clip[1]},
+        "image_to_probe": config.image_to[report.probe_frame].tolist(),
+        "fitted_image_to_probe": fit.image_to_probe().tolist(),
+        "pixel_spacing_mm": list(fit.spacing_mm),
+        "shear_deg": fit.shear_deg,
+        "rigid_fit_residual_mm": {"max": fit.residual_max_mm, "rms": fit.residual_rms_mm},
+        "downsample": report.downsample,
+        "frames": frames.tolist(),
+        "skipped": report.skipped,
+    }

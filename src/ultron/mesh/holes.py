@@ -1,0 +1,135 @@
+"""Hole filling of a compounded volume: PLUS's "stick" filler, vectorised.
+
+PLUS (``vtkPlusFillHolesInVolume``, element ``Type="STICK"``) fills each empty voxel v from the
+filled voxels around it along 13 directions d (the 3 axes, the 6 face diagonals and the 4 space
+diagonals): along +d the first filled voxel is f steps away, along −d the first is r steps
+away; the *stick* through v is usable when f + r + 1 ≤ L (``StickLengthLimit``: the stick's
+length in voxels, both filled ends included) and its length is (f + r + 1)·|d|. The shortest
+usable stick gives the value (ties: the mean of the tied sticks; ``NumberOfSticksToUse="1"``):
+the linear interpolation between its two ends,
+
+    v = (r·value₊ + f·value₋) / (f + r),
+
+or, with ``plus_weights``, PLUS's own weighting ((r + 1)·value₊ + f·value₋) / (f + r + 1), which
+leans half a voxel towards the +d end. A voxel with no usable stick stays a hole.
+
+Instead of walking every stick from every voxel, the distance to the nearest filled voxel along
+±d is computed for all voxels at once by one sweep per direction through the volume's slices
+(each slice from the previous one, shifted by d): O(voxels) per direction, whatever L.
+
+Memory: about 28 bytes per voxel of working arrays (float32 steps and values along +d and −d,
+the best stick so far) besides the volume.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ultron.errors import argument_error
+
+#: PLUS's 13 stick directions.
+STICK_DIRECTIONS = (
+    (1, 0, 0), (0, 1, 0), (0, 0, 1),
+    (1, 1, 0), (1, 0, 1), (0, 1, 1),
+    (1, -1, 0), (1, 0, -1), (0, 1, -1),
+    (1, 1, 1), (-1, 1, 1), (1, -1, 1), (-1, -1, 1),
+)  # fmt: skip
+
+
+def _shifted(plane: np.ndarray, db: int, dc: int, fill: float) -> np.ndarray:
+    """out[y, z] = plane[y − db, z − dc], ``fill`` where that lies outside."""
+    out = np.full_like(plane, fill)
+    ny, nz = plane.shape
+    out[max(db, 0) : ny + min(db, 0), max(dc, 0) : nz + min(dc, 0)] = plane[
+        max(-db, 0) : ny + min(-db, 0), max(-dc, 0) : nz + min(-dc, 0)
+    ]
+    return out
+
+
+def nearest_back(
+    volume: np.ndarray, filled: np.ndarray, direction: tuple[int, int, int]
+) -> tuple[np.ndarray, np.ndarray]:
+    """For every voxel v, the smallest j ≥ 1 with v − j·d filled (inf if none) and that
+    voxel's value (0 if none), float32 volumes: one sweep through the slices along d's first
+    non-zero axis, each slice from the previous one."""
+    d = np.asarray(direction, dtype=np.int64)
+    axis = int(np.flatnonzero(d)[0])
+    others = [a for a in range(3) if a != axis]
+    db, dc = (int(d[a]) for a in others)
+    order = range(volume.shape[axis]) if d[axis] > 0 else range(volume.shape[axis] - 1, -1, -1)
+    vol = np.moveaxis(volume, axis, 0)
+    fil = np.moveaxis(filled, axis, 0)
+    steps = np.full(vol.shape, np.inf, dtype=np.float32)
+    values = np.zeros(vol.shape, dtype=np.float32)
+    previous = None
+    for x in order:
+        if previous is not None:
+            hit = fil[previous]
+            s = np.where(hit, 1.0, steps[previous] + 1.0).astype(np.float32)
+            v = np.where(hit, vol[previous], values[previous]).astype(np.float32)
+            steps[x] = _shifted(s, db, dc, np.inf)
+            values[x] = _shifted(v, db, dc, 0.0)
+        previous = x
+    return np.moveaxis(steps, 0, axis), np.moveaxis(values, 0, axis)
+
+
+def fill_holes_stick(
+    volume: np.ndarray, filled: np.ndarray, length: int, plus_weights: bool = False
+) -> tuple[np.ndarray, np.ndarray]:
+    """Fill the holes (``~filled``) of ``volume`` with the stick filler (module doc) of
+    maximum stick ``length`` voxels (≥ 3: a stick holds two filled ends and a hole).
+
+    Returns the filled volume (float32, a copy) and the mask of the voxels it filled.
+    """
+    if isinstance(length, bool) or not isinstance(length, int | np.integer) or length < 3:
+        raise argument_error("fill_holes", f"expected a stick length ≥ 3 voxels, got {length!r}")
+    volume = np.asarray(volume, dtype=np.float32)
+    filled = np.asarray(filled, dtype=bool)
+    if volume.ndim != 3 or filled.shape != volume.shape:
+        raise argument_error("filled", f"expected the volume's 3D shape {volume.shape}")
+    holes = ~filled
+    best = np.full(volume.shape, np.inf, dtype=np.float32)
+    total = np.zeros(volume.shape, dtype=np.float32)
+    count = np.zeros(volume.shape, dtype=np.float32)
+    for direction in STICK_DIRECTIONS:
+        back_steps, back_value = nearest_back(volume, filled, direction)
+        fwd_steps, fwd_value = nearest_back(volume, filled, tuple(-c for c in direction))
+        span = fwd_steps + back_steps
+        usable = holes & (span + 1 <= length)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            if plus_weights:
+                value = ((back_steps + 1) * fwd_value + fwd_steps * back_value) / (span + 1)
+            else:
+                value = (back_steps * fwd_value + fwd_steps * back_value) / span
+        norm = np.float32(np.sqrt(sum(c * c for c in direction)))
+        stick = np.where(usable, (span + 1) * norm, np.float32(np.inf))
+        shorter = stick < best
+        tied = usable & (stick == best)
+        best = np.where(shorter, stick, best)
+        total = np.where(shorter, value, np.where(tied, total + value, total))
+        count = np.where(shorter, 1.0, np.where(tied, count + 1.0, count)).astype(np.float32)
+    new = holes & (count > 0)
+    out = volume.copy()
+    out[new] = total[new] / count[new]
+    return out, new
+
+
+def fill_holes_nearest(
+    volume: np.ndarray, filled: np.ndarray, max_distance_voxels: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Fill every hole within ``max_distance_voxels`` of a filled voxel with the value of the
+    nearest filled voxel (Euclidean, in voxels; PLUS's NEAREST_NEIGHBOR filler without its
+    averaging of equidistant voxels). Returns the volume (float32, a copy) and the new mask."""
+    from scipy import ndimage
+
+    volume = np.asarray(volume, dtype=np.float32)
+    filled = np.asarray(filled, dtype=bool)
+    if not max_distance_voxels >= 0:
+        raise argument_error("max_distance_voxels", f"expected ≥ 0, got {max_distance_voxels}")
+    if not filled.any():
+        return volume.copy(), np.zeros_like(filled)
+    distance, nearest = ndimage.distance_transform_edt(~filled, return_indices=True)
+    new = ~filled & (distance <= max_distance_voxels)
+    out = volume.copy()
+    out[new] = volume[tuple(axis[new] for axis in nearest)]
+    return out, new

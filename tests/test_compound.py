@@ -1,0 +1,273 @@
+"""B-mode image compounding (``ultron compound``): splatting, hole filling, the NIfTI affine,
+a synthetic round trip, and bad input."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import nibabel as nib
+import numpy as np
+import pytest
+import torch
+from typer.testing import CliRunner
+
+from conftest import make_pose, rotation_z
+from ultron.cli.main import app
+from ultron.data.dataset import ProbeGeometry, Sweep, SweepDataset
+from ultron.data.geometry import frame_pixels_world
+from ultron.errors import UltronInputError
+from ultron.mesh.grid import GridSpec
+from ultron.mesh.holes import fill_holes_nearest, fill_holes_stick
+from ultron.mesh.image_compounding import (
+    ImageCompoundingConfig,
+    compound_images,
+    compounding_grid,
+)
+from ultron.mesh.splat import SplatConfig, Splatter
+
+runner = CliRunner()
+LPS_TO_RAS = np.diag([-1.0, -1.0, 1.0, 1.0])
+
+
+def tiny_grid(shape=(4, 3, 3)) -> GridSpec:
+    """Voxel (i, j, k) at (i, j, k) mm."""
+    return GridSpec((0.0, 0.0, 0.0), 1.0, shape)
+
+
+def splat(points, values, interpolation: str, reduce: str, shape=(4, 3, 3)):
+    splatter = Splatter(tiny_grid(shape), SplatConfig(interpolation, reduce))
+    splatter.add(np.asarray(points, dtype=np.float64), np.asarray(values, dtype=np.float32))
+    return splatter.result()
+
+
+# --------------------------------------------------------------------------- splatting by hand
+def test_nearest_mean_and_max():
+    # two samples round to voxel (1, 1, 1), one to (2, 1, 1); one lies outside the grid
+    points = [[1.2, 0.9, 1.0], [0.6, 1.4, 1.3], [2.4, 1.0, 1.0], [9.0, 1.0, 1.0]]
+    values = [10.0, 30.0, 7.0, 99.0]
+    volume, filled = splat(points, values, "nearest", "mean")
+    assert volume[1, 1, 1] == pytest.approx(20.0) and volume[2, 1, 1] == pytest.approx(7.0)
+    assert filled.sum() == 2 and volume[~filled].max() == 0.0
+    volume, filled = splat(points, values, "nearest", "max")
+    assert volume[1, 1, 1] == 30.0 and volume[2, 1, 1] == 7.0 and filled.sum() == 2
+
+
+def test_linear_mean_weights():
+    # a sample at x = 1.25 gives voxel 1 weight 0.75 and voxel 2 weight 0.25 (y, z on nodes);
+    # a second one at x = 2 gives voxel 2 weight 1
+    volume, filled = splat([[1.25, 1.0, 1.0], [2.0, 1.0, 1.0]], [8.0, 4.0], "linear", "mean")
+    assert volume[1, 1, 1] == pytest.approx(8.0)
+    assert volume[2, 1, 1] == pytest.approx((0.25 * 8 + 1.0 * 4) / 1.25)
+    assert filled.sum() == 2
+    # a sample at a cell's centre reaches its 8 corners with weight 1/8 each
+    volume, filled = splat([[1.5, 0.5, 0.5]], [16.0], "linear", "mean")
+    assert filled.sum() == 8 and np.allclose(volume[filled], 16.0)
+
+
+def test_linear_max_uses_corners_of_weight_at_least_one_eighth():
+    # x = 1.1, y = 1.5: corners at x = 2 have weight 0.1·0.5 = 0.05 < 1/8 and are skipped
+    volume, filled = splat([[1.1, 1.5, 1.0], [1.0, 1.0, 1.0]], [50.0, 20.0], "linear", "max")
+    assert filled[1, 1, 1] and filled[1, 2, 1] and not filled[2, 1, 1] and not filled[2, 2, 1]
+    assert volume[1, 1, 1] == 50.0 and volume[1, 2, 1] == 50.0
+    assert filled.sum() == 2
+
+
+def test_stick_hole_filling_by_hand():
+    volume = np.zeros((7, 3, 3), np.float32)
+    filled = np.zeros(volume.shape, bool)
+    volume[0], volume[4] = 10.0, 50.0
+    filled[0] = filled[4] = True
+    out, new = fill_holes_stick(volume, filled, 9)
+    # the x stick is the shortest: linear interpolation between the two planes
+    assert np.allclose(out[:5, 1, 1], [10, 20, 30, 40, 50])
+    assert new[1:4].all() and not new[5:].any()  # beyond x = 4 no second end
+    # PLUS's own weights lean towards the +x end: ((r + 1)·v₊ + f·v₋) / (f + r + 1)
+    plus, _ = fill_holes_stick(volume, filled, 9, plus_weights=True)
+    assert plus[1, 1, 1] == pytest.approx((2 * 50 + 3 * 10) / 5)
+    # a stick of 5 voxels (4 steps + 1) is longer than a limit of 4: nothing filled
+    out, new = fill_holes_stick(volume, filled, 4)
+    assert not new.any() and np.array_equal(out, volume)
+
+
+def test_stick_ties_are_averaged():
+    # hole at the centre of a 3×3×3 cube: x stick ends 10 | 30, y stick ends 0 | 100
+    volume = np.zeros((3, 3, 3), np.float32)
+    filled = np.zeros(volume.shape, bool)
+    for index, value in (((0, 1, 1), 10), ((2, 1, 1), 30), ((1, 0, 1), 0), ((1, 2, 1), 100)):
+        volume[index], filled[index] = value, True
+    out, new = fill_holes_stick(volume, filled, 3)
+    assert new[1, 1, 1] and out[1, 1, 1] == pytest.approx((20 + 50) / 2)
+
+
+def test_nearest_hole_filling():
+    volume = np.zeros((6, 1, 1), np.float32)
+    filled = np.zeros(volume.shape, bool)
+    volume[0], filled[0] = 5.0, True
+    out, new = fill_holes_nearest(volume, filled, 2.0)
+    assert new[1:3, 0, 0].all() and not new[3:].any() and np.allclose(out[:3, 0, 0], 5.0)
+
+
+# --------------------------------------------------------------------------- datasets
+def one_frame_dataset(pose: np.ndarray, image: np.ndarray, spacing: float = 0.5) -> SweepDataset:
+    h, w = image.shape
+    probe = ProbeGeometry(width_mm=w * spacing, depth_mm=h * spacing, height_px=h, width_px=w)
+    return SweepDataset(probe, [Sweep("row", "row", image[None], pose[None])])
+
+
+def sweep_dataset(seed: int) -> tuple[SweepDataset, np.ndarray]:
+    """Six rotated, shifted frames of dim speckle; one bright pixel; its world point."""
+    rng = np.random.default_rng(seed)
+    probe = ProbeGeometry(width_mm=8.0, depth_mm=6.0, height_px=24, width_px=32)
+    images = rng.integers(0, 40, size=(6, 24, 32), dtype=np.uint8)
+    poses = np.stack([make_pose(rotation_z(3.0 * i), (0.3, 1.0, 0.9 * i)) for i in range(6)])
+    images[3, 11, 19] = 255
+    world = frame_pixels_world(torch.as_tensor(poses), probe).numpy()[3, 11, 19]
+    return SweepDataset(probe, [Sweep("row", "row", images, poses)]), world
+
+
+# --------------------------------------------------------------------------- geometry
+def test_nifti_affine_maps_voxels_to_the_pixels_world_points(tmp_path: Path):
+    # a rotated frame whose pixel spacing equals the voxel: every pixel lands on a voxel centre;
+    # every pixel has its own grey level, so the voxel holding it is found by value
+    image = (np.arange(20).reshape(5, 4) * 12 + 3).astype(np.uint8)
+    pose = make_pose(rotation_z(90.0), (12.0, -3.0, 7.5))
+    dataset = one_frame_dataset(pose, image)
+    dataset.save(tmp_path / "d")
+    out = tmp_path / "v.nii.gz"
+    args = ["compound", str(tmp_path / "d"), "--spacing", "0.5", "--out", str(out)]
+    result = runner.invoke(app, args)
+    assert result.exit_code == 0, result.output
+    loaded = nib.load(out)
+    data = np.asarray(loaded.dataobj)
+    world = frame_pixels_world(torch.as_tensor(pose[None]), dataset.probe)[0].numpy()
+    for (r, c), value in np.ndenumerate(image):
+        (ijk,) = np.argwhere(data == value)
+        ras = loaded.affine @ np.append(ijk, 1.0)
+        assert np.allclose((LPS_TO_RAS @ ras)[:3], world[r, c], atol=1e-6)
+    assert (data > 0).sum() == image.size
+
+
+def test_grid_origin_is_the_lowest_pixel_corner():
+    dataset, _ = sweep_dataset(0)
+    grid = compounding_grid(dataset, dataset.sweeps, 0.5)
+    poses = torch.as_tensor(dataset.sweeps[0].probe_to_world)
+    points = frame_pixels_world(poses, dataset.probe).reshape(-1, 3).numpy()
+    assert np.allclose(grid.origin_mm, points.min(axis=0))
+    assert (grid.index_to_world(np.asarray(grid.shape) - 1) >= points.max(axis=0) - 1e-9).all()
+
+
+@pytest.mark.parametrize("interpolation", ["nearest", "linear"])
+def test_bright_pixel_lands_in_the_brightest_voxel(tmp_path: Path, interpolation: str):
+    dataset, bright = sweep_dataset(1)
+    dataset.save(tmp_path / "d")
+    out = tmp_path / "v.nii"
+    args = ["compound", str(tmp_path / "d"), "--spacing", "0.5", "--interpolation", interpolation,
+            "--fill-holes", "5", "--out", str(out)]  # fmt: skip
+    result = runner.invoke(app, args)
+    assert result.exit_code == 0, result.output
+    loaded = nib.load(out)
+    data = np.asarray(loaded.dataobj)
+    ijk = np.unravel_index(np.argmax(data), data.shape)
+    centre = (LPS_TO_RAS @ loaded.affine @ np.append(ijk, 1.0))[:3]
+    assert np.all(np.abs(centre - bright) <= 0.25 + 1e-9)  # the voxel containing the pixel
+
+
+def test_max_compounding_and_sweep_choice():
+    dataset, _ = sweep_dataset(2)
+    config = ImageCompoundingConfig(0.5, SplatConfig("nearest", "max"))
+    result = compound_images(dataset, config, ["row"])
+    assert result.volume.max() == 255.0
+    with pytest.raises(UltronInputError, match="--sweeps"):
+        compound_images(dataset, config, ["column"])
+
+
+def test_frames_are_processed_in_chunks():
+    dataset, _ = sweep_dataset(4)
+    whole = compound_images(dataset, ImageCompoundingConfig(0.5, SplatConfig("linear", "mean")))
+    chunked = compound_images(
+        dataset, ImageCompoundingConfig(0.5, SplatConfig("linear", "mean"), chunk_pixels=1)
+    )
+    assert np.allclose(whole.volume, chunked.volume, atol=1e-4)
+    assert np.array_equal(whole.filled, chunked.filled)
+
+
+# --------------------------------------------------------------------------- bad input
+def snapshot(root: Path) -> dict[str, object]:
+    entries: dict[str, object] = {}
+    for folder, dirs, files in os.walk(root):
+        for name in dirs + files:
+            path = Path(folder) / name
+            entries[str(path.relative_to(root))] = "dir" if path.is_dir() else path.read_bytes()
+    return entries
+
+
+def _compound(*extra: str):
+    def build(tmp: Path, data: Path) -> list[str]:
+        return ["compound", str(data), "--out", str(tmp / "v.nii.gz"), *extra]
+
+    return build
+
+
+def _out_suffix(tmp: Path, data: Path) -> list[str]:
+    return ["compound", str(data), "--out", str(tmp / "v.txt")]
+
+
+def _no_frames(tmp: Path, data: Path) -> list[str]:
+    np.save(data / "row" / "images.npy", np.zeros((0, 8, 6), np.uint8))
+    return ["compound", str(data), "--out", str(tmp / "v.nii.gz")]
+
+
+def _out_below_file(tmp: Path, data: Path) -> list[str]:
+    (tmp / "file").write_text("x")
+    return ["compound", str(data), "--out", str(tmp / "file" / "v.nii.gz")]
+
+
+def _out_directory(tmp: Path, data: Path) -> list[str]:
+    (tmp / "vol.nii.gz").mkdir()
+    return ["compound", str(data), "--out", str(tmp / "vol.nii.gz")]
+
+
+#: name → (build(tmp, dataset) → CLI arguments, hints the one error line must hold).
+BAD_CASES = {
+    "compound_spacing_zero": (_compound("--spacing", "0"), ("--spacing",)),
+    "compound_spacing_negative": (_compound("--spacing", "-0.5"), ("--spacing",)),
+    "compound_spacing_nan": (_compound("--spacing", "nan"), ("--spacing",)),
+    "compound_spacing_tiny": (_compound("--spacing", "1e-6"), ("--spacing", "GiB")),
+    "compound_interpolation_cubic": (_compound("--interpolation", "cubic"), ("--interpolation",)),
+    "compound_reduce_median": (_compound("--reduce", "median"), ("--reduce",)),
+    "compound_fill_holes_two": (_compound("--fill-holes", "2"), ("--fill-holes",)),
+    "compound_fill_holes_negative": (_compound("--fill-holes", "-1"), ("--fill-holes",)),
+    "compound_unknown_sweep": (_compound("--sweeps", "row,nope"), ("--sweeps", "nope")),
+    "compound_out_suffix": (_out_suffix, ("v.txt", "--out")),
+    "compound_out_directory": (_out_directory, ("vol.nii.gz", "--out", "directory")),
+    "compound_out_below_file": (_out_below_file, ("--out", "not a directory")),
+    "compound_no_frames": (_no_frames, ("images.npy",)),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_CASES))
+def test_bad_input_is_refused(case: str, tmp_path: Path, tiny_dataset_dir: Path):
+    from test_bad_input_corpus import check_refused
+
+    build, hints = BAD_CASES[case]
+    args = build(tmp_path, tiny_dataset_dir)
+    before = snapshot(tmp_path)
+    check_refused(runner.invoke(app, args), hints)
+    assert snapshot(tmp_path) == before
+
+
+def test_unwritable_out_is_refused(tmp_path: Path, tiny_dataset_dir: Path, monkeypatch):
+    import ultron.outputs
+    from test_bad_input_corpus import check_refused
+
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    real_access = os.access
+    monkeypatch.setattr(
+        ultron.outputs.os, "access", lambda p, m: Path(p) != locked and real_access(p, m)
+    )
+    before = snapshot(tmp_path)
+    args = ["compound", str(tiny_dataset_dir), "--out", str(locked / "v.nii.gz")]
+    check_refused(runner.invoke(app, args), ("--out", "not writable"))
+    assert snapshot(tmp_path) == before

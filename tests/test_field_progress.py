@@ -1,0 +1,197 @@
+"""A field fit's progress on disk: checkpoints every --checkpoint-every steps, a training log that
+survives a kill at any point with every step exactly once, no resume to fewer --iters than the
+checkpoint's step, and a warning when rendering from an unfinished fit."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from typer.testing import CliRunner
+
+from field_configs import quick_field_config
+from ultron import atomic
+from ultron.cli.main import app
+from ultron.data.dataset import ProbeGeometry, Sweep, SweepDataset
+from ultron.errors import UltronInputError
+from ultron.fields import load_field
+from ultron.fields.fitted import FitProgress, fit_progress
+from ultron.train import field_fit
+from ultron.train.field_fit import FieldTrainConfig, fit_field
+
+runner = CliRunner()
+PROBE = ProbeGeometry(width_mm=8.0, depth_mm=9.0, height_px=24, width_px=16)
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(previous)
+
+
+def make_dataset(n: int = 10) -> SweepDataset:
+    rng = np.random.default_rng(0)
+    poses = np.repeat(np.eye(4)[None], n, axis=0)
+    poses[:, 2, 3] = np.linspace(0.0, 4.0, n)
+    images = rng.integers(0, 256, size=(n, 24, 16), dtype=np.uint8)
+    return SweepDataset(PROBE, [Sweep("row", "row", images, poses)])
+
+
+def quick_config(**overrides) -> FieldTrainConfig:
+    return quick_field_config(**{"iterations": 30, **overrides})
+
+
+def snapshot(root: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(root)): p.read_bytes() for p in root.rglob("*") if p.is_file()}
+
+
+def read_log(field_dir: Path) -> list[tuple]:
+    """(step, loss, psnr, lr) of every log entry (elapsed_s differs between runs)."""
+    lines = (field_dir / "train_log.jsonl").read_text().splitlines()
+    return [tuple(json.loads(line)[k] for k in ("step", "loss", "psnr", "lr")) for line in lines]
+
+
+def one_line(result, stream: str, prefix: str, *needles: str) -> str:
+    lines = [line for line in getattr(result, stream).splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith(prefix), lines
+    for needle in needles:
+        assert needle in lines[0], (needle, lines[0])
+    assert "Traceback" not in result.output
+    return lines[0]
+
+
+# ----------------------------------------------------------------- --checkpoint-every
+def test_cli_checkpoint_every_sets_the_save_steps(tmp_path: Path, monkeypatch) -> None:
+    make_dataset().save(tmp_path / "d")
+    saved: list[int] = []
+    original = field_fit._save_checkpoint
+
+    def spy(out, module, optimizer, generator, step, iterations):
+        saved.append(step)
+        original(out, module, optimizer, generator, step, iterations)
+
+    monkeypatch.setattr(field_fit, "_save_checkpoint", spy)
+    base = ["fit-field", str(tmp_path / "d"), "--iters", "7", "--holdout-every", "0"]
+    result = runner.invoke(app, [*base, "--out", str(tmp_path / "a"), "--checkpoint-every", "3"])
+    assert result.exit_code == 0, result.output
+    assert saved == [3, 6, 7]
+    assert json.loads((tmp_path / "a" / "field.json").read_text())["train"]["checkpoint_every"] == 3
+    saved.clear()  # default: the preset's 500 steps, so only the last one here
+    assert runner.invoke(app, [*base, "--out", str(tmp_path / "b")]).exit_code == 0
+    assert saved == [7]
+    assert "--checkpoint-every" in runner.invoke(app, ["fit-field", "--help"]).output
+
+
+# ----------------------------------------------------------------- the log after a kill
+@pytest.mark.parametrize(
+    "killed_at", ["progress", "train_log.jsonl", "checkpoint.pt", "field.json"]
+)
+def test_log_holds_every_step_once_after_a_kill(tmp_path: Path, monkeypatch, killed_at: str):
+    """Killed between saves (a progress callback raising at step 13) or while the save at step
+    20 writes one of its files; the resumed log equals that of an uninterrupted fit."""
+    data = make_dataset()
+    fit_field(data, quick_config(), tmp_path / "full")
+    expected = read_log(tmp_path / "full")
+    assert [entry[0] for entry in expected] == [5, 10, 15, 20, 25, 30]
+
+    progress = None
+    if killed_at == "progress":
+
+        def progress(entry: dict) -> None:
+            if entry["step"] == 13:
+                raise KeyboardInterrupt
+
+    else:
+        writes = {"n": 0}
+        write_bytes = atomic.write_bytes
+
+        def killing_write(path, payload: bytes) -> None:
+            if Path(path).name == killed_at:
+                writes["n"] += 1
+                if writes["n"] == 2:  # the second save, at step 20
+                    raise KeyboardInterrupt
+            write_bytes(path, payload)
+
+        monkeypatch.setattr(atomic, "write_bytes", killing_write)
+    with pytest.raises(KeyboardInterrupt):
+        fit_field(data, quick_config(), tmp_path / "killed", progress=progress)
+    monkeypatch.undo()
+    fit_field(data, quick_config(), tmp_path / "killed")
+    assert read_log(tmp_path / "killed") == expected
+
+
+# ----------------------------------------------------------------- fewer --iters than done
+def test_resume_below_the_checkpoint_step_is_an_error(tmp_path: Path, monkeypatch) -> None:
+    data, out = make_dataset(), tmp_path / "f"
+    fit_field(data, quick_config(iterations=20), out)
+    before = snapshot(out)
+    with pytest.raises(UltronInputError, match=r"field.json: step: the checkpoint is at step 20,"):
+        fit_field(data, quick_config(iterations=10), out)
+    assert snapshot(out) == before
+    # field.json behind its checkpoint (killed between the two writes): the checkpoint's step
+    # is checked too, before anything is written
+    write_bytes = atomic.write_bytes
+
+    def killing_write(path, payload: bytes) -> None:
+        if Path(path).name == "field.json" and b'"step": 40' in payload:
+            raise KeyboardInterrupt
+        write_bytes(path, payload)
+
+    monkeypatch.setattr(atomic, "write_bytes", killing_write)
+    with pytest.raises(KeyboardInterrupt):
+        fit_field(data, quick_config(iterations=40), out)
+    monkeypatch.undo()
+    assert json.loads((out / "field.json").read_text())["step"] == 30
+    before = snapshot(out)
+    with pytest.raises(UltronInputError, match=r"at step 40, beyond --iters 35; pass --no-resume"):
+        fit_field(data, quick_config(iterations=35), out)
+    assert snapshot(out) == before
+    fit_field(data, quick_config(iterations=35), out, resume=False)  # afresh, as told
+    assert json.loads((out / "field.json").read_text())["step"] == 35
+
+
+def test_cli_resume_below_the_checkpoint_step(tmp_path: Path) -> None:
+    make_dataset().save(tmp_path / "d")
+    base = ["fit-field", str(tmp_path / "d"), "--out", str(tmp_path / "f"), "--holdout-every", "0"]
+    assert runner.invoke(app, [*base, "--iters", "6"]).exit_code == 0
+    before = snapshot(tmp_path)
+    result = runner.invoke(app, [*base, "--iters", "3"])
+    assert result.exit_code == 2
+    one_line(result, "stderr", "error: ", "field.json", "--iters 3", "--no-resume")
+    assert snapshot(tmp_path) == before
+    assert runner.invoke(app, [*base, "--iters", "3", "--no-resume"]).exit_code == 0
+    assert json.loads((tmp_path / "f" / "field.json").read_text())["step"] == 3
+
+
+# ----------------------------------------------------------------- render an unfinished fit
+def test_render_warns_when_the_fit_did_not_finish(tmp_path: Path) -> None:
+    data = make_dataset()
+
+    def interrupt(entry: dict) -> None:
+        if entry["step"] == 11:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        fit_field(data, quick_config(iterations=20), tmp_path / "f", progress=interrupt)
+    assert load_field(tmp_path / "f").fit_progress == FitProgress(10, 20)
+    np.save(tmp_path / "p.npy", data.all_poses()[:2])
+    args = ["render", str(tmp_path / "f"), "--poses", str(tmp_path / "p.npy"), "--out"]
+    result = runner.invoke(app, [*args, str(tmp_path / "a.npy")])
+    assert result.exit_code == 0, result.output
+    one_line(result, "stderr", "warning: ", "field.json", "step 10 of 20", "fit-field")
+    assert np.load(tmp_path / "a.npy").shape == (2, 24, 16)
+    fit_field(data, quick_config(iterations=20), tmp_path / "f")  # finish it: no warning
+    result = runner.invoke(app, [*args, str(tmp_path / "b.npy")])
+    assert result.exit_code == 0 and result.stderr.strip() == ""
+
+
+def test_fit_progress_of_older_checkpoints() -> None:
+    # a checkpoint without "iterations" (from before it was saved): field.json's total
+    assert fit_progress({"train": {"iterations": 20}}, {"step": 10}) == FitProgress(10, 20)
+    assert fit_progress({}, {"step": 5, "iterations": 5}).finished
+    assert fit_progress({}, {"step": 5}) is None
