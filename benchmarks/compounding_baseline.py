@@ -29,12 +29,8 @@ from ultron.data.labels import select_label_frames
 from ultron.mesh.compounding import CompoundingConfig, compound_labels
 from ultron.mesh.extract import ExtractionConfig, extract_surface
 from ultron.mesh.observed import ObservedSurfaceConfig
-from ultron.methods.run import (
-    ReconstructionRequest,
-    keep_faced_surface,
-    load_references,
-    run_method,
-)
+from ultron.methods.evidence import faced_observation
+from ultron.methods.run import ReconstructionRequest, load_references, run_method
 from ultron.methods.runinfo import StageTimer
 from ultron.metrics.surface import MetricsConfig, evaluate_meshes
 
@@ -48,9 +44,9 @@ def plain_mesh(dataset: SweepDataset, fraction: float, seed: int, facing: bool):
     compounded = compound_labels(dataset, selection, config)
     mesh = extract_surface(compounded.volume, compounded.grid, ExtractionConfig(smooth=False))
     if facing:
-        mesh, _ = keep_faced_surface(
+        mesh = faced_observation(
             mesh, dataset, compounded.grid.voxel_mm, ObservedSurfaceConfig()
-        )
+        ).kept
     return mesh
 
 

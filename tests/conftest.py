@@ -86,3 +86,18 @@ def one_torch_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(previous)
+
+
+@pytest.fixture(scope="session")
+def tiny_l3(tmp_path_factory) -> Path:
+    """A simulated L3 dataset directory: row + column sweeps of 12 frames of 64 × 48 pixels
+    (shared by the session's tests; never write into it)."""
+    from ultron.phantom import SimulationConfig, simulate_dataset
+    from ultron.phantom.protocols import ScanConfig
+
+    config = SimulationConfig(
+        sweeps=("row", "column"), scan=ScanConfig(frames_per_sweep=12), height_px=64, width_px=48
+    )
+    out = tmp_path_factory.mktemp("tiny_l3") / "dataset"
+    simulate_dataset(config, out=out)
+    return out

@@ -12,22 +12,15 @@ from ultron.mesh.export import load_mesh
 from ultron.methods.run import ReconstructionRequest, reconstruct
 from ultron.methods.ultron_method import UltronConfig
 from ultron.metrics.surface import MetricsConfig
-from ultron.phantom import SimulationConfig, simulate_dataset
-from ultron.phantom.protocols import ScanConfig
 from ultron.train.occupancy import OccupancyTrainConfig
 
 FAST_METRICS = MetricsConfig(n_points=5_000, repeats=1)
 
 
 @pytest.fixture(scope="module")
-def tiny(tmp_path_factory) -> Path:
-    """L3, row + column sweeps of 12 frames of 64 × 48 pixels."""
-    config = SimulationConfig(
-        sweeps=("row", "column"), scan=ScanConfig(frames_per_sweep=12), height_px=64, width_px=48
-    )
-    out = tmp_path_factory.mktemp("tiny") / "dataset"
-    simulate_dataset(config, out=out)
-    return out
+def tiny(tiny_l3: Path) -> Path:
+    """L3, row + column sweeps of 12 frames of 64 × 48 pixels (conftest's ``tiny_l3``)."""
+    return tiny_l3
 
 
 def _check_outputs(out: Path, with_metrics: bool) -> dict:

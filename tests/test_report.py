@@ -14,6 +14,7 @@ import pytest
 
 from ultron.data.dataset import SweepDataset
 from ultron.errors import UltronInputError
+from ultron.mesh.export import load_mesh, save_mesh
 from ultron.report import write_benchmark_report, write_run_report
 from ultron.report.figures import (
     frames_figure,
@@ -122,9 +123,11 @@ def test_run_report_is_valid_self_contained_html(tiny_run):
     assert not list(tiny_run["run"].glob(".*.tmp"))
     text = path.read_text(encoding="utf-8")
     checker = check_html(text)
-    # one image per section: mesh vs reference, frames with θ / T maps, label masks, losses
-    assert sorted(kinds(checker)) == ["frames", "labels", "losses", "mesh"]
-    assert len(checker.images) == 4
+    # one image per section: mesh vs reference, observed vs inferred surface, frames with
+    # θ / T maps, label masks, losses
+    assert sorted(kinds(checker)) == ["evidence", "frames", "labels", "losses", "mesh"]
+    assert len(checker.images) == 5
+    assert "surface_extracted.ply" in text and "label_distance_mm" in text
     metrics = json.loads((tiny_run["run"] / "metrics.json").read_text())
     assert f"{metrics['mean']['mad']:.3f}" in text and ">MAD<" in text
     # the simulated dataset's visible reference: the visible figures are measured and shown
@@ -145,12 +148,18 @@ def test_run_report_without_dataset_dir_skips_dataset_sections(tiny_run, tmp_pat
     (run_dir / "run.json").write_text(json.dumps(run))
     text = write_run_report(run_dir).read_text(encoding="utf-8")
     checker = check_html(text)
-    assert kinds(checker) == ["mesh"]
+    # mesh.ply alone: the evidence figure shows it (its vertex properties)
+    assert kinds(checker) == ["mesh", "evidence"]
     assert "no dataset_dir" in text and "No training logs" in text
 
     dataset = SweepDataset.load(tiny_run["dataset"])  # given explicitly: B-mode frames only
     checker = check_html(write_run_report(run_dir, dataset=dataset).read_text(encoding="utf-8"))
-    assert sorted(kinds(checker)) == ["frames", "labels", "mesh"]
+    assert sorted(kinds(checker)) == ["evidence", "frames", "labels", "mesh"]
+
+    # a mesh written without the evidence (an older ultron): the section says so
+    save_mesh(load_mesh(run_dir / "mesh.ply"), run_dir / "mesh.ply")
+    text = write_run_report(run_dir).read_text(encoding="utf-8")
+    assert kinds(check_html(text)) == ["mesh"] and "no per-vertex evidence" in text
 
 
 def test_run_report_rejects_bad_input(tmp_path):

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import functools
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from typing import ParamSpec, TypeVar
 
 import typer
@@ -96,3 +97,40 @@ def check_seed(option: str, value: int | None) -> None:
 def check_count(option: str, value: int | None, minimum: int = 1) -> None:
     """A count (iterations, points, frames, threads …) must be an integer ≥ ``minimum``."""
     check_range(option, value, minimum)
+
+
+def check_choice(option: str, value: str | None, choices: tuple[str, ...]) -> None:
+    """A one-line error naming ``option`` unless ``value`` (None: unset) is one of ``choices``."""
+    if value is not None and value not in choices:
+        raise argument_error(option, f"expected one of {', '.join(choices)}, got {value!r}")
+
+
+def sweep_names(values: str | list[str] | None, option: str = "--sweeps") -> list[str] | None:
+    """Sweep names from ``option``: one comma-separated string or repeated values, each
+    possibly comma-separated; None (unset): every sweep. An empty name is a one-line error."""
+    if not values:
+        return None
+    given = [values] if isinstance(values, str) else list(values)
+    names = [name.strip() for value in given for name in value.split(",")]
+    if not all(names):
+        raise argument_error(option, f"expected comma-separated sweep names, got {values!r}")
+    return names
+
+
+@contextmanager
+def stage_progress(
+    first: str, unit: str = "", width: int = 18
+) -> Iterator[Callable[[str, int, int], None]]:
+    """A transient progress bar; yields ``report(stage, done, total)`` for a library's
+    ``progress`` callback (the bar shows the stage's name and ``done/total unit``)."""
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+    counter = "{task.completed}/{task.total}" + (f" {unit}" if unit else "")
+    columns = (TextColumn(f"{{task.description:<{width}}}"), BarColumn(), TextColumn(counter))
+    with Progress(*columns, TimeElapsedColumn(), console=console, transient=True) as bar:
+        task = bar.add_task(first, total=None)
+
+        def report(stage: str, done: int, total: int) -> None:
+            bar.update(task, description=stage, completed=done, total=total)
+
+        yield report

@@ -9,6 +9,7 @@ from ultron.cli import (
     data_cmds,
     eval_cmds,
     field_cmds,
+    label_cmds,
     phantom_cmds,
     reconstruct_cmds,
     volume_cmds,
@@ -25,6 +26,7 @@ app = typer.Typer(
 data_cmds.register(app)
 eval_cmds.register(app)
 field_cmds.register(app)
+label_cmds.register(app)
 phantom_cmds.register(app)
 reconstruct_cmds.register(app)
 volume_cmds.register(app)

@@ -7,7 +7,14 @@ from typing import Annotated
 
 import typer
 
-from ultron.cli.common import check_count, check_range, check_seed, console, user_errors
+from ultron.cli.common import (
+    check_count,
+    check_range,
+    check_seed,
+    console,
+    stage_progress,
+    user_errors,
+)
 
 
 @user_errors
@@ -91,8 +98,6 @@ def simulate(
 
     import time
 
-    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
-
     from ultron.phantom import (
         AnnotationConfig,
         ScanConfig,
@@ -118,19 +123,7 @@ def simulate(
         ),
     )
     start = time.perf_counter()
-    with Progress(
-        TextColumn("{task.description:<18}"),
-        BarColumn(),
-        TextColumn("{task.completed}/{task.total}"),
-        TimeElapsedColumn(),
-        console=console,
-        transient=True,
-    ) as bar:
-        task = bar.add_task("simulating", total=None)
-
-        def report(what: str, done: int, total: int) -> None:
-            bar.update(task, description=what, completed=done, total=total)
-
+    with stage_progress("simulating") as report:
         dataset = simulate_dataset(config, out=out, progress=report)
     elapsed = time.perf_counter() - start
     probe = dataset.probe

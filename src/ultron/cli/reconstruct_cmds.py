@@ -7,8 +7,24 @@ from typing import Annotated
 
 import typer
 
-from ultron.cli.common import check_count, check_range, check_seed, console, user_errors
+from ultron.cli.common import (
+    check_choice,
+    check_count,
+    check_range,
+    check_seed,
+    console,
+    user_errors,
+)
 
+MESH_COORDINATES = ("lps", "ras")  # ultron.mesh.export.MESH_COORDINATES (lazy import)
+MeshCoordinates = Annotated[
+    str,
+    typer.Option(
+        "--mesh-coordinates",
+        help="Coordinates of the mesh files: lps (ultron's world; 3D Slicer's default for"
+        " models) or ras; either is tagged SPACE=… in the file header, which Slicer reads.",
+    ),
+]
 MaxMemory = Annotated[
     float | None,
     typer.Option(
@@ -216,6 +232,7 @@ def reconstruct(
         ),
     ] = False,
     max_memory: MaxMemory = None,
+    mesh_coordinates: MeshCoordinates = "lps",
 ) -> None:
     """Reconstruct a bone surface: mesh.ply/.stl/.obj, occupancy.nii.gz, metrics.json, run.json.
 
@@ -223,6 +240,9 @@ def reconstruct(
     whole."""
     _check_common(label_fraction, seed, field_iters, points, max_memory)
     check_count("--occupancy-iters", occupancy_iters, 0)
+    check_choice("--mesh-coordinates", mesh_coordinates, MESH_COORDINATES)
+
+    from dataclasses import replace
 
     from ultron.methods.run import reconstruct as run
 
@@ -230,6 +250,7 @@ def reconstruct(
         method, label_fraction, seed, occupancy_iters, points, preset, visibility,
         oracle_transmission, surface, theta_context, positive_weight, negatives,
     )  # fmt: skip
+    request = replace(request, mesh_coordinates=mesh_coordinates)
     bar, update = _field_progress()
     with bar:
         summary = run(
@@ -352,6 +373,7 @@ def finetune(
         ),
     ] = False,
     max_memory: MaxMemory = None,
+    mesh_coordinates: MeshCoordinates = "lps",
 ) -> None:
     """Adapt a trained UltrON network to a new shape: freeze its last two layers, train the rest
     on a few labelled frames through the new dataset's own acoustic field, mesh, evaluate.
@@ -360,6 +382,7 @@ def finetune(
     whole."""
     _check_common(label_fraction, seed, field_iters, points, max_memory)
     check_count("--iters", iters, 0)
+    check_choice("--mesh-coordinates", mesh_coordinates, MESH_COORDINATES)
 
     from ultron.methods.finetune import FinetuneConfig
     from ultron.methods.finetune import finetune as run
@@ -372,6 +395,7 @@ def finetune(
         seed=seed,
         metrics=MetricsConfig(n_points=points),
         visibility=None if visibility is None else visibility_config(visibility),
+        mesh_coordinates=mesh_coordinates,
     )
     bar, update = _field_progress()
     with bar:

@@ -8,19 +8,12 @@ from typing import TYPE_CHECKING, Annotated
 
 import typer
 
-from ultron.cli.common import check_range, console, user_errors
+from ultron.cli.common import check_choice, check_range, console, sweep_names, user_errors
 
 if TYPE_CHECKING:
     from ultron.mesh.image_compounding import CompoundedImage, ImageCompoundingConfig
 
 _NIFTI_SUFFIXES = (".nii", ".nii.gz")
-
-
-def _check_choice(option: str, value: str, choices: tuple[str, ...]) -> None:
-    from ultron.errors import argument_error
-
-    if value not in choices:
-        raise argument_error(option, f"expected one of {', '.join(choices)}, got {value!r}")
 
 
 def _check_out(out: Path) -> None:
@@ -31,17 +24,6 @@ def _check_out(out: Path) -> None:
     if not out.name.endswith(_NIFTI_SUFFIXES) or out.name in _NIFTI_SUFFIXES:
         raise UltronInputError(out, "--out", "expected a NIfTI file name ending in .nii or .nii.gz")
     check_output_file(out)
-
-
-def _parse_sweeps(sweeps: str | None) -> list[str] | None:
-    from ultron.errors import argument_error
-
-    if sweeps is None:
-        return None
-    names = [n.strip() for n in sweeps.split(",")]
-    if not all(names):
-        raise argument_error("--sweeps", f"expected comma-separated sweep names, got {sweeps!r}")
-    return names
 
 
 @user_errors
@@ -104,10 +86,10 @@ def compound(
 
     check_range("--spacing", spacing, 0.0, low_open=True)
     check_range("--fill-holes", fill_holes, 0)
-    _check_choice("--interpolation", interpolation, INTERPOLATIONS)
-    _check_choice("--reduce", reduce, REDUCTIONS)
+    check_choice("--interpolation", interpolation, INTERPOLATIONS)
+    check_choice("--reduce", reduce, REDUCTIONS)
     config = ImageCompoundingConfig(spacing, SplatConfig(interpolation, reduce), fill_holes)
-    names = _parse_sweeps(sweeps)
+    names = sweep_names(sweeps)
     _check_out(out)
     data = SweepDataset.load(dataset)
     chosen = select_sweeps(data, names)

@@ -154,3 +154,15 @@ def gather_labelled_pixels(dataset: SweepDataset, selection: FrameSelection) -> 
         col=cat[3].astype(np.int64),
         label=cat[4].astype(np.uint8),
     )
+
+
+def bone_points_mm(dataset: SweepDataset, selection: FrameSelection | None) -> np.ndarray:
+    """World positions (P, 3) float64 mm of the bone-labelled pixels (label 1) of the selected
+    frames; (0, 3) when ``selection`` is None or holds no bone label."""
+    if selection is None or selection.n_frames == 0:
+        return np.zeros((0, 3))
+    try:
+        pixels = gather_labelled_pixels(dataset, selection)
+    except UltronInputError:  # the selected frames have no annotated pixel
+        return np.zeros((0, 3))
+    return pixels.world_mm(dataset, np.flatnonzero(pixels.label == 1))

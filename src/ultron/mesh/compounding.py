@@ -28,7 +28,7 @@ below, that average never reached 0.5, so no hole became bone, and the constrain
 then erased most of the one-voxel-thick sheets the labelled frames left (a 360 mm² mesh on the
 L4 s12 tuning dataset). ``reconstruct`` also meshed the band's closed surface, floor and walls
 included; it now keeps the surface some frame faces
-(:func:`ultron.methods.run.keep_faced_surface`).
+(:func:`ultron.methods.evidence.faced_observation`).
 """
 
 from __future__ import annotations

@@ -22,6 +22,7 @@ import numpy as np
 from ultron.errors import UltronError, argument_error
 from ultron.mesh.grid import GridSpec
 from ultron.mesh.smoothing import smooth_constrained
+from ultron.mesh.tiles import DEFAULT_TILE, BinaryTiles
 
 
 class NoSurfaceError(UltronError):
@@ -46,14 +47,53 @@ class ExtractionConfig:
             )
 
 
-def extract_surface(occupancy: np.ndarray, grid: GridSpec, config: ExtractionConfig | None = None):
+def extract_surface(
+    occupancy: np.ndarray,
+    grid: GridSpec,
+    config: ExtractionConfig | None = None,
+    tile: int = DEFAULT_TILE,
+):
     """Mesh the ``occupancy`` volume (values in [0, 1], shape ``grid.shape``) in world mm.
 
     Returns a ``trimesh.Trimesh`` with outward normals. Raises :class:`NoSurfaceError` when no
-    voxel (or every voxel) is occupied, or when nothing survives component filtering.
+    voxel (or every voxel) is occupied, or when nothing survives component filtering. The work
+    is done in tiles of ``tile`` voxels (:func:`extract_surface_tiles`); the mesh is exactly
+    :func:`extract_surface_single_grid`'s.
     """
+    config = config or ExtractionConfig()
+    volume = np.asarray(occupancy)
+    if volume.shape != grid.shape:
+        raise argument_error("occupancy", f"expected shape {grid.shape}, got {volume.shape}")
+    return extract_surface_tiles(
+        BinaryTiles.from_volume(volume, config.threshold, tile), grid, config
+    )
+
+
+def extract_surface_tiles(
+    tiles: BinaryTiles, grid: GridSpec, config: ExtractionConfig | None = None
+):
+    """:func:`extract_surface` of a volume held binarised in tiles
+    (:class:`~ultron.mesh.tiles.BinaryTiles`, at ``config.threshold``): the same mesh as the
+    single-array path, in memory that grows with the surface (:mod:`ultron.mesh.tiled_extract`)."""
+    from ultron.mesh.tiled_extract import extract_tiles
+
+    config = config or ExtractionConfig()
+    if tiles.layout.shape != grid.shape:
+        raise argument_error(
+            "tiles", f"expected a layout of shape {grid.shape}, got {tiles.layout.shape}"
+        )
+    _check_occupied(tiles.n_inside, grid.n_voxels, config.threshold, tiles.max_value)
+    vertices, faces = extract_tiles(tiles, config.min_component_fraction, config.smooth)
+    return _finish(vertices, faces, grid, config)
+
+
+def extract_surface_single_grid(
+    occupancy: np.ndarray, grid: GridSpec, config: ExtractionConfig | None = None
+):
+    """The reference extraction on one dense array (module docstring): PyMCubes' smoothing
+    band and marching cubes over the whole crop. Same mesh as :func:`extract_surface`, in
+    memory that grows with the crop (≈ 60 bytes per voxel)."""
     import mcubes
-    import trimesh
 
     config = config or ExtractionConfig()
     volume = np.asarray(occupancy)
@@ -62,15 +102,8 @@ def extract_surface(occupancy: np.ndarray, grid: GridSpec, config: ExtractionCon
     if not np.isfinite(volume).all():
         raise argument_error("occupancy", "contains NaN or inf")
     binary = volume >= config.threshold
-    n_inside = int(binary.sum())
-    if n_inside == 0:
-        raise NoSurfaceError(
-            f"no surface: no voxel has occupancy ≥ {config.threshold} (max {float(volume.max()):.3f})"
-        )
-    if n_inside == binary.size:
-        raise NoSurfaceError(
-            "no surface: every voxel is occupied (the grid lies inside the object)"
-        )
+    max_value = float(volume.max()) if volume.size else 0.0
+    _check_occupied(int(binary.sum()), binary.size, config.threshold, max_value)
     binary = keep_large_voxel_components(binary, config.min_component_fraction)
     # crop to the occupied box (smoothing cost grows with the volume), with a margin that also
     # closes objects touching the grid border
@@ -82,9 +115,28 @@ def extract_surface(occupancy: np.ndarray, grid: GridSpec, config: ExtractionCon
     padded = np.pad(crop, margin, constant_values=False)
     embedding = smooth_constrained(padded) if config.smooth else padded.astype(np.float64) - 0.5
     vertices, faces = mcubes.marching_cubes(embedding, 0.0)
+    return _finish(vertices - margin + lo, faces, grid, config)
+
+
+def _check_occupied(n_inside: int, n_voxels: int, threshold: float, max_value: float) -> None:
+    if n_inside == 0:
+        raise NoSurfaceError(
+            f"no surface: no voxel has occupancy ≥ {threshold} (max {max_value:.3f})"
+        )
+    if n_inside == n_voxels:
+        raise NoSurfaceError(
+            "no surface: every voxel is occupied (the grid lies inside the object)"
+        )
+
+
+def _finish(vertices: np.ndarray, faces: np.ndarray, grid: GridSpec, config: ExtractionConfig):
+    """The mesh in world mm from marching cubes' vertices in grid indices: components below
+    the area fraction dropped, normals outward."""
+    import trimesh
+
     if len(faces) == 0:
         raise NoSurfaceError("no surface: marching cubes produced no triangles")
-    vertices_mm = grid.index_to_world(vertices - margin + lo)
+    vertices_mm = grid.index_to_world(vertices)
     # process=False: PyMCubes can emit distinct vertices at identical positions; merging them
     # (or dropping the zero-area faces between them) would break the mesh's watertightness.
     mesh = trimesh.Trimesh(vertices=vertices_mm, faces=faces, process=False)

@@ -4,7 +4,7 @@ voxels that some frame actually imaged."""
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -170,22 +170,13 @@ def evaluate_coarse_to_fine(
     if factor == 1:
         return evaluate_on_grid(fn, grid, chunk_points, coarse_mask)
     values = evaluate_on_grid(fn, coarse, chunk_points, coarse_mask)
-    above = torch.from_numpy(values >= level)[None, None].float()
-    corners_max = torch.nn.functional.max_pool3d(above, 2, stride=1)
-    corners_min = -torch.nn.functional.max_pool3d(-above, 2, stride=1)
-    ambiguous = (corners_max != corners_min).float()
-    ambiguous = torch.nn.functional.max_pool3d(ambiguous, 3, stride=1, padding=1)[0, 0] > 0
-    # fine volume: trilinear interpolation of the coarse nodes (node I ↔ fine index factor·I)
-    full = [factor * (n - 1) + 1 for n in coarse.shape]
-    fine = torch.nn.functional.interpolate(
-        torch.from_numpy(values)[None, None], size=full, mode="trilinear", align_corners=True
-    )[0, 0, : grid.shape[0], : grid.shape[1], : grid.shape[2]]
-    fine = fine.numpy().copy()
+    ambiguous, fine = ambiguous_cells_and_upsampled(values, level, factor)
+    fine = fine[: grid.shape[0], : grid.shape[1], : grid.shape[2]].copy()
     cells = [
         np.minimum(np.arange(n) // factor, c - 2)
         for n, c in zip(grid.shape, coarse.shape, strict=True)
     ]
-    refine = ambiguous.numpy()[np.ix_(*cells)]
+    refine = ambiguous[np.ix_(*cells)]
     if coarse_mask is not None:
         nodes = [np.minimum((np.arange(n) + factor // 2) // factor, c - 1)
                  for n, c in zip(grid.shape, coarse.shape, strict=True)]  # fmt: skip
@@ -195,6 +186,25 @@ def evaluate_coarse_to_fine(
     flat = np.flatnonzero(refine)
     fine.reshape(-1)[flat] = evaluate_at(fn, grid, flat, chunk_points)
     return fine
+
+
+def ambiguous_cells_and_upsampled(
+    values: np.ndarray, level: float, factor: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Steps 2–3 of :func:`evaluate_coarse_to_fine` on coarse node ``values`` (float32, 3D):
+    the dilated ambiguous cells (bool, one per cell: shape − 1) and the trilinear
+    interpolation of the nodes at ``factor`` times their density (node I ↔ fine index
+    factor·I; shape factor·(shape − 1) + 1)."""
+    above = torch.from_numpy(values >= level)[None, None].float()
+    corners_max = torch.nn.functional.max_pool3d(above, 2, stride=1)
+    corners_min = -torch.nn.functional.max_pool3d(-above, 2, stride=1)
+    ambiguous = (corners_max != corners_min).float()
+    ambiguous = torch.nn.functional.max_pool3d(ambiguous, 3, stride=1, padding=1)[0, 0] > 0
+    size = [factor * (n - 1) + 1 for n in values.shape]
+    fine = torch.nn.functional.interpolate(
+        torch.from_numpy(values)[None, None], size=size, mode="trilinear", align_corners=True
+    )[0, 0]
+    return ambiguous.numpy(), fine.numpy()
 
 
 def _call(fn: PointsFn, points: torch.Tensor) -> torch.Tensor:
@@ -217,37 +227,64 @@ def field_of_view_mask(
     Each frame images the slab |z_probe| ≤ ``elevation_half_thickness_mm`` of its image
     rectangle. The slab is rasterised by sampling it at half-voxel spacing (in-plane and in
     elevation) and marking the voxels containing the samples, which is exact up to half a voxel
-    and avoids testing every voxel against every frame.
+    and avoids testing every voxel against every frame (:func:`field_of_view_samples`).
     """
+    mask = np.zeros(grid.shape, dtype=bool)
+    for ijk in field_of_view_samples(grid, probe_to_world, probe, elevation_half_thickness_mm):
+        mask[ijk[:, 0], ijk[:, 1], ijk[:, 2]] = True
+    return mask
+
+
+def field_of_view_samples(
+    grid: GridSpec,
+    probe_to_world: np.ndarray | torch.Tensor | Sequence[np.ndarray],
+    probe: ProbeGeometry,
+    elevation_half_thickness_mm: float,
+) -> Iterator[np.ndarray]:
+    """The voxels (M, 3) int64 of ``grid`` holding samples of the frames' slabs at half-voxel
+    spacing (:func:`field_of_view_mask`), per chunk of frames (repeats possible)."""
+    shape = np.asarray(grid.shape)
+    points = slab_points(probe_to_world, probe, elevation_half_thickness_mm, grid.voxel_mm / 2)
+    for chunk in points:
+        ijk = np.rint(grid.world_to_index(chunk)).astype(np.int64)
+        inside = ((ijk >= 0) & (ijk < shape)).all(axis=1)
+        yield ijk[inside]
+
+
+def slab_points(
+    probe_to_world: np.ndarray | torch.Tensor | Sequence[np.ndarray],
+    probe: ProbeGeometry,
+    elevation_half_thickness_mm: float,
+    step_mm: float,
+    frames_per_chunk: int = 16,
+) -> Iterator[np.ndarray]:
+    """World points (M, 3) float64 sampling each frame's slab (its image rectangle, pixel
+    centre to pixel centre, × |z_probe| ≤ ``elevation_half_thickness_mm``) at a spacing of
+    at most ``step_mm`` along each of its axes, per chunk of frames."""
     poses = as_pose_tensor(probe_to_world).to(torch.float64)
     if not elevation_half_thickness_mm >= 0:
         raise argument_error(
             "elevation_half_thickness_mm", f"expected ≥ 0, got {elevation_half_thickness_mm}"
         )
-    step = grid.voxel_mm / 2
+    if not (np.isfinite(step_mm) and step_mm > 0):
+        raise argument_error("step_mm", f"expected a positive spacing, got {step_mm}")
     width_mm = (probe.width_px - 1) * probe.lateral_spacing_mm
     depth_mm = (probe.height_px - 1) * probe.axial_spacing_mm
     cols = torch.linspace(
-        0, probe.width_px - 1, max(2, int(np.ceil(width_mm / step)) + 1), dtype=torch.float64
+        0, probe.width_px - 1, max(2, int(np.ceil(width_mm / step_mm)) + 1), dtype=torch.float64
     )
     rows = torch.linspace(
-        0, probe.height_px - 1, max(2, int(np.ceil(depth_mm / step)) + 1), dtype=torch.float64
+        0, probe.height_px - 1, max(2, int(np.ceil(depth_mm / step_mm)) + 1), dtype=torch.float64
     )
-    n_elev = max(1, int(np.ceil(2 * elevation_half_thickness_mm / step)) + 1)
+    n_elev = max(1, int(np.ceil(2 * elevation_half_thickness_mm / step_mm)) + 1)
     elevations = torch.linspace(
         -elevation_half_thickness_mm, elevation_half_thickness_mm, n_elev, dtype=torch.float64
     )
-    mask = np.zeros(grid.shape, dtype=bool)
-    shape = np.asarray(grid.shape)
-    for start in range(0, poses.shape[0], 16):
-        chunk = poses[start : start + 16]
+    for start in range(0, poses.shape[0], frames_per_chunk):
+        chunk = poses[start : start + frames_per_chunk]
         plane = pixel_to_world(chunk, rows[:, None], cols[None, :], probe)  # (n, R, C, 3)
         normal = chunk[:, :3, 2]  # probe +z (elevation) in world
         slab = (
             plane[:, None] + elevations[None, :, None, None, None] * normal[:, None, None, None, :]
         )
-        ijk = np.rint(grid.world_to_index(slab.reshape(-1, 3).numpy())).astype(np.int64)
-        inside = ((ijk >= 0) & (ijk < shape)).all(axis=1)
-        ijk = ijk[inside]
-        mask[ijk[:, 0], ijk[:, 1], ijk[:, 2]] = True
-    return mask
+        yield slab.reshape(-1, 3).numpy()

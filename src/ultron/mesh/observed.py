@@ -170,15 +170,92 @@ def observed_faces(mesh, vertex_observed: np.ndarray) -> np.ndarray:
 def observed_submesh(mesh, vertex_observed: np.ndarray):
     """The sub-mesh of the observed faces (:func:`observed_faces`), unreferenced vertices
     dropped and the order kept; an empty mesh when none is observed."""
+    return _face_submesh(mesh, observed_faces(mesh, vertex_observed))[0]
+
+
+def _face_submesh(mesh, keep: np.ndarray) -> tuple[Any, np.ndarray]:
+    """The faces ``keep`` of ``mesh`` as a mesh, unreferenced vertices dropped in order, and
+    the (V',) indices of its vertices in ``mesh``."""
     import trimesh
 
-    keep = observed_faces(mesh, vertex_observed)
     faces = np.asarray(mesh.faces, dtype=np.int64).reshape(-1, 3)[keep]
     used = np.unique(faces)
     remap = np.full(len(mesh.vertices), -1, dtype=np.int64)
     remap[used] = np.arange(used.size)
     vertices = np.asarray(mesh.vertices)[used]
-    return trimesh.Trimesh(vertices=vertices, faces=remap[faces], process=False)
+    return trimesh.Trimesh(vertices=vertices, faces=remap[faces], process=False), used
+
+
+@dataclass(frozen=True)
+class SurfaceObservation:
+    """A reconstruction's surface split into observed and inferred parts.
+
+    ``extracted`` is the whole iso-surface, ``observed`` (V,) which of its vertices some frame
+    observed (module docstring), ``kept`` the mesh the method returns (the observed faces with
+    ``surface="observed"``, else ``extracted``) and ``kept_vertices`` (V',) the index in
+    ``extracted`` of each vertex of ``kept``. ``info`` is run.json's account: ``surface``,
+    ``faces_extracted``, ``faces_kept``, ``observation_transmission`` and, when no face was
+    observed and the whole iso-surface is kept, ``surface_fallback``.
+    """
+
+    extracted: Any
+    observed: np.ndarray
+    kept: Any
+    kept_vertices: np.ndarray
+    info: dict[str, Any]
+
+    @property
+    def kept_observed(self) -> np.ndarray:
+        """(V',) which vertices of ``kept`` some frame observed."""
+        return self.observed[self.kept_vertices]
+
+    @property
+    def cropped(self) -> bool:
+        """Whether ``kept`` lacks faces of ``extracted``."""
+        return len(self.kept.faces) < len(self.extracted.faces)
+
+
+def observe_surface(
+    mesh,
+    probe_to_world: np.ndarray | torch.Tensor | Sequence[np.ndarray],
+    probe: ProbeGeometry,
+    transmission: np.ndarray | Sequence[np.ndarray] | None,
+    slab_half_thickness_mm: float,
+    config: ObservedSurfaceConfig,
+    source: str,
+) -> SurfaceObservation:
+    """Which vertices of ``mesh`` some frame observed, and the part kept by ``config.surface``.
+
+    ``transmission`` is T per frame as in :func:`observed_points`, or None for T ≡ 1 (a method
+    without a transmission: a vertex is then observed when some frame's beam faces it);
+    ``source`` names it in ``info["observation_transmission"]``. When nothing is observed the
+    whole iso-surface is kept and ``info["surface_fallback"]`` says so (a degenerate surface,
+    e.g. from a barely trained network, rather than no mesh).
+    """
+    poses = as_pose_tensor(probe_to_world)
+    vertices = np.asarray(mesh.vertices, dtype=np.float64).reshape(-1, 3)
+    info: dict[str, Any] = {"surface": config.to_dict(), "faces_extracted": len(mesh.faces)}
+    info["observation_transmission"] = source
+    everything = np.arange(len(vertices), dtype=np.int64)
+    if len(mesh.faces) == 0:
+        observed = np.zeros(len(vertices), dtype=bool)
+        return SurfaceObservation(mesh, observed, mesh, everything, info | {"faces_kept": 0})
+    if transmission is None:
+        shape = (poses.shape[0], *probe.image_shape)
+        transmission = np.broadcast_to(np.ones((1, *probe.image_shape), np.float32), shape)
+    observed = observed_points(
+        vertices, np.asarray(mesh.vertex_normals), poses, probe, transmission,
+        slab_half_thickness_mm, config.max_incidence_deg, config.min_transmission,
+    )  # fmt: skip
+    if config.surface == "all":
+        return SurfaceObservation(
+            mesh, observed, mesh, everything, info | {"faces_kept": len(mesh.faces)}
+        )
+    kept, used = _face_submesh(mesh, observed_faces(mesh, observed))
+    if len(kept.faces) == 0:
+        info |= {"faces_kept": len(mesh.faces), "surface_fallback": "all"}
+        return SurfaceObservation(mesh, observed, mesh, everything, info)
+    return SurfaceObservation(mesh, observed, kept, used, info | {"faces_kept": len(kept.faces)})
 
 
 def _as_maps(

@@ -31,22 +31,26 @@ def second_difference_system(band: np.ndarray) -> sparse.csr_matrix:
     band = np.asarray(band, dtype=bool)
     if band.ndim != 3:
         raise argument_error("band", f"expected a 3D boolean array, got shape {band.shape}")
-    n = int(band.sum())
-    index = np.full(band.shape, -1, dtype=np.int64)
-    index[band] = np.arange(n)
-    coords = np.nonzero(band)
+    return band_second_differences(np.flatnonzero(band), np.asarray(band.shape))
+
+
+def band_second_differences(keys: np.ndarray, shape: np.ndarray) -> sparse.csr_matrix:
+    """Q = Σ_a D_aᵀ D_a (module doc) over the band whose voxels have the sorted C-order
+    ``keys`` in a box of ``shape``: the band need not be held densely (the tiled extraction)."""
+    n = len(keys)
+    coords = np.stack(np.unravel_index(keys, tuple(shape)), axis=0)
+    strides = (shape[1] * shape[2], shape[2], 1)
     rows, cols, vals = [], [], []
     for axis in range(3):
         diagonal = np.full(n, -2.0)
         for offset in (-1, 1):
-            neighbour = list(coords)
-            neighbour[axis] = coords[axis] + offset
-            inside = (neighbour[axis] >= 0) & (neighbour[axis] < band.shape[axis])
-            neighbour_index = np.full(n, -1, dtype=np.int64)
-            neighbour_index[inside] = index[tuple(c[inside] for c in neighbour)]
-            present = neighbour_index >= 0
+            along = coords[axis] + offset
+            inside = (along >= 0) & (along < shape[axis])
+            target = keys + offset * strides[axis]
+            found = np.minimum(np.searchsorted(keys, target), max(n - 1, 0))
+            present = inside & (keys[found] == target) if n else inside
             rows.append(axis * n + np.flatnonzero(present))
-            cols.append(neighbour_index[present])
+            cols.append(found[present])
             vals.append(np.ones(int(present.sum())))
             diagonal[~present] += 1.0
         rows.append(axis * n + np.arange(n))
@@ -80,11 +84,11 @@ def smooth_constrained(
     lower = np.where(x > 0, x, -np.inf)
     upper[np.abs(upper) < 1] = 0
     lower[np.abs(lower) < 1] = 0
-    result[band] = _projected_jacobi(q, x, lower, upper, max_iters, rel_tol)
+    result[band] = projected_jacobi(q, x, lower, upper, max_iters, rel_tol)
     return result
 
 
-def _projected_jacobi(
+def projected_jacobi(
     q: sparse.csr_matrix,
     x: np.ndarray,
     lower: np.ndarray,

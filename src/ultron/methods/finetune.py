@@ -37,6 +37,7 @@ from ultron.data.dataset import SweepDataset
 from ultron.data.labels import select_label_frames
 from ultron.errors import UltronInputError, argument_error
 from ultron.fields.occupancy import OccupancyNetwork
+from ultron.mesh.export import MESH_COORDINATES
 from ultron.methods.model_io import NETWORK_FILE, load_network
 from ultron.methods.runinfo import StageTimer
 from ultron.methods.ultron_method import (
@@ -76,8 +77,14 @@ class FinetuneConfig:
     meshing: UltronConfig = field(default_factory=UltronConfig)
     metrics: MetricsConfig = field(default_factory=MetricsConfig)
     visibility: VisibilityConfig | None = None  # None: the model's own source
+    mesh_coordinates: str = "lps"
 
     def __post_init__(self) -> None:
+        if self.mesh_coordinates not in MESH_COORDINATES:
+            raise argument_error(
+                "mesh_coordinates",
+                f"expected one of {MESH_COORDINATES}, got {self.mesh_coordinates!r}",
+            )
         if isinstance(self.label_fraction, bool) or not 0 < self.label_fraction <= 1:
             raise argument_error(
                 "label_fraction", f"expected a value in (0, 1], got {self.label_fraction!r}"
@@ -160,8 +167,10 @@ def finetune_ultron(
     timer = timer or StageTimer()
     visibility = visibility or config.visibility or VisibilityConfig()
     model = copy.deepcopy(network)
+    selection = None
     info: dict[str, Any] = {"finetune_config": {k: v for k, v in config.__dict__.items()
-                                                if k not in ("meshing", "metrics", "visibility")},
+                                                if k not in ("meshing", "metrics", "visibility",
+                                                             "mesh_coordinates")},
                             **visibility.to_dict()}  # fmt: skip
     if config.iters > 0:
         with timer.stage("labels"):
@@ -190,14 +199,17 @@ def finetune_ultron(
     )
     with timer.stage("mesh_observed"):
         meshing = replace(config.meshing, visibility=visibility)
-        mesh, surface_info = keep_observed_surface(
-            mesh, dataset, fitted, meshing, grid.voxel_mm, truth
-        )
-    info |= surface_info
+        observation = keep_observed_surface(mesh, dataset, fitted, meshing, grid.voxel_mm, truth)
+    info |= observation.info
     info["grid"] = grid.to_dict()
     meta = spec.to_meta(fitted.channels, visibility)
     return Reconstruction(
-        mesh=mesh, volume=volume, grid=grid, info=info | {"network": model, "model": meta}
+        mesh=observation.kept,
+        volume=volume,
+        grid=grid,
+        info=info | {"network": model, "model": meta},
+        observation=observation,
+        selection=selection,
     )
 
 
@@ -253,5 +265,6 @@ def finetune(
         "model_method": meta.get("method"),
     }
     return write_outputs(
-        out_dir, dataset, identity, result, timer, config.metrics, extra, report, references
-    )
+        out_dir, dataset, identity, result, timer, config.metrics, extra, report, references,
+        config.mesh_coordinates,
+    )  # fmt: skip

@@ -41,8 +41,14 @@ from ultron.errors import UltronInputError
 if TYPE_CHECKING:
     from ultron.train.field_config import FieldTrainConfig
 
-#: Peak bytes per voxel of the meshing grid (module doc).
-MESH_BYTES_PER_VOXEL = 64
+#: Peak bytes per voxel of the tiles the field of view reaches (module doc, 2).
+MESH_BYTES_PER_FOV_VOXEL = 16
+#: Bytes per voxel of the occupancy volume: float32, and its copy and gzip while written.
+VOLUME_BYTES_PER_VOXEL = 9
+#: The meshing's working memory independent of the grid: a tile's arrays, the tables.
+MESH_FIXED_BYTES = 256 * 1024**2
+#: Grids larger than this are sized by their voxel count alone (no tile is counted).
+MAX_COUNTED_VOXELS = 1e13
 #: Bytes per value of the field's planes while fitting: float32 weight, gradient, Adam m and v.
 FIELD_BYTES_PER_VALUE = 16
 #: A field fit's working memory per rendered sample, bytes, per backend: a training step keeps
@@ -116,28 +122,86 @@ def meshing_grid_shape(
     return grid_shape(bounds, voxel), voxel, extent  # type: ignore[return-value]
 
 
+@dataclass(frozen=True)
+class MeshingMemory:
+    """The meshing's estimated memory (module doc, 2): the grid, the voxels of the tiles the
+    field of view may reach, the occupancy volume's voxels, and bytes."""
+
+    sides: tuple[int, int, int]
+    voxel_mm: float
+    extent_mm: tuple[float, float, float]
+    fov_voxels: float
+    volume_voxels: float
+
+    @property
+    def grid_voxels(self) -> float:
+        return float(math.prod(self.sides))
+
+    @property
+    def total(self) -> float:
+        return (
+            self.fov_voxels * MESH_BYTES_PER_FOV_VOXEL
+            + self.volume_voxels * VOLUME_BYTES_PER_VOXEL
+            + MESH_FIXED_BYTES
+        )
+
+    def describe(self) -> str:
+        """``31.8 M voxels (133 × 198 × 1206 of 0.396 mm over the 51 × 76 × 475 mm …)``."""
+        return (
+            f"the meshing grid has {self.grid_voxels:.3g} voxels"
+            f" ({' × '.join(map(str, self.sides))} of {self.voxel_mm:.3g} mm over the"
+            f" {' × '.join(f'{e:.4g}' for e in self.extent_mm)} mm the probe saw), of which"
+            f" the field of view's tiles hold {self.fov_voxels:.3g}: ≈ {_size(self.total)}"
+        )
+
+
+def meshing_memory(dataset: SweepDataset, voxel_mm: float | None) -> MeshingMemory:
+    """The memory of meshing ``dataset`` at ``voxel_mm`` (module doc, 2), before anything is
+    allocated. The field of view's tiles are counted when the grid could be allocated at all
+    (the grid's voxel count otherwise, Python integers)."""
+    from ultron.mesh.tiles import MAX_VOLUME_VOXELS, reached_tiles, tile_for_factor, volume_factor
+    from ultron.methods.ultron_method import (
+        UltronConfig,
+        elevation_half_thickness_mm,
+        scan_grid,
+    )
+
+    sides, voxel, extent = meshing_grid_shape(dataset, voxel_mm)
+    n_voxels = float(math.prod(sides))
+    fov, volume = n_voxels, n_voxels
+    if n_voxels <= MAX_COUNTED_VOXELS:
+        grid = scan_grid(dataset, voxel_mm)
+        factor = UltronConfig().coarse_factor
+        tile = tile_for_factor(factor)
+        half = elevation_half_thickness_mm(dataset, voxel)
+        tiles = reached_tiles(grid, dataset.all_poses(), dataset.probe, half, tile, factor)
+        fov = float(
+            sum(math.prod(int(n) for n in _tile_sides(grid.shape, key, tile)) for key in tiles)
+        )
+        k = volume_factor(grid.shape, MAX_VOLUME_VOXELS)
+        volume = float(math.prod(-(-n // k) for n in grid.shape))
+    return MeshingMemory(sides, voxel, extent, fov, volume)
+
+
+def _tile_sides(shape: tuple[int, int, int], key: tuple[int, int, int], tile: int) -> list[int]:
+    return [min(tile, n - k * tile) for n, k in zip(shape, key, strict=True)]
+
+
 def check_meshing_grid(
     dataset: SweepDataset, root: str | Path, voxel_mm: float | None, max_memory_gib: float | None
 ) -> None:
-    """Refuse a meshing grid (module doc, 2) larger than the memory limit."""
+    """Refuse a meshing (module doc, 2) whose estimated memory exceeds the limit."""
     probe = dataset.probe
-    sides, voxel, extent = meshing_grid_shape(dataset, voxel_mm)
-    n_voxels = math.prod(sides)
-    needed = float(n_voxels) * MESH_BYTES_PER_VOXEL
+    memory = meshing_memory(dataset, voxel_mm)
     limit, limit_name = memory_limit(max_memory_gib)
-    if needed <= limit:
+    if memory.total <= limit:
         return
     if voxel_mm is None:
         where, field = Path(root) / "dataset.json", "probe"
         cause = f"its voxel is the probe's finer pixel spacing ({describe_probe(probe)})"
     else:
         where, field, cause = "argument", "voxel_mm", f"its voxel is {voxel_mm:g} mm"
-    raise UltronInputError(
-        where, field, f"the meshing grid would have {float(n_voxels):.3g} voxels"
-        f" ({' × '.join(map(str, sides))} of {voxel:.3g} mm over the"
-        f" {' × '.join(f'{e:.4g}' for e in extent)} mm the probe saw), ≈ {_size(needed)},"
-        f" more than {limit_name}; {cause}",
-    )  # fmt: skip
+    raise UltronInputError(where, field, f"{memory.describe()}, more than {limit_name}; {cause}")
 
 
 @dataclass(frozen=True)

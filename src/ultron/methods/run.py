@@ -1,8 +1,9 @@
 """``reconstruct``: one dataset, one method, one label fraction → DIR with mesh, volume, metrics.
 
-Outputs: ``mesh.ply``, ``mesh.stl``, ``mesh.obj``, ``occupancy.nii.gz`` (aligned with the mesh
-in 3D Slicer, see :mod:`ultron.mesh.export`), ``metrics.json`` when the dataset has a reference
-surface, and ``run.json`` (the command, configuration, label selection, versions, timings per
+Outputs: ``mesh.ply`` (with each vertex's evidence: observed or inferred, distance to the
+labelled bone), ``mesh.stl``, ``mesh.obj``, ``surface_extracted.ply`` (the whole iso-surface,
+when the observed crop dropped faces), ``occupancy.nii.gz`` (aligned with the mesh in 3D Slicer,
+see :mod:`ultron.mesh.export`), ``metrics.json`` when the dataset has a reference surface, and ``run.json`` (the command, configuration, label selection, versions, timings per
 stage, peak memory), written into a staging directory that replaces DIR as a whole at the end
 (:mod:`ultron.methods.rundir`); ``report.html`` follows in DIR.
 
@@ -14,7 +15,7 @@ oracle's files, outlier poses and the grids' memory (:mod:`ultron.methods.resour
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -22,9 +23,9 @@ from ultron import atomic
 from ultron.data.dataset import SweepDataset
 from ultron.errors import argument_error
 from ultron.mesh.compounding import CompoundingConfig, compound_labels
-from ultron.mesh.export import load_mesh, save_mesh, save_volume_nifti
+from ultron.mesh.export import MESH_COORDINATES, load_mesh, save_mesh, save_volume_nifti
 from ultron.mesh.extract import extract_surface
-from ultron.mesh.observed import ObservedSurfaceConfig
+from ultron.methods.evidence import evidence_summary, faced_observation, reconstruction_evidence
 from ultron.methods.model_io import save_network
 from ultron.methods.on_method import ONConfig, reconstruct_on
 from ultron.methods.resources import check_run_resources
@@ -35,6 +36,8 @@ from ultron.metrics.surface import MetricsConfig, evaluate_meshes
 from ultron.train.visibility import load_oracle_truth
 
 FIELD_METHODS = ("ultron", "ultron-noloss")
+#: The whole iso-surface with its evidence, written when the observed crop dropped faces.
+EXTRACTED_MESH = "surface_extracted.ply"
 SDF_VIEWS = {"rocosdf": ("row", "column"), "unsr-row": ("row",), "unsr-col": ("column",)}
 METHODS = (*FIELD_METHODS, "compounding", "on", *SDF_VIEWS)
 ROCOSDF_PRESETS = ("fast", "paper")
@@ -52,6 +55,7 @@ class ReconstructionRequest:
     on: ONConfig = field(default_factory=ONConfig)
     rocosdf_preset: str = "fast"
     metrics: MetricsConfig = field(default_factory=MetricsConfig)
+    mesh_coordinates: str = "lps"
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -59,6 +63,11 @@ class ReconstructionRequest:
         if not 0 < self.label_fraction <= 1:
             raise argument_error(
                 "label_fraction", f"expected a value in (0, 1], got {self.label_fraction}"
+            )
+        if self.mesh_coordinates not in MESH_COORDINATES:
+            raise argument_error(
+                "mesh_coordinates",
+                f"expected one of {MESH_COORDINATES}, got {self.mesh_coordinates!r}",
             )
         if self.rocosdf_preset not in ROCOSDF_PRESETS:
             raise argument_error(
@@ -83,7 +92,28 @@ def run_method(
 ) -> Reconstruction:
     """Reconstruct with ``request.method`` (``fitted`` is the acoustic field, for UltrON;
     ``truth`` the oracle's true transmission per sweep, see :mod:`ultron.train.visibility`;
-    ``dataset_name``, e.g. its directory, names the dataset in RoCoSDF's input errors)."""
+    ``dataset_name``, e.g. its directory, names the dataset in RoCoSDF's input errors).
+
+    Every result carries its observed / inferred split (:mod:`ultron.methods.evidence`): a
+    method that computes none (ON, RoCoSDF) is flagged with T ≡ 1 and keeps its surface."""
+    result = _run_method(dataset, request, fitted, timer, truth, dataset_name)
+    if result.observation is None:
+        with timer.stage("mesh_observed"):
+            config = replace(request.ultron.observed, surface="all")
+            observation = faced_observation(result.mesh, dataset, result.grid.voxel_mm, config)
+        result = replace(result, observation=observation)
+    return result
+
+
+def _run_method(
+    dataset: SweepDataset,
+    request: ReconstructionRequest,
+    fitted,
+    timer: StageTimer,
+    truth: dict[str, Any] | None,
+    dataset_name: str | None,
+) -> Reconstruction:
+    """:func:`run_method` before the observed / inferred split of methods without one."""
     from ultron.data.labels import select_label_frames
 
     if request.method in FIELD_METHODS:
@@ -100,13 +130,16 @@ def run_method(
         )
         return reconstruct_ultron(dataset, fitted, request.method, config, timer, truth)
     if request.method == "on":
-        return reconstruct_on(dataset, request.label_fraction, request.seed, request.on, timer)
+        result = reconstruct_on(dataset, request.label_fraction, request.seed, request.on, timer)
+        return replace(
+            result, selection=select_label_frames(dataset, request.label_fraction, request.seed)
+        )
     if request.method in SDF_VIEWS:
         from ultron.methods.rocosdf import RoCoSDFConfig, reconstruct_rocosdf
 
         with timer.stage("labels"):
             selection = select_label_frames(dataset, request.label_fraction, request.seed)
-        return reconstruct_rocosdf(
+        result = reconstruct_rocosdf(
             dataset,
             selection,
             RoCoSDFConfig.preset(request.rocosdf_preset),
@@ -115,54 +148,31 @@ def run_method(
             timer=timer,
             dataset_name=dataset_name,
         )
+        return replace(result, selection=selection)
     with timer.stage("labels"):
         selection = select_label_frames(dataset, request.label_fraction, request.seed)
     with timer.stage("mesh"):
         compounded = compound_labels(dataset, selection, request.compounding)
         mesh = extract_surface(compounded.volume, compounded.grid, request.ultron.extraction)
     with timer.stage("mesh_observed"):
-        mesh, surface_info = keep_faced_surface(
+        observation = faced_observation(
             mesh, dataset, compounded.grid.voxel_mm, request.ultron.observed
         )
     info = {
-        **surface_info,
+        **observation.info,
         "selection": selection.to_dict(),
         "n_label_frames": selection.n_frames,
         "hole_fill_radius_mm": compounded.hole_fill_radius_mm,
         "compounding_config": request.compounding.__dict__,
     }
-    return Reconstruction(mesh=mesh, volume=compounded.volume, grid=compounded.grid, info=info)
-
-
-def keep_faced_surface(
-    mesh, dataset: SweepDataset, voxel_mm: float, observed: ObservedSurfaceConfig
-) -> tuple[Any, dict[str, Any]]:
-    """Label compounding's observed surface (``--surface observed``, the default): the faces
-    some frame saw facing the probe (:mod:`ultron.mesh.observed`'s criterion with T ≡ 1 — the
-    baseline has no transmission — over every frame, in the slab UltrON's crop uses). It drops
-    the floor and walls of the compounded label band, which no frame sees from above. When no
-    face is kept the whole iso-surface is, and ``surface_fallback`` says so."""
-    import numpy as np
-
-    from ultron.mesh.observed import observed_points, observed_submesh
-    from ultron.methods.ultron_method import elevation_half_thickness_mm
-
-    info: dict[str, Any] = {"surface": observed.to_dict(), "faces_extracted": len(mesh.faces)}
-    if observed.surface == "all" or len(mesh.faces) == 0:
-        return mesh, info | {"faces_kept": len(mesh.faces)}
-    probe = dataset.probe
-    ones = np.broadcast_to(np.ones((1, *probe.image_shape), np.float32),
-                           (dataset.n_frames, *probe.image_shape))  # fmt: skip
-    seen = observed_points(
-        np.asarray(mesh.vertices), np.asarray(mesh.vertex_normals), dataset.all_poses(), probe,
-        ones, elevation_half_thickness_mm(dataset, voxel_mm), observed.max_incidence_deg,
-        observed.min_transmission,
-    )  # fmt: skip
-    kept = observed_submesh(mesh, seen)
-    info |= {"observation_transmission": "none (T = 1)"}
-    if len(kept.faces) == 0:
-        return mesh, info | {"faces_kept": len(mesh.faces), "surface_fallback": "all"}
-    return kept, info | {"faces_kept": len(kept.faces)}
+    return Reconstruction(
+        mesh=observation.kept,
+        volume=compounded.volume,
+        grid=compounded.grid,
+        info=info,
+        observation=observation,
+        selection=selection,
+    )
 
 
 #: The reference mesh and its visible part (each None when the dataset has none).
@@ -189,12 +199,18 @@ def write_outputs(
     extra: dict[str, Any] | None = None,
     report: bool = True,
     references: References | None = None,
+    mesh_coordinates: str = "lps",
 ) -> dict[str, Any]:
     """Write the mesh, volume, the trained network (``network.pt`` when the method has one, see
     :mod:`ultron.methods.model_io`), metrics (with a reference) and, last, run.json into a
     staging directory that then replaces ``out_dir`` as a whole
     (:func:`~ultron.methods.rundir.staged_run_dir`; ``out_dir`` must be new, empty or a run of
     ``identity["command"]``); return the summary. run.json therefore marks a finished run.
+
+    Mesh files are written in ``mesh_coordinates`` (:mod:`ultron.mesh.export`); mesh.ply
+    holds each vertex's evidence (:mod:`ultron.mesh.evidence`: ``observed``,
+    ``label_distance_mm``) and, when the observed crop dropped faces, ``surface_extracted.ply``
+    the whole iso-surface with its own.
 
     ``identity`` (command, method, label_fraction, seed, …) heads run.json and tags
     metrics.json; ``references`` are :func:`load_references`'s meshes (read here if None).
@@ -204,10 +220,15 @@ def write_outputs(
     out = Path(out_dir)
     identity = {"command": "reconstruct", **identity}
     reference, visible = load_references(dataset) if references is None else references
+    result, evidence = reconstruction_evidence(result, dataset)
     with staged_run_dir(out, identity["command"]) as staging:
         with timer.stage("write"):
             for suffix in (".ply", ".stl", ".obj"):
-                save_mesh(result.mesh, staging / f"mesh{suffix}")
+                attributes = evidence["mesh"].vertex_attributes() if suffix == ".ply" else None
+                save_mesh(result.mesh, staging / f"mesh{suffix}", mesh_coordinates, attributes)
+            if "extracted" in evidence:
+                save_mesh(result.observation.extracted, staging / EXTRACTED_MESH,
+                          mesh_coordinates, evidence["extracted"].vertex_attributes())  # fmt: skip
             save_volume_nifti(result.volume, result.grid, staging / "occupancy.nii.gz")
             if "network" in result.info:
                 meta = {"method": identity["method"], **result.info.get("model", {})}
@@ -225,7 +246,8 @@ def write_outputs(
         payload = {
             **identity,
             "mesh": {"vertices": len(result.mesh.vertices), "faces": len(result.mesh.faces),
-                     "area_mm2": float(result.mesh.area)},
+                     "area_mm2": float(result.mesh.area), "coordinates": mesh_coordinates},
+            "surface_evidence": evidence_summary(evidence),
             **info,
             **(extra or {}),
         }  # fmt: skip
@@ -317,8 +339,9 @@ def reconstruct(
         "dataset_dir": str(Path(dataset_dir).resolve()),
     }
     return write_outputs(
-        out_dir, dataset, identity, result, timer, request.metrics, extra, report, references
-    )
+        out_dir, dataset, identity, result, timer, request.metrics, extra, report, references,
+        request.mesh_coordinates,
+    )  # fmt: skip
 
 
 def load_or_fit_field(

@@ -41,14 +41,10 @@ from ultron.data.labels import FrameSelection, gather_labelled_pixels, select_la
 from ultron.errors import UltronInputError, argument_error
 from ultron.fields.context import ThetaContextConfig, theta_features
 from ultron.fields.occupancy import OccupancyNetwork
-from ultron.mesh.extract import ExtractionConfig, extract_surface
-from ultron.mesh.grid import (
-    GridSpec,
-    evaluate_coarse_to_fine,
-    field_of_view_mask,
-    meshing_voxel_mm,
-)
-from ultron.mesh.observed import ObservedSurfaceConfig, observed_points, observed_submesh
+from ultron.mesh.extract import ExtractionConfig, extract_surface_tiles
+from ultron.mesh.grid import GridSpec, meshing_voxel_mm
+from ultron.mesh.observed import ObservedSurfaceConfig, SurfaceObservation, observe_surface
+from ultron.mesh.tiles import evaluate_tiles, field_of_view_tiles, tile_for_factor
 from ultron.methods.runinfo import StageTimer
 from ultron.train.occupancy import OccupancyTrainConfig, OccupancyTrainingData, fit_occupancy
 from ultron.train.visibility import (
@@ -134,6 +130,11 @@ class Reconstruction:
     volume: np.ndarray
     grid: GridSpec
     info: dict[str, Any]
+    #: The extracted surface split into observed / inferred (``mesh`` is its ``kept`` part);
+    #: None when the method did not compute it (the pipeline then does, with T ≡ 1).
+    observation: SurfaceObservation | None = None
+    #: The frames whose labels the method used (None: no label, e.g. an unadapted network).
+    selection: FrameSelection | None = None
 
 
 def elevation_half_thickness_mm(dataset: SweepDataset, voxel_mm: float) -> float:
@@ -144,7 +145,8 @@ def elevation_half_thickness_mm(dataset: SweepDataset, voxel_mm: float) -> float
 
 
 def scan_grid(dataset: SweepDataset, voxel_mm: float | None) -> GridSpec:
-    """The meshing grid over everything the probe saw, voxel ≤ the finer pixel spacing."""
+    """The meshing grid over everything the probe saw, voxel ≤ the finer pixel spacing. Only
+    its tiles that the field of view reaches are evaluated (:func:`mesh_occupancy`)."""
     bounds = field_of_view_bounds_mm(dataset.all_poses(), dataset.probe).numpy()
     return GridSpec.from_bounds(bounds, meshing_voxel_mm(dataset.probe, voxel_mm))
 
@@ -186,32 +188,38 @@ def occupancy_function(fitted, network: OccupancyNetwork, context: ThetaContextC
 
 
 def mesh_occupancy(fn, dataset: SweepDataset, config: UltronConfig, timer: StageTimer) -> tuple:
-    """Evaluate ``fn`` on the scan grid inside the field of view and extract the surface.
+    """Evaluate ``fn`` on the scan grid inside the field of view and extract the surface;
+    returns (mesh, occupancy volume, the volume's grid).
 
-    The field-of-view mask is rasterised on the coarse grid of the coarse-to-fine evaluation
-    (:func:`~ultron.mesh.grid.evaluate_coarse_to_fine`), so it is exact to one coarse voxel.
+    The grid is worked in tiles (:mod:`ultron.mesh.tiles`): the field-of-view mask is
+    rasterised on the coarse grid of the coarse-to-fine evaluation
+    (:func:`~ultron.mesh.grid.evaluate_coarse_to_fine`, so it is exact to one coarse voxel),
+    kept only in the tiles some frame reaches, and only those tiles (with a one-tile rim) are
+    evaluated and binarised; the surface is extracted from the tiles
+    (:func:`~ultron.mesh.extract.extract_surface_tiles`). Mesh and volume equal those of the
+    dense grid (for a power-of-two coarse factor, bit for bit), in memory that grows with the
+    field of view, not its bounding box. The volume is the occupancy at the meshing voxel up to
+    :data:`~ultron.mesh.tiles.MAX_VOLUME_VOXELS` voxels, beyond that at a power-of-two
+    multiple of it (block means; its grid says which), zero outside the field of view.
     """
     grid = scan_grid(dataset, config.voxel_mm)
-    coarse = grid.coarsened(config.coarse_factor)
+    factor = config.coarse_factor
+    tile = tile_for_factor(factor)
     with timer.stage("mesh_fov_mask"):
-        mask = field_of_view_mask(
-            coarse,
+        mask = field_of_view_tiles(
+            grid.coarsened(factor),
             dataset.all_poses(),
             dataset.probe,
             elevation_half_thickness_mm(dataset, grid.voxel_mm),
+            tile // factor,
         )
     with timer.stage("mesh_evaluate"):
-        volume = evaluate_coarse_to_fine(
-            fn,
-            grid,
-            config.extraction.threshold,
-            config.coarse_factor,
-            config.chunk_points,
-            coarse_mask=mask,
+        evaluated = evaluate_tiles(
+            fn, grid, config.extraction.threshold, factor, mask, tile, config.chunk_points
         )
     with timer.stage("mesh_extract"):
-        mesh = extract_surface(volume, grid, config.extraction)
-    return mesh, volume, grid
+        mesh = extract_surface_tiles(evaluated.tiles, grid, config.extraction)
+    return mesh, evaluated.volume.values, evaluated.volume.grid
 
 
 def keep_observed_surface(
@@ -221,41 +229,31 @@ def keep_observed_surface(
     config: UltronConfig,
     voxel_mm: float,
     truth: Mapping[str, np.ndarray] | None = None,
-) -> tuple[Any, dict[str, Any]]:
-    """The part of ``mesh`` that some frame observed (module docstring, step 5) and counts.
+) -> SurfaceObservation:
+    """Which vertices of ``mesh`` some frame observed, and the part kept (module docstring,
+    step 5; :func:`~ultron.mesh.observed.observe_surface`).
 
     Each frame's T comes from the oracle (diagnostic runs) or the fitted field; the elevational
     slab is the one the field-of-view mask uses (0.75 × the frame gap, ≥ one voxel of the
-    meshing grid, ``voxel_mm``). When no
-    face is observed the whole iso-surface is kept and ``surface_fallback`` says so.
+    meshing grid, ``voxel_mm``).
     """
-    observed = config.observed
-    info: dict[str, Any] = {"surface": observed.to_dict(), "faces_extracted": len(mesh.faces)}
-    if observed.surface == "all" or len(mesh.faces) == 0:
-        return mesh, info | {"faces_kept": len(mesh.faces)}
     source = "oracle" if config.visibility.source == "oracle" else "field"
-    visibility = replace(config.visibility, source=source)
-    maps = [
-        frame_transmission(visibility, dataset, sweep.name, fitted=fitted, truth=truth)
-        for sweep in dataset.sweeps
-    ]
-    seen = observed_points(
-        np.asarray(mesh.vertices),
-        np.asarray(mesh.vertex_normals),
+    maps = None
+    if len(mesh.faces):
+        visibility = replace(config.visibility, source=source)
+        maps = [
+            frame_transmission(visibility, dataset, sweep.name, fitted=fitted, truth=truth)
+            for sweep in dataset.sweeps
+        ]
+    return observe_surface(
+        mesh,
         dataset.all_poses(),
         dataset.probe,
         maps,
         elevation_half_thickness_mm(dataset, voxel_mm),
-        observed.max_incidence_deg,
-        observed.min_transmission,
+        config.observed,
+        source,
     )
-    kept = observed_submesh(mesh, seen)
-    info |= {"observation_transmission": source}
-    if len(kept.faces) == 0:
-        # Nothing observed (a degenerate surface, e.g. from a barely trained network): keep the
-        # iso-surface rather than write no mesh, and say so in run.json.
-        return mesh, info | {"faces_kept": len(mesh.faces), "surface_fallback": "all"}
-    return kept, info | {"faces_kept": len(kept.faces)}
 
 
 def reconstruct_ultron(
@@ -285,11 +283,9 @@ def reconstruct_ultron(
     fn = occupancy_function(fitted, network, config.context)
     mesh, volume, grid = mesh_occupancy(fn, dataset, config, timer)
     with timer.stage("mesh_observed"):
-        mesh, surface_info = keep_observed_surface(
-            mesh, dataset, fitted, config, grid.voxel_mm, truth
-        )
+        observation = keep_observed_surface(mesh, dataset, fitted, config, grid.voxel_mm, truth)
     info = {
-        **surface_info,
+        **observation.info,
         "selection": selection.to_dict(),
         "n_label_frames": selection.n_frames,
         "n_labelled_pixels": len(data.labels),
@@ -308,5 +304,10 @@ def reconstruct_ultron(
         occupancy_config.negatives,
     ).to_meta(fitted.channels, config.visibility)
     return Reconstruction(
-        mesh=mesh, volume=volume, grid=grid, info=info | {"network": network, "model": model}
+        mesh=observation.kept,
+        volume=volume,
+        grid=grid,
+        info=info | {"network": network, "model": model},
+        observation=observation,
+        selection=selection,
     )

@@ -35,6 +35,7 @@ import numpy as np
 import torch
 
 from ultron.errors import argument_error
+from ultron.phantom.long_bone import LongBoneShape
 from ultron.phantom.primitives import Ellipsoid, Primitive, SegmentBox, VertebralBody, union_sdf
 
 if TYPE_CHECKING:
@@ -190,14 +191,16 @@ class VertebraShape:
 
 @dataclass(frozen=True)
 class Phantom:
-    """A digital vertebra phantom: SDF in world mm (negative inside bone), bounds, reference mesh.
+    """A digital bone phantom — a vertebra (:class:`VertebraShape`) or a long bone
+    (:class:`~ultron.phantom.long_bone.LongBoneShape`): SDF in world mm (negative inside
+    bone), bounds, reference mesh.
 
     ``gel_cover_mm`` is the gelatin between the most posterior bone point and the block's
     scanned surface, so the probe face lies in the plane ``y = surface_y_mm``.
     """
 
     name: str
-    shape: VertebraShape
+    shape: VertebraShape | LongBoneShape
     description: str
     gel_cover_mm: float = 10.0
 
@@ -380,10 +383,17 @@ PHANTOMS: Mapping[str, Phantom] = MappingProxyType(
 )
 
 
+#: Long-bone phantoms (:mod:`ultron.phantom.long_bone`), for long sweeps; not part of the
+#: vertebra benchmark's ``PHANTOMS``.
+LONG_BONES: Mapping[str, Phantom] = MappingProxyType(
+    {"femur": Phantom("femur", LongBoneShape(), "femur-like long bone, 44 cm (long sweeps)")}
+)
+
+
 def get_phantom(name: str) -> Phantom:
-    """The phantom called ``name`` (one of ``PHANTOMS``); a clear error otherwise."""
-    if name not in PHANTOMS:
-        raise argument_error(
-            "phantom", f"unknown phantom {name!r}; expected one of {list(PHANTOMS)}"
-        )
-    return PHANTOMS[name]
+    """The phantom called ``name`` (one of ``PHANTOMS`` or ``LONG_BONES``); a clear error
+    otherwise."""
+    known = {**PHANTOMS, **LONG_BONES}
+    if name not in known:
+        raise argument_error("phantom", f"unknown phantom {name!r}; expected one of {list(known)}")
+    return known[name]

@@ -4,7 +4,7 @@ Reads ``run.json`` (required), ``mesh.ply`` and ``metrics.json`` (when present),
 named by run.json's ``dataset_dir`` and the acoustic field named by its ``field_dir`` (unless
 given), and writes ``run_dir/report.html`` (atomically) with: a summary (method, label
 fraction, seed, timings, peak memory), the metrics table, the mesh-vs-reference figure,
-example frames (with the field's rendered B-mode, θ and T maps when a field is available), the
+the observed-vs-inferred surface (:mod:`ultron.mesh.evidence`), example frames (with the field's rendered B-mode, θ and T maps when a field is available), the
 label masks used, and the loss curves.
 """
 
@@ -18,6 +18,7 @@ from ultron.errors import UltronInputError, argument_error
 from ultron.report.html import Section, build_html, write_html
 from ultron.report.sections import (
     FIELD_METHODS,
+    evidence_html,
     existing_dir,
     final_loss_rows,
     frames_html,
@@ -103,6 +104,8 @@ def build_run_report(run_dir: str | Path, dataset: SweepDataset | None = None, f
     else:
         body = note("No mesh.ply in the run directory.")
     sections.append(Section("Reconstruction vs reference", body))
+    body = guarded(lambda: evidence_html(root, method), "Observed vs inferred figure")
+    sections.append(Section("Observed vs inferred surface", body))
 
     if dataset is None:
         skipped = note(f"Skipped: {dataset_note}.")

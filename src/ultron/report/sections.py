@@ -183,6 +183,41 @@ def mesh_figure_html(
     return image_html(png, f"{title}: reconstructed surface", caption, attrs)
 
 
+def evidence_html(run_dir: Path, title: str) -> str:
+    """The observed-vs-inferred figure of the run's whole extracted surface
+    (``surface_extracted.ply`` when the observed crop dropped faces, else ``mesh.ply``), from
+    the evidence in its PLY vertex properties; a note for a mesh written without them."""
+    from ultron.mesh.export import load_mesh, load_vertex_properties
+    from ultron.report.evidence_figure import surface_evidence_figure
+
+    extracted = run_dir / "surface_extracted.ply"
+    path = extracted if extracted.is_file() else run_dir / "mesh.ply"
+    if not path.is_file():
+        return note("No mesh.ply in the run directory.")
+    properties = load_vertex_properties(path)
+    if not {"observed", "label_distance_mm"} <= properties.keys():
+        return note(f"{path.name} has no per-vertex evidence (written by an older ultron).")
+    mesh = load_mesh(path)
+    png = surface_evidence_figure(
+        mesh.vertices, properties["observed"], properties["label_distance_mm"], title
+    )
+    kept = (
+        "mesh.ply keeps only the observed faces (--surface observed); the figure shows the "
+        "whole extracted iso-surface (surface_extracted.ply)."
+        if path == extracted
+        else "The figure shows mesh.ply."
+    )
+    caption = (
+        f"{title}: vertices observed by some frame (in its image and elevational slab, facing "
+        "the probe, T ≥ 0.3 above them; T ≡ 1 for methods without a transmission) in blue, "
+        "inferred ones in orange; right, each vertex's distance to the nearest labelled bone "
+        f"pixel the method used (colour clipped at the 95th percentile). {kept} Both are PLY "
+        "vertex properties: observed (0/1) and label_distance_mm."
+    )
+    return image_html(png, f"{title}: observed and inferred surface", caption,
+                      {"data-kind": "evidence"})  # fmt: skip
+
+
 def example_frames(dataset: SweepDataset, count: int = 2) -> tuple[str, list[int]]:
     """The first sweep's name and ``count`` evenly spaced interior frame indices."""
     sweep = dataset.sweeps[0]
@@ -221,8 +256,22 @@ def masks_html(
         f"{used} labelled frames used (fraction {selection.get('fraction')}, seed "
         f"{selection.get('seed')}); up to 8 shown, frames with bone first. Red: bone, "
         "blue: ignored (255), untinted: background."
-    )
+    ) + _auto_label_note(dataset)
     return image_html(png, "label masks", caption, {"data-kind": "labels", **(attrs or {})})
+
+
+def _auto_label_note(dataset: SweepDataset) -> str:
+    """`` Labels of sweep(s) …: automatic (ultron label --auto, …).`` or ``""``."""
+    from ultron.data.auto_label_dataset import auto_label_records
+
+    records = auto_label_records(dataset)
+    if not records:
+        return ""
+    methods = sorted({str(r.get("method", "?")) for r in records.values()})
+    return (
+        f" Labels of sweep(s) {', '.join(sorted(records))}: automatic (ultron label --auto,"
+        f" {', '.join(methods)}), not drawn by a person."
+    )
 
 
 def _find_curves(node: Any, path: str, out: dict[str, list[dict]]) -> None:

@@ -1,0 +1,57 @@
+"""``ultron label``: automatic bone labels from the B-mode (:mod:`ultron.data.auto_labels`)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from ultron.cli.common import console, stage_progress, sweep_names, user_errors
+
+
+@user_errors
+def label(
+    dataset: Annotated[Path, typer.Argument(help="Dataset directory (ultron-sweeps/1).")],
+    auto: Annotated[
+        bool,
+        typer.Option(
+            "--auto",
+            help="Detect bone automatically: a bright echo casting an acoustic shadow (the only"
+            " mode; required).",
+        ),
+    ] = False,
+    sweeps: Annotated[
+        list[str] | None,
+        typer.Option(
+            "--sweeps",
+            help="Sweep to label (repeat, or comma-separate; default: all sweeps).",
+        ),
+    ] = None,
+    replace: Annotated[
+        bool,
+        typer.Option("--replace", help="Overwrite the labels a sweep already has."),
+    ] = False,
+) -> None:
+    """Write bone labels (1 bone, 0 background, 255 unsure) into a dataset's sweeps."""
+    from ultron.data.auto_label_dataset import auto_label_dataset, check_labelling
+    from ultron.errors import argument_error
+
+    if not auto:
+        raise argument_error("--auto", "only automatic labelling exists: pass --auto")
+    names = sweep_names(sweeps)
+    check_labelling(dataset, names, replace, option="--sweeps")  # refuse before any work
+    with stage_progress("labelling", unit="frames", width=24) as report:
+        summaries = auto_label_dataset(dataset, names, replace=replace, progress=report)
+    for s in summaries:
+        console.print(
+            f"{s.name}: {s.frames} frames, bone {100 * s.bone:.2f} %, background"
+            f" {100 * s.background:.1f} %, unsure {100 * s.unsure:.1f} %"
+            f" ({'replaced' if s.replaced else 'wrote'} labels.npy, {s.seconds:.1f} s)",
+            highlight=False,
+            soft_wrap=True,
+        )
+
+
+def register(app: typer.Typer) -> None:
+    app.command("label")(label)

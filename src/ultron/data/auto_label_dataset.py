@@ -1,0 +1,186 @@
+"""Write automatic bone labels (:mod:`ultron.data.auto_labels`) into a dataset's sweeps.
+
+:func:`auto_label_dataset` labels the chosen sweeps of a dataset directory and writes each
+sweep's ``labels.npy`` atomically, then ``dataset.json`` (labels first, ``dataset.json`` last,
+as :meth:`~ultron.data.dataset.SweepDataset.save` orders its writes), recording under
+``metadata.auto_labels.<sweep>`` that the sweep's labels are automatic::
+
+    {"method": "ultron-auto-labels/1", "config": {...AutoLabelConfig...}, "frames": N,
+     "shares": {"bone": …, "background": …, "unsure": …}}
+
+Existing labels — manual or automatic — are never overwritten unless ``replace`` is true.
+Everything that can be checked (sweep names, existing labels, writable folders) is checked
+before any frame is labelled, so a refused call writes nothing.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ultron import atomic
+from ultron.data.auto_labels import AUTO_LABELS_METHOD, AutoLabelConfig, auto_label_frames
+from ultron.data.dataset import SweepDataset
+from ultron.data.validation import (
+    LABEL_BACKGROUND,
+    LABEL_TARGET,
+    LABEL_UNANNOTATED,
+    validate_labels,
+)
+from ultron.errors import UltronInputError, argument_error
+
+#: ``dataset.json`` metadata key holding, per sweep, the record of its automatic labels.
+METADATA_KEY = "auto_labels"
+
+#: Progress callback: (sweep name, frames done, frames of the sweep).
+Progress = Callable[[str, int, int], None]
+
+
+@dataclass(frozen=True)
+class SweepLabelSummary:
+    """What :func:`auto_label_dataset` wrote for one sweep: frames, the share of bone (1),
+    background (0) and unsure (255) pixels, whether labels were replaced, and the time taken."""
+
+    name: str
+    frames: int
+    bone: float
+    background: float
+    unsure: float
+    replaced: bool
+    seconds: float
+
+    def shares(self) -> dict[str, float]:
+        return {"bone": self.bone, "background": self.background, "unsure": self.unsure}
+
+
+def label_shares(labels: np.ndarray) -> dict[str, float]:
+    """The share of bone (1), background (0) and unsure / not annotated (255) pixels."""
+    labels = np.asarray(labels)
+    total = max(1, labels.size)
+    return {
+        "bone": float(np.count_nonzero(labels == LABEL_TARGET) / total),
+        "background": float(np.count_nonzero(labels == LABEL_BACKGROUND) / total),
+        "unsure": float(np.count_nonzero(labels == LABEL_UNANNOTATED) / total),
+    }
+
+
+def _chosen_sweeps(
+    dataset: SweepDataset, root: Path, sweeps: Sequence[str] | None, option: str
+) -> list[str]:
+    names = [s.name for s in dataset.sweeps]
+    if sweeps is None:
+        return names
+    if isinstance(sweeps, str) or not all(isinstance(n, str) for n in sweeps):
+        raise argument_error(option, f"expected a list of sweep names, got {sweeps!r}")
+    if not sweeps:
+        raise argument_error(option, "expected at least one sweep name")
+    for name in sweeps:
+        if name not in names:
+            raise argument_error(
+                option, f"no sweep {name!r} in dataset {root}; available: {', '.join(names)}"
+            )
+    return list(dict.fromkeys(sweeps))
+
+
+def _check_writable(root: Path, names: Sequence[str]) -> None:
+    for folder in (root, *(root / name for name in names)):
+        if not os.access(folder, os.W_OK | os.X_OK):
+            raise UltronInputError(folder, "labels", "directory is not writable")
+
+
+def check_labelling(
+    root: str | Path,
+    sweeps: Sequence[str] | None = None,
+    replace: bool = False,
+    option: str = "sweeps",
+) -> tuple[SweepDataset, list[str]]:
+    """Load the dataset at ``root`` and check that the chosen ``sweeps`` (default: all) exist,
+    have no labels unless ``replace``, and can be written; returns the dataset and the names.
+    A sweep that already has labels is an error naming it and ``--replace``; an unknown sweep
+    one naming it and ``option`` (the argument that chose it)."""
+    root = Path(root)
+    dataset = SweepDataset.load(root)
+    names = _chosen_sweeps(dataset, root, sweeps, option)
+    if not replace:
+        for name in names:
+            if dataset.sweep(name).labels is not None:
+                raise UltronInputError(
+                    root / name / "labels.npy",
+                    "labels",
+                    f"sweep {name!r} already has labels; pass --replace to overwrite them"
+                    " with automatic labels",
+                )
+    _check_writable(root, names)
+    return dataset, names
+
+
+def _record(config: AutoLabelConfig, frames: int, shares: dict[str, float]) -> dict[str, Any]:
+    return {
+        "method": AUTO_LABELS_METHOD,
+        "config": config.to_dict(),
+        "frames": frames,
+        "shares": shares,
+    }
+
+
+def auto_label_dataset(
+    root: str | Path,
+    sweeps: Sequence[str] | None = None,
+    replace: bool = False,
+    config: AutoLabelConfig | None = None,
+    progress: Progress | None = None,
+) -> list[SweepLabelSummary]:
+    """Label the chosen ``sweeps`` (default: all) of the dataset at ``root`` automatically
+    (:func:`~ultron.data.auto_labels.auto_label_frames`) and write them (module docstring):
+    every sweep is labelled first, then the labels are written, ``dataset.json`` last. Returns
+    one summary per sweep, in the order given."""
+    cfg = config or AutoLabelConfig()
+    if not isinstance(cfg, AutoLabelConfig):
+        raise argument_error("config", f"expected an AutoLabelConfig, got {type(cfg).__name__}")
+    root = Path(root)
+    dataset, names = check_labelling(root, sweeps, replace)
+    computed: dict[str, np.ndarray] = {}
+    summaries = []
+    for name in names:  # every sweep is labelled before anything is written
+        sweep = dataset.sweep(name)
+        start = time.perf_counter()
+        report = None if progress is None else (lambda d, t, n=name: progress(n, d, t))
+        labels = auto_label_frames(sweep.images, dataset.probe, cfg, progress=report)
+        validate_labels(labels, f"sweep {name!r}", "labels")
+        computed[name] = labels
+        summary = SweepLabelSummary(
+            name,
+            sweep.n_frames,
+            **label_shares(labels),
+            replaced=sweep.labels is not None,
+            seconds=time.perf_counter() - start,
+        )
+        summaries.append(summary)
+    records = dict(dataset.metadata.get(METADATA_KEY) or {})
+    for summary in summaries:
+        atomic.save_npy(root / summary.name / "labels.npy", computed[summary.name])
+        dataset.sweep(summary.name).labels = computed[summary.name]
+        records[summary.name] = _record(cfg, summary.frames, summary.shares())
+    dataset.metadata = {**dataset.metadata, METADATA_KEY: records}
+    reference = dataset.reference.name if dataset.reference is not None else None
+    visible = dataset.reference_visible_path
+    meta = dataset.to_json(reference, visible.name if visible is not None else None)
+    atomic.write_json(root / "dataset.json", meta)
+    return summaries
+
+
+def auto_label_records(dataset: SweepDataset) -> dict[str, dict[str, Any]]:
+    """``metadata.auto_labels`` of a loaded dataset: sweep name → record, for the sweeps that
+    have labels (an entry of a sweep without ``labels.npy`` is stale and left out); {} for a
+    dataset without automatic labels (every dataset written before they existed)."""
+    records = dataset.metadata.get(METADATA_KEY)
+    if not isinstance(records, dict):
+        return {}
+    labelled = {s.name for s in dataset.sweeps if s.labels is not None}
+    return {k: v for k, v in records.items() if k in labelled and isinstance(v, dict)}

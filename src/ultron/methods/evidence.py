@@ -1,0 +1,65 @@
+"""The observed / inferred split and the per-vertex evidence of every method's surface.
+
+UltrON computes its observation with the field's T (:func:`~ultron.methods.ultron_method.
+keep_observed_surface`). Methods without a transmission use :func:`faced_observation`: the
+criterion of :mod:`ultron.mesh.observed` with T ≡ 1, over every frame, in the slab UltrON's
+crop uses — label compounding crops its surface with it (``--surface observed``, the default:
+it drops the floor and walls of the compounded label band, which no frame sees from above); ON
+and RoCoSDF keep their closed surfaces and are only flagged. :func:`reconstruction_evidence`
+then adds each vertex's distance to the labelled bone (:mod:`ultron.mesh.evidence`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from typing import Any
+
+from ultron.data.dataset import SweepDataset
+from ultron.data.labels import bone_points_mm
+from ultron.mesh.evidence import SurfaceEvidence, surface_evidence
+from ultron.mesh.observed import ObservedSurfaceConfig, SurfaceObservation, observe_surface
+from ultron.methods.ultron_method import Reconstruction, elevation_half_thickness_mm
+
+#: ``observation_transmission`` of the T ≡ 1 criterion.
+NO_TRANSMISSION = "none (T = 1)"
+
+
+def faced_observation(
+    mesh, dataset: SweepDataset, voxel_mm: float, observed: ObservedSurfaceConfig
+) -> SurfaceObservation:
+    """:func:`~ultron.mesh.observed.observe_surface` of ``mesh`` with T ≡ 1 over every frame,
+    slab from ``voxel_mm`` (module docstring)."""
+    return observe_surface(
+        mesh, dataset.all_poses(), dataset.probe, None,
+        elevation_half_thickness_mm(dataset, voxel_mm), observed, NO_TRANSMISSION,
+    )  # fmt: skip
+
+
+def reconstruction_evidence(
+    result: Reconstruction, dataset: SweepDataset, observed: ObservedSurfaceConfig | None = None
+) -> tuple[Reconstruction, dict[str, SurfaceEvidence]]:
+    """``result`` with its observation (computed by :func:`faced_observation` with
+    ``observed``'s criterion, default the annotator's, and ``surface="all"`` when the method
+    did not compute one: :func:`ultron.methods.run.run_method` does, with the request's) and
+    the evidence of its mesh (``"mesh"``) and, when the observed crop dropped faces, of the
+    whole extracted surface (``"extracted"``)."""
+    observation = result.observation
+    if observation is None:
+        config = replace(observed or ObservedSurfaceConfig(), surface="all")
+        observation = faced_observation(result.mesh, dataset, result.grid.voxel_mm, config)
+        result = replace(result, observation=observation)
+    bone = bone_points_mm(dataset, result.selection)
+    extracted = surface_evidence(observation.extracted.vertices, observation.observed, bone)
+    kept = SurfaceEvidence(
+        extracted.observed[observation.kept_vertices],
+        extracted.label_distance_mm[observation.kept_vertices],
+    )
+    evidence = {"mesh": kept}
+    if observation.cropped:
+        evidence["extracted"] = extracted
+    return result, evidence
+
+
+def evidence_summary(evidence: dict[str, SurfaceEvidence]) -> dict[str, Any]:
+    """run.json's ``surface_evidence``: per mesh, :meth:`SurfaceEvidence.summary`."""
+    return {name: item.summary() for name, item in evidence.items()}

@@ -1,0 +1,282 @@
+"""Automatic bone labels (``ultron label --auto``): detector, metrics, dataset writing, CLI."""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from ultron.cli.main import app
+from ultron.data.auto_label_dataset import (
+    METADATA_KEY,
+    auto_label_dataset,
+    auto_label_records,
+    label_shares,
+)
+from ultron.data.auto_labels import (
+    AUTO_LABELS_METHOD,
+    AutoLabelConfig,
+    auto_label_frame,
+    auto_label_frames,
+    bone_precision_recall,
+    frame_confidence,
+    window_mean,
+)
+from ultron.data.dataset import ProbeGeometry, SweepDataset
+from ultron.errors import UltronInputError
+from ultron.report.sections import masks_html
+from ultron.train.visibility import confidence_map
+
+runner = CliRunner()
+
+#: 100 rows × 80 columns of 0.5 mm: a 40 mm wide, 50 mm deep probe.
+PROBE = ProbeGeometry(width_mm=40.0, depth_mm=50.0, height_px=100, width_px=80)
+LINE_ROW = 40
+
+
+def _speckle(seed: int = 0) -> np.ndarray:
+    """Fully developed speckle: Rayleigh amplitudes, mean ≈ 90 grey levels."""
+    rng = np.random.default_rng(seed)
+    return np.clip(rng.rayleigh(72.0, size=PROBE.image_shape), 0, 255)
+
+
+def _line_image(shadow: bool, columns: slice = slice(None), seed: int = 0) -> np.ndarray:
+    """Speckle with a bright 2-pixel horizontal line at ``LINE_ROW`` over ``columns``; with
+    ``shadow`` the region under the line is dark (weak noise)."""
+    image = _speckle(seed)
+    image[LINE_ROW : LINE_ROW + 2, columns] = 250.0
+    if shadow:
+        rng = np.random.default_rng(seed + 1)
+        below = image[LINE_ROW + 2 :, columns]
+        image[LINE_ROW + 2 :, columns] = rng.uniform(0, 8, size=below.shape)
+    return image.astype(np.uint8)
+
+
+# ----------------------------------------------------------------------- synthetic frames
+def test_bright_line_with_shadow_is_bone_on_its_row():
+    labels = auto_label_frame(_line_image(shadow=True), PROBE)
+    bone = labels == 1
+    first = np.argmax(bone, axis=0)
+    assert bone.any(axis=0).all()  # every scanline
+    assert np.all(np.abs(first - LINE_ROW) <= 1)
+    # a thin band (2 mm = 4 rows of 0.5 mm, inclusive ends): at most 5 rows per column
+    assert bone.sum(axis=0).max() <= 5
+    assert (labels[: LINE_ROW - 2] == 0).mean() > 0.95  # lit speckle above: background
+    assert (labels[LINE_ROW + 6 :] == 255).all()  # the shadow below: unsure
+
+
+def test_bright_line_without_shadow_is_not_bone():
+    labels = auto_label_frame(_line_image(shadow=False), PROBE)
+    assert (labels == 1).mean() < 0.002
+    assert (labels[: LINE_ROW + 10] == 0).mean() > 0.9
+
+
+def test_partial_line_only_where_it_casts_a_shadow():
+    image = _line_image(shadow=True, columns=slice(20, 60))
+    labels = auto_label_frame(image, PROBE)
+    bone_columns = np.flatnonzero((labels == 1).any(axis=0))
+    assert bone_columns.min() >= 18 and bone_columns.max() <= 61
+    assert len(bone_columns) >= 36
+
+
+def test_empty_frame_is_all_unsure():
+    labels = auto_label_frame(np.zeros(PROBE.image_shape, np.uint8), PROBE)
+    assert (labels == 255).all()
+
+
+def test_frames_match_frame_by_frame():
+    images = np.stack([_line_image(True), _line_image(False, seed=3)])
+    labels = auto_label_frames(images, PROBE)
+    assert labels.dtype == np.uint8 and labels.shape == images.shape
+    assert np.array_equal(labels[1], auto_label_frame(images[1], PROBE))
+    assert set(np.unique(labels)) <= {0, 1, 255}
+
+
+def test_bad_frames_are_refused():
+    with pytest.raises(UltronInputError, match="image"):
+        auto_label_frame(np.zeros((10, 10), np.uint8), PROBE)
+    with pytest.raises(UltronInputError, match="image"):
+        auto_label_frame(np.zeros(PROBE.image_shape, np.float32), PROBE)
+    with pytest.raises(UltronInputError, match="images"):
+        auto_label_frames(np.zeros(PROBE.image_shape, np.uint8), PROBE)
+
+
+def test_window_mean_is_the_mean_of_the_rows_below():
+    values = np.arange(12.0).reshape(6, 2)
+    mean, count = window_mean(values, 1, 2)
+    assert mean[0, 0] == pytest.approx((2 + 4) / 2)  # rows 1 and 2 of column 0
+    assert count[4, 0] == 1 and mean[4, 1] == pytest.approx(11.0)
+    assert count[5, 0] == 0 and mean[5, 0] == 0.0
+
+
+def test_large_frames_get_their_confidence_from_a_smaller_copy():
+    image = _line_image(shadow=True)
+    full = confidence_map(image)
+    reduced = frame_confidence(image, AutoLabelConfig(confidence_max_pixels=2000))
+    assert reduced.shape == image.shape
+    assert 0.0 <= reduced.min() and reduced.max() <= 1.0
+    assert np.corrcoef(full.ravel(), reduced.ravel())[0, 1] > 0.9
+
+
+# ------------------------------------------------------------------------------ config
+@pytest.mark.parametrize(
+    ("field", "value"),
+    [
+        ("band_mm", 0.0),
+        ("band_mm", -1.0),
+        ("gap_mm", math.nan),
+        ("shadow_mm", math.inf),
+        ("smooth_axial_mm", -0.1),
+        ("bright", 1.5),
+        ("shadow_ratio", -0.1),
+        ("min_confidence", True),
+        ("confidence_max_pixels", 0),
+        ("confidence_max_pixels", 100.0),
+        ("confidence", {"alpha": 2.0}),
+    ],
+)
+def test_config_validation_names_the_field(field, value):
+    with pytest.raises(UltronInputError, match=f"auto_labels.{field}"):
+        AutoLabelConfig(**{field: value})
+
+
+def test_config_is_frozen_and_serialisable():
+    config = AutoLabelConfig()
+    with pytest.raises(AttributeError):
+        config.band_mm = 3.0  # type: ignore[misc]
+    record = json.loads(json.dumps(config.to_dict()))
+    assert record["band_mm"] == 2.0 and record["confidence"]["beta"] == 90.0
+
+
+# ----------------------------------------------------------------------------- metrics
+def test_precision_recall_tolerance():
+    truth = np.zeros((1, 10, 4), np.uint8)
+    truth[0, 4:6] = 1
+    shifted = np.zeros_like(truth)
+    shifted[0, 5:7] = 1
+    assert bone_precision_recall(truth, truth, 0)[:2] == (1.0, 1.0)
+    assert bone_precision_recall(shifted, truth, 1)[:2] == (1.0, 1.0)
+    assert bone_precision_recall(shifted, truth, 0)[:2] == (0.5, 0.5)
+    unannotated = np.full_like(truth, 255)  # frames without annotation are left out
+    p, r, n_pred, n_true = bone_precision_recall(shifted, unannotated)
+    assert math.isnan(p) and math.isnan(r) and n_pred == n_true == 0
+    with pytest.raises(UltronInputError, match="predicted"):
+        bone_precision_recall(truth[:, :5], truth)
+
+
+# ------------------------------------------------------------------- simulated phantom
+@pytest.fixture(scope="module")
+def small_phantom(tmp_path_factory, one_torch_thread) -> Path:
+    """L3 (seed 12, one of the detector's tuning seeds), row + column sweeps of 6 frames of
+    the default 128 × 96 probe, with the simulator's labels. Never written into."""
+    from ultron.phantom import ScanConfig, SimulationConfig, simulate_dataset
+
+    config = SimulationConfig(
+        phantom="L3", seed=12, sweeps=("row", "column"), scan=ScanConfig(frames_per_sweep=6)
+    )
+    out = tmp_path_factory.mktemp("auto_labels") / "l3"
+    simulate_dataset(config, out=out)
+    return out
+
+
+def test_auto_labels_reach_the_targets_on_a_phantom(small_phantom: Path):
+    dataset = SweepDataset.load(small_phantom)
+    auto = np.concatenate([auto_label_frames(s.images, dataset.probe) for s in dataset.sweeps])
+    truth = np.concatenate([s.labels for s in dataset.sweeps])
+    precision, recall, n_auto, n_true = bone_precision_recall(auto, truth, tolerance_px=1)
+    assert n_true > 500 and n_auto > 0
+    assert precision >= 0.8, precision
+    assert recall >= 0.6, recall
+
+
+@pytest.fixture
+def phantom_copy(small_phantom: Path, tmp_path: Path) -> Path:
+    out = tmp_path / "copy"
+    shutil.copytree(small_phantom, out)
+    return out
+
+
+def _files(root: Path) -> dict[str, bytes]:
+    return {
+        str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()
+    }
+
+
+def test_cli_refuses_to_overwrite_labels_without_replace(phantom_copy: Path):
+    before = _files(phantom_copy)
+    result = runner.invoke(app, ["label", str(phantom_copy), "--auto", "--sweeps", "column"])
+    assert result.exit_code == 2, result.output
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error: ")
+    assert "'column'" in lines[0] and "--replace" in lines[0]
+    assert "Traceback" not in result.output
+    assert _files(phantom_copy) == before  # nothing written
+
+
+def test_cli_replace_writes_auto_labels_and_records_them(phantom_copy: Path):
+    manual = SweepDataset.load(phantom_copy)
+    args = ["label", str(phantom_copy), "--auto", "--sweeps", "row", "--replace"]
+    result = runner.invoke(app, args, terminal_width=200)
+    assert result.exit_code == 0, result.output
+    assert "row: 6 frames, bone" in result.output and "replaced labels.npy" in result.output
+    data = SweepDataset.load(phantom_copy)
+    row = data.sweep("row")
+    assert np.array_equal(row.labels, auto_label_frames(row.images, data.probe))
+    assert not np.array_equal(row.labels, manual.sweep("row").labels)
+    assert np.array_equal(data.sweep("column").labels, manual.sweep("column").labels)
+    record = auto_label_records(data)
+    assert list(record) == ["row"]  # the column sweep's manual labels stay unmarked
+    assert record["row"]["method"] == AUTO_LABELS_METHOD
+    assert record["row"]["config"] == AutoLabelConfig().to_dict()
+    assert record["row"]["shares"] == pytest.approx(label_shares(row.labels))
+    for key, value in manual.metadata.items():  # the rest of the metadata is kept
+        assert data.metadata[key] == value
+    assert data.reference is not None and data.reference_visible_path is not None
+    selection = {"frames": {"row": [0], "column": [0]}, "fraction": 1.0, "seed": 0}
+    caption = masks_html(data, selection)
+    assert "Labels of sweep(s) row: automatic" in caption and AUTO_LABELS_METHOD in caption
+    assert "automatic" not in masks_html(manual, selection)
+
+
+def test_cli_labels_a_sweep_without_labels(phantom_copy: Path):
+    (phantom_copy / "column" / "labels.npy").unlink()
+    result = runner.invoke(app, ["label", str(phantom_copy), "--auto", "--sweeps", "column"])
+    assert result.exit_code == 0, result.output
+    assert "wrote labels.npy" in result.output
+    assert SweepDataset.load(phantom_copy).sweep("column").labels is not None
+
+
+@pytest.mark.parametrize(
+    ("extra", "needle"),
+    [
+        (["--auto", "--sweeps", "nonesuch"], "'nonesuch'"),
+        (["--auto", "--sweeps", "row,nonesuch", "--replace"], "'nonesuch'"),
+        (["--auto", "--sweeps", "row", "--sweeps", "nonesuch", "--replace"], "'nonesuch'"),
+        (["--replace"], "--auto"),
+    ],
+)
+def test_cli_bad_requests_exit_2_naming_the_problem(phantom_copy: Path, extra, needle):
+    before = _files(phantom_copy)
+    result = runner.invoke(app, ["label", str(phantom_copy), *extra])
+    assert result.exit_code == 2, result.output
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and needle in lines[0]
+    assert _files(phantom_copy) == before
+
+
+def test_old_datasets_have_no_records(tiny_dataset: SweepDataset):
+    assert auto_label_records(tiny_dataset) == {}
+    tiny_dataset.metadata[METADATA_KEY] = {"row": {"method": AUTO_LABELS_METHOD}, "gone": {}}
+    assert list(auto_label_records(tiny_dataset)) == ["row"]
+
+
+def test_library_refuses_unknown_sweeps_and_existing_labels(tiny_dataset_dir: Path):
+    with pytest.raises(UltronInputError, match="'nope'"):
+        auto_label_dataset(tiny_dataset_dir, ["nope"])
+    with pytest.raises(UltronInputError, match="already has labels"):
+        auto_label_dataset(tiny_dataset_dir, ["row"])
