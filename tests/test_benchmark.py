@@ -9,6 +9,7 @@ import pickle
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
 import pytest
 from typer.testing import CliRunner
 
@@ -117,6 +118,34 @@ def tiny_rocosdf(monkeypatch):
     monkeypatch.setattr(rocosdf, "PRESETS", {"fast": TINY_ROCOSDF, "paper": TINY_ROCOSDF})
 
 
+AUTO_ULTRON_TASK = "run:L3-s0/ultron-auto-100"
+
+
+def _check_auto_label_rows(out: Path, payload: dict, table1: dict) -> list[str]:
+    """The auto-label rows ran on a copy whose labels (only) are the detector's. UltrON on the
+    tiny frames' automatic labels may find no surface in 300 iterations (a recorded failed
+    cell, popped from ``table1``); it must have run on its field (no mismatch error). Returns
+    the ids of the auto cells that failed."""
+    from ultron.data.auto_label_dataset import auto_label_records
+    from ultron.data.dataset import SweepDataset
+
+    manual = SweepDataset.load(out / "data" / "L3-s0" / "dataset")
+    auto = SweepDataset.load(out / "data" / "L3-s0" / "dataset-auto")
+    assert sorted(auto_label_records(auto)) == ["column", "row"]
+    assert not auto_label_records(manual)
+    for a, m in zip(auto.sweeps, manual.sweeps, strict=True):
+        assert np.array_equal(a.images, m.images) and not np.array_equal(a.labels, m.labels)
+    run = json.loads((out / "runs" / "L3-s0" / "compounding-auto-100" / "run.json").read_text())
+    assert Path(run["dataset_dir"]).name == "dataset-auto"
+    row = table1.pop("UltrON (auto labels, 100%)")
+    cell = next(c for c in payload["cells"] if c["row"] == "UltrON (auto labels, 100%)")
+    if cell["status"] == "ok":
+        assert row["n"] == 1
+        return []
+    assert "no surface" in cell["error"] and row["n"] == 0
+    return [cell["id"]]
+
+
 @pytest.mark.slow
 def test_end_to_end_resume_and_failed_cells(tmp_path: Path, monkeypatch, tiny_rocosdf):
     out = tmp_path / "bench"
@@ -145,6 +174,7 @@ def test_end_to_end_resume_and_failed_cells(tmp_path: Path, monkeypatch, tiny_ro
     assert ultron10["n"] == 1 and ultron10["std"]["cd"] == 0.0
     assert ultron10["paper"] == {"cd": 2.22, "hd": 7.98, "mad": 1.67, "rmse": 2.69}
     assert table1["compounding (100%)"]["paper"] is None
+    auto_failed = _check_auto_label_rows(out, payload, table1)  # pops the auto UltrON row
     assert all(r["n"] == 1 and math.isfinite(r["mean"]["cd"]) for r in table1.values())
     assert all(math.isfinite(r["mean"]["cd_visible"]) for r in table1.values())
     assert "↳ *paper*" in payload["markdown"]["table1"]
@@ -154,13 +184,13 @@ def test_end_to_end_resume_and_failed_cells(tmp_path: Path, monkeypatch, tiny_ro
     failed = cells["table2/1% + 100 iter/L2-s0"]
     assert failed["status"] == "failed" and "fine-tuning exploded" in failed["error"]
     assert (out / failed["run_dir"] / "error.log").is_file()
-    assert [c["id"] for c in first.failed_cells] == [failed["id"]]
+    assert sorted(c["id"] for c in first.failed_cells) == sorted([failed["id"], *auto_failed])
     table2 = {r["row"]: r for r in payload["tables"]["table2"]}
     assert table2["1% + 100 iter"]["n"] == 0 and table2["1% + 100 iter"]["mean"]["cd"] is None
     assert table2["w/o fine-tuning"]["n"] == 1 and table2["full training"]["n"] == 1
     recovery = [t for t in payload["targets"] if "recovers" in t["name"]]
     assert recovery[0]["met"] is None and "not measured" in recovery[0]["detail"]
-    assert "Failed cells (1)" in markdown
+    assert f"Failed cells ({1 + len(auto_failed)})" in markdown
     for cell in payload["cells"]:
         assert set(cell) == {
             "id", "table", "row", "phantom", "seed", "run_dir", "status", "error", "runtime_s",
@@ -176,9 +206,10 @@ def test_end_to_end_resume_and_failed_cells(tmp_path: Path, monkeypatch, tiny_ro
     stamp = done.stat().st_mtime_ns
     failing_finetune(monkeypatch, None)
     second = run_benchmark(tiny_config(), out)
-    assert second.executed == ["run:L2-s0/finetune-1pct-100"]
-    assert second.failed == [] and second.failed_cells == []
-    assert len(second.skipped) == len(first.executed) + len(first.failed) - 1
+    rerun = ["run:L2-s0/finetune-1pct-100", *(AUTO_ULTRON_TASK for _ in auto_failed)]
+    assert sorted(second.executed + second.failed) == sorted(rerun)
+    assert second.executed[:1] == rerun[:1]
+    assert len(second.skipped) == len(first.executed) + len(first.failed) - len(rerun)
     assert done.stat().st_mtime_ns == stamp
     table2 = {r["row"]: r for r in second.payload["tables"]["table2"]}
     assert table2["1% + 100 iter"]["n"] == 1
@@ -267,6 +298,18 @@ def test_plan_shares_runs_and_builds_robustness_datasets(tmp_path: Path):
     assert set(tuned.deps) == {"field:L2-s0", "run:L3-s0/ultron-10"}
     assert plan.tasks["run:L3-s0/rocosdf-100"].deps == ("simulate:L3-s0",)
     assert plan.tasks["field:L2-s1"].job.config.seed == 1
+    # the auto-label rows run on an auto-labelled copy of the dataset, with its field
+    auto = plan.tasks["run:L3-s1/ultron-auto-100"]
+    assert set(auto.deps) == {"field:L3-s1", "autolabel:L3-s1"}
+    assert auto.job.dataset_dir == str(tmp_path / "data" / "L3-s1" / "dataset-auto")
+    assert auto.job.field_dir == str(tmp_path / "data" / "L3-s1" / "field")
+    assert auto.job.allow_other_field and auto.job.request.label_fraction == 1.0
+    compounding = plan.tasks["run:L3-s1/compounding-auto-100"]
+    assert compounding.deps == ("autolabel:L3-s1",) and not compounding.job.allow_other_field
+    labelling = plan.tasks["autolabel:L3-s1"]
+    assert labelling.deps == ("simulate:L3-s1",)
+    assert labelling.job.dataset_dir == str(tmp_path / "data" / "L3-s1" / "dataset")
+    assert not plan.tasks["run:L3-s1/ultron-10"].job.allow_other_field
     for task in plan.tasks.values():  # tasks travel to spawned workers
         assert pickle.loads(pickle.dumps(task)) == task
     quiet = plan_benchmark(replace(config, generalisation=False, robustness=False), tmp_path)

@@ -5,6 +5,9 @@ Layout of the output directory ``DIR`` (every path below is relative to it):
 * ``data/<P>-s<S>/dataset`` — phantom ``P`` simulated with seed ``S``; ``data/<P>-s<S>/field``
   — its acoustic field (one per dataset, shared by every method that needs one). The robustness
   conditions get their own datasets and fields: ``data/L3-annot-s<S>`` and ``data/L3-pose-s<S>``.
+* ``data/<P>-s<S>/dataset-auto`` — the same dataset with every sweep's labels replaced by
+  ``ultron label --auto``'s (the "auto labels" rows: what a user without annotations gets).
+  Its images and poses are the dataset's, so its UltrON cells use the dataset's field.
 * ``runs/<dataset>/<row-slug>`` — one ``reconstruct`` (or ``finetune``) output per cell.
 
 A run directory is shared by every table row that needs the same run (Table 2's "full training"
@@ -21,6 +24,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+from ultron.data.auto_labels import AutoLabelConfig
 from ultron.errors import argument_error
 from ultron.methods.on_method import ONConfig
 from ultron.methods.run import ROCOSDF_PRESETS, ReconstructionRequest
@@ -55,6 +59,8 @@ class Row:
     method: str
     label_fraction: float
     finetune_iters: int | None = None
+    #: ``"manual"``: the simulated annotator's labels; ``"auto"``: ``ultron label --auto``'s.
+    labels: str = "manual"
 
 
 TABLE1_ROWS = (
@@ -65,6 +71,10 @@ TABLE1_ROWS = (
     Row("UltrON (5%)", "ultron-5", "ultron", 0.05),
     Row("compounding (10%)", "compounding-10", "compounding", 0.1),
     Row("compounding (100%)", "compounding-100", "compounding", 1.0),
+    Row("UltrON (auto labels, 100%)", "ultron-auto-100", "ultron", 1.0, labels="auto"),
+    Row(
+        "compounding (auto labels, 100%)", "compounding-auto-100", "compounding", 1.0, labels="auto"
+    ),
 )
 ROW = {row.name: row for row in TABLE1_ROWS}
 ULTRON_10, ROCOSDF_100 = ROW["UltrON (10%)"], ROW["RoCoSDF (100%)"]
@@ -115,6 +125,7 @@ class BenchmarkConfig:
     metrics: MetricsConfig = field(default_factory=MetricsConfig)
     robust_annotation: AnnotationConfig = field(default_factory=_robust_annotation)
     robust_tracking: TrackingNoise = field(default_factory=_robust_tracking)
+    auto_labels: AutoLabelConfig = field(default_factory=AutoLabelConfig)
 
     def __post_init__(self) -> None:
         phantoms = self.phantoms
@@ -148,6 +159,7 @@ class BenchmarkConfig:
         """The settings that shape a cell's result (a resumed DIR must have been made with
         the same ones); phantoms, seeds, jobs and the tables chosen only add or drop cells."""
         keep = ("rocosdf_preset", "simulation", "field_fit", "ultron", "on", "metrics")
+        keep += ("auto_labels",)
         data = {name: _plain(getattr(self, name)) for name in keep}
         if self.robustness:
             data["robust_annotation"] = _plain(self.robust_annotation)
@@ -218,6 +230,9 @@ class DatasetSpec:
     def field_dir(self, out: Path) -> Path:
         return out / "data" / self.name / "field"
 
+    def auto_dataset_dir(self, out: Path) -> Path:
+        return out / "data" / self.name / "dataset-auto"
+
 
 @dataclass(frozen=True)
 class SimulateJob:
@@ -233,11 +248,22 @@ class FieldJob:
 
 
 @dataclass(frozen=True)
+class AutoLabelJob:
+    """A copy of ``dataset_dir`` at ``out`` with every sweep auto-labelled (``config``)."""
+
+    dataset_dir: str
+    config: AutoLabelConfig
+    out: str
+
+
+@dataclass(frozen=True)
 class ReconstructJob:
     dataset_dir: str
     request: ReconstructionRequest
     out: str
     field_dir: str | None
+    #: The field was fitted on another copy of the same images and poses (auto labels).
+    allow_other_field: bool = False
 
 
 @dataclass(frozen=True)
@@ -259,7 +285,7 @@ class Task:
 
     id: str
     deps: tuple[str, ...]
-    job: SimulateJob | FieldJob | ReconstructJob | FinetuneJob
+    job: SimulateJob | FieldJob | AutoLabelJob | ReconstructJob | FinetuneJob
 
     @property
     def is_cell(self) -> bool:
@@ -360,6 +386,15 @@ class _Planner:
             self.plan.tasks[field_id] = Task(field_id, (sim_id,), job)
         return sim_id, field_id
 
+    def auto_labelled(self, spec: DatasetSpec, sim_id: str) -> str:
+        """Id of the task writing the dataset's auto-labelled copy (added on first use)."""
+        task_id = f"autolabel:{spec.name}"
+        if task_id not in self.plan.tasks:
+            dataset_dir, out = spec.dataset_dir(self.out), spec.auto_dataset_dir(self.out)
+            job = AutoLabelJob(str(dataset_dir), self.config.auto_labels, str(out))
+            self.plan.tasks[task_id] = Task(task_id, (sim_id,), job)
+        return task_id
+
     def run(self, spec: DatasetSpec, row: Row, model_task: str | None = None) -> str:
         """Id of the task computing ``row`` on ``spec`` (added on first use)."""
         task_id = f"run:{spec.name}/{row.slug}"
@@ -388,8 +423,15 @@ class _Planner:
                 metrics=config.metrics,
             )
             needs_field = row.method in ("ultron", "ultron-noloss")
-            job = ReconstructJob(dataset_dir, request, out, field_dir if needs_field else None)
-            deps = (field_id,) if needs_field else (sim_id,)
+            data_id = sim_id
+            if row.labels == "auto":
+                data_id = self.auto_labelled(spec, sim_id)
+                dataset_dir = self.plan.tasks[data_id].job.out
+            job = ReconstructJob(
+                dataset_dir, request, out, field_dir if needs_field else None,
+                allow_other_field=needs_field and row.labels == "auto",
+            )  # fmt: skip
+            deps = (field_id, data_id) if needs_field else (data_id,)
         self.plan.tasks[task_id] = Task(task_id, deps, job)
         return task_id
 

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import time
 import traceback
 from collections.abc import Callable, Mapping, Sequence
@@ -27,7 +28,14 @@ from pathlib import Path
 from typing import Any
 
 from ultron import atomic
-from ultron.benchmark.plan import FieldJob, FinetuneJob, ReconstructJob, SimulateJob, Task
+from ultron.benchmark.plan import (
+    AutoLabelJob,
+    FieldJob,
+    FinetuneJob,
+    ReconstructJob,
+    SimulateJob,
+    Task,
+)
 from ultron.errors import UltronInputError
 
 Outcome = dict[str, Any]
@@ -110,6 +118,35 @@ def fit(job: FieldJob) -> bool:
     return False
 
 
+def auto_label(job: AutoLabelJob) -> bool:
+    """Write the dataset's auto-labelled copy unless it exists with the same settings; True
+    when skipped. The copy is labelled in a hidden sibling and renamed into place, so a
+    killed task leaves no half-labelled dataset."""
+    from ultron.data.auto_label_dataset import auto_label_dataset, auto_label_records
+    from ultron.data.dataset import SweepDataset
+
+    out = Path(job.out)
+    if (out / "dataset.json").is_file():
+        dataset = SweepDataset.load(out)
+        records = auto_label_records(dataset)
+        wanted = _normalised(job.config.to_dict())
+        if len(records) == len(dataset.sweeps) and all(
+            _normalised(r.get("config")) == wanted for r in records.values()
+        ):
+            return True
+        raise UltronInputError(
+            out / "dataset.json",
+            "metadata.auto_labels",
+            "labelled with other settings; use another --out directory",
+        )
+    staging = out.with_name(f".{out.name}.new")
+    shutil.rmtree(staging, ignore_errors=True)
+    shutil.copytree(job.dataset_dir, staging)
+    auto_label_dataset(staging, None, replace=True, config=job.config)
+    os.replace(staging, out)
+    return False
+
+
 def _cell_done(out: str | Path) -> bool:
     """Whether a cell's run.json exists; if not, an earlier failure's ``error.log`` (the only
     file a failed cell leaves: a run replaces its directory as a whole, see
@@ -126,7 +163,13 @@ def reconstruct_cell(job: ReconstructJob) -> bool:
 
     if _cell_done(job.out):
         return True
-    reconstruct(job.dataset_dir, job.request, job.out, field_dir=job.field_dir)
+    reconstruct(
+        job.dataset_dir,
+        job.request,
+        job.out,
+        field_dir=job.field_dir,
+        allow_other_field=job.allow_other_field,
+    )
     return False
 
 
@@ -150,6 +193,7 @@ def finetune_cell(job: FinetuneJob) -> bool:
 _HANDLERS: dict[type, Callable[[Any], bool]] = {
     SimulateJob: simulate,
     FieldJob: fit,
+    AutoLabelJob: auto_label,
     ReconstructJob: reconstruct_cell,
     FinetuneJob: finetune_cell,
 }
