@@ -6,6 +6,8 @@ from __future__ import annotations
 import json
 import math
 import pickle
+import shutil
+import sys
 from dataclasses import replace
 from pathlib import Path
 
@@ -146,9 +148,15 @@ def _check_auto_label_rows(out: Path, payload: dict, table1: dict) -> list[str]:
     return [cell["id"]]
 
 
+@pytest.fixture(scope="module")
+def bench_dir(tmp_path_factory) -> Path:
+    """Where the tiny end-to-end benchmark runs (shared with the Ray executor's test)."""
+    return tmp_path_factory.mktemp("tiny-benchmark") / "bench"
+
+
 @pytest.mark.slow
-def test_end_to_end_resume_and_failed_cells(tmp_path: Path, monkeypatch, tiny_rocosdf):
-    out = tmp_path / "bench"
+def test_end_to_end_resume_and_failed_cells(bench_dir: Path, monkeypatch, tiny_rocosdf):
+    out = bench_dir
     failing_finetune(monkeypatch, 100)
     lines: list[str] = []
     first = run_benchmark(tiny_config(), out, log=lines.append)
@@ -263,8 +271,8 @@ def test_cli_exits_non_zero_when_a_cell_failed(tmp_path: Path, monkeypatch):
 
     seen = {}
 
-    def fake_run(config, out, log=None):
-        seen["config"] = config
+    def fake_run(config, out, log=None, executor="local", address=None):
+        seen["config"], seen["executor"] = config, executor
         payload = {
             "markdown": {"table1": "| UltrON (10%) | 1 |"},
             "targets": [{"name": "t", "met": False, "detail": "d"}],
@@ -280,6 +288,7 @@ def test_cli_exits_non_zero_when_a_cell_failed(tmp_path: Path, monkeypatch):
     config = seen["config"]
     assert config.quick and config.phantoms == ("L3",) and config.seeds == 1
     assert config.jobs == 2 and config.robustness and config.generalisation
+    assert seen["executor"] == "local"
 
 
 def test_plan_shares_runs_and_builds_robustness_datasets(tmp_path: Path):
@@ -327,8 +336,24 @@ def toy_worker(task: Task) -> dict:
     return {"status": "ok", "error": None, "runtime_s": float(torch.get_num_threads()), "cd": None}
 
 
-@pytest.mark.parametrize("jobs", [1, 2])
-def test_run_tasks_dependencies_and_failures(jobs: int):
+def _ray_installed() -> bool:
+    try:
+        import ray  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+NEEDS_RAY = pytest.mark.skipif(
+    not _ray_installed(), reason='Ray is not installed (pip install -e ".[ray]")'
+)
+
+
+@pytest.mark.parametrize(
+    ("jobs", "executor"),
+    [(1, "local"), (2, "local"), pytest.param(2, "ray", marks=NEEDS_RAY)],
+)
+def test_run_tasks_dependencies_and_failures(jobs: int, executor: str):
     tasks = [
         Task("a", (), None),
         Task("bad", ("a",), None),
@@ -336,8 +361,16 @@ def test_run_tasks_dependencies_and_failures(jobs: int):
         Task("after-after", ("after-bad",), None),
         Task("c", ("a",), None),
     ]
+    if executor == "ray":  # Ray's workers cannot import this test module: ship the worker
+        import sys
+
+        import ray
+
+        ray.cloudpickle.register_pickle_by_value(sys.modules[toy_worker.__module__])
     order: list[str] = []
-    outcomes = run_tasks(tasks, jobs, 1, lambda t, o, done, total: order.append(t.id), toy_worker)
+    outcomes = run_tasks(
+        tasks, jobs, 1, lambda t, o, done, total: order.append(t.id), toy_worker, executor
+    )
     assert set(outcomes) == {t.id for t in tasks} and len(order) == len(tasks)
     assert order[0] == "a" and order.index("bad") < order.index("after-bad")
     assert outcomes["c"]["status"] == "ok" and outcomes["c"]["runtime_s"] == 1.0
@@ -395,3 +428,38 @@ def test_aggregate_mean_std_and_targets(tmp_path: Path):
     assert table2_targets(gap)[0]["met"] is True and "60%" in table2_targets(gap)[0]["detail"]
     no_gap = [row("w/o fine-tuning", 2.0), row("1% + 100 iter", 2.0), row("full training", 2.5)]
     assert table2_targets(no_gap)[0]["met"] is None
+
+
+@NEEDS_RAY
+@pytest.mark.slow
+def test_ray_executor_gives_the_local_tables(bench_dir: Path, tmp_path: Path, tiny_rocosdf):
+    """Cells recomputed as Ray tasks on a 2-CPU local Ray give the local executor's tables."""
+    if not (bench_dir / BENCHMARK_JSON).is_file():  # run alone: the local benchmark first
+        run_benchmark(tiny_config(), bench_dir, report_html=False)
+    local = json.loads((bench_dir / BENCHMARK_JSON).read_text())
+    out = tmp_path / "bench"
+    shutil.copytree(bench_dir, out)
+    redo = ["compounding-10", "compounding-100", "compounding-auto-100"]
+    for slug in redo:
+        shutil.rmtree(out / "runs" / "L3-s0" / slug)
+    result = run_benchmark(tiny_config(), out, report_html=False, executor="ray")
+    assert sorted(result.executed) == sorted(f"run:L3-s0/{slug}" for slug in redo)
+    assert result.payload["tables"] == local["tables"]
+    assert "Ray tasks" not in json.dumps(result.payload)  # the executor shapes no result
+
+
+def test_executor_choices_are_checked(tmp_path: Path, monkeypatch):
+    with pytest.raises(UltronInputError, match="--executor"):
+        run_benchmark(tiny_config(), tmp_path / "b", executor="dask")
+    with pytest.raises(UltronInputError, match="--address"):
+        run_benchmark(tiny_config(), tmp_path / "b", address="auto")
+    from ultron.cli.main import app
+
+    monkeypatch.setitem(sys.modules, "ray", None)  # as if Ray were not installed
+    result = CliRunner().invoke(
+        app, ["benchmark", "--out", str(tmp_path / "b"), "--executor", "ray"]
+    )
+    assert result.exit_code == 2
+    lines = [line for line in result.output.splitlines() if line.strip()]
+    assert len(lines) == 1 and 'pip install -e ".[ray]"' in lines[0]
+    assert not (tmp_path / "b").exists()

@@ -28,6 +28,7 @@ from typing import Any
 
 from ultron import atomic
 from ultron.benchmark.plan import BenchmarkConfig, Plan, Task, plan_benchmark
+from ultron.benchmark.ray_executor import check_executor
 from ultron.benchmark.runner import Outcome, default_threads, run_tasks
 from ultron.benchmark.tables import TARGETS, aggregate, json_safe, markdown_table
 from ultron.errors import UltronInputError, argument_error
@@ -85,8 +86,13 @@ def run_benchmark(
     out: str | Path,
     log: Log | None = None,
     report_html: bool = True,
+    executor: str = "local",
+    address: str | None = None,
 ) -> BenchmarkResult:
-    """Run the benchmark of ``config`` into ``out`` (see the module doc)."""
+    """Run the benchmark of ``config`` into ``out`` (see the module doc), with the ``local``
+    or the ``ray`` executor (:func:`~ultron.benchmark.runner.run_tasks`); the executor does
+    not change a cell's outputs."""
+    check_executor(executor, address)
     if not isinstance(config, BenchmarkConfig):
         raise argument_error("config", f"expected a BenchmarkConfig, got {type(config).__name__}")
     out = Path(out)
@@ -99,10 +105,13 @@ def run_benchmark(
     tasks = list(plan.tasks.values())
     cells = sum(task.is_cell for task in tasks)
     say(
-        f"{len(tasks)} tasks ({cells} runs) into {out}; {config.jobs} job(s) × {threads}"
-        " torch thread(s)"
+        f"{len(tasks)} tasks ({cells} runs) into {out}; "
+        + (f"{config.jobs} job(s)" if executor == "local" else "Ray tasks")
+        + f" × {threads} torch thread(s)"
     )
-    outcomes = run_tasks(tasks, config.jobs, threads, _reporter(say))
+    outcomes = run_tasks(
+        tasks, config.jobs, threads, _reporter(say), executor=executor, address=address
+    )
     payload = build_payload(config, plan, outcomes, out, threads)
     out.mkdir(parents=True, exist_ok=True)
     atomic.write_json(out / BENCHMARK_JSON, payload)

@@ -36,6 +36,7 @@ from ultron.benchmark.plan import (
     SimulateJob,
     Task,
 )
+from ultron.benchmark.ray_executor import check_executor, run_graph_on_ray
 from ultron.errors import UltronInputError
 
 Outcome = dict[str, Any]
@@ -282,11 +283,17 @@ def run_tasks(
     threads: int | None = None,
     report: Report | None = None,
     worker: Callable[[Task], Outcome] = execute,
+    executor: str = "local",
+    address: str | None = None,
 ) -> dict[str, Outcome]:
     """Run every task after its dependencies (module doc); outcomes by task id.
 
-    ``worker`` (a module-level function, picklable for the pool) runs one task.
+    ``worker`` (a module-level function, picklable for the pool) runs one task. ``executor``
+    ``"local"`` runs ``jobs`` tasks at a time on this machine; ``"ray"`` runs them as Ray tasks
+    of ``threads`` CPUs each (:mod:`ultron.benchmark.ray_executor`; ``address``: a Ray cluster
+    to join, default a local one).
     """
+    check_executor(executor, address)
     ids = {t.id for t in tasks}
     for task in tasks:
         unknown = [d for d in task.deps if d not in ids]
@@ -294,7 +301,9 @@ def run_tasks(
             raise UltronInputError("argument", "tasks", f"{task.id} depends on unknown {unknown}")
     graph = _Graph(tasks, report)
     threads = threads or default_threads(jobs)
-    if jobs == 1:
+    if executor == "ray":
+        run_graph_on_ray(graph, threads, worker, address, _crash)
+    elif jobs == 1:
         _run_serial(graph, threads, worker)
     else:
         _run_pool(graph, jobs, threads, worker)

@@ -60,6 +60,22 @@ def benchmark(
     preset: Annotated[
         str, typer.Option("--preset", help="RoCoSDF settings: fast or paper (≈ 80 min a cell).")
     ] = "fast",
+    executor: Annotated[
+        str,
+        typer.Option(
+            "--executor",
+            help="local (this machine, --jobs at a time) or ray (each task a Ray task of"
+            ' --threads CPUs; needs pip install -e ".[ray]").',
+        ),
+    ] = "local",
+    address: Annotated[
+        str | None,
+        typer.Option(
+            "--address",
+            help="With --executor ray: the Ray cluster to join (auto, ray://host:10001);"
+            " default: start a local one.",
+        ),
+    ] = None,
 ) -> None:
     """Run the paper's Tables 1 and 2: simulate, fit, reconstruct every cell, aggregate,
     print the tables next to the paper's figures and the targets; write DIR/benchmark.json,
@@ -69,6 +85,9 @@ def benchmark(
     check_count("--threads", threads)
 
     from ultron.benchmark import BenchmarkConfig, quick_config, run_benchmark
+    from ultron.benchmark.ray_executor import check_executor
+
+    check_executor(executor, address)  # before any work: Ray importable when asked for
 
     changes: dict = {
         "jobs": jobs,
@@ -86,7 +105,7 @@ def benchmark(
     def log(line: str) -> None:
         console.print(line, markup=False, highlight=False, soft_wrap=True)
 
-    result = run_benchmark(config, out, log=log)
+    result = run_benchmark(config, out, log=log, executor=executor, address=address)
     typer.echo("")
     typer.echo(result.markdown)
     typer.echo("")
