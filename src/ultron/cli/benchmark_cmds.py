@@ -65,7 +65,7 @@ def benchmark(
         typer.Option(
             "--executor",
             help="local (this machine, --jobs at a time) or ray (each task a Ray task of"
-            ' --threads CPUs; needs pip install -e ".[ray]").',
+            " --threads CPUs; needs Ray: pip install ray).",
         ),
     ] = "local",
     address: Annotated[
