@@ -85,9 +85,6 @@ def benchmark(
     check_count("--threads", threads)
 
     from ultron.benchmark import BenchmarkConfig, quick_config, run_benchmark
-    from ultron.benchmark.ray_executor import check_executor
-
-    check_executor(executor, address)  # before any work: Ray importable when asked for
 
     changes: dict = {
         "jobs": jobs,

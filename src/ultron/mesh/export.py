@@ -33,11 +33,11 @@ _FLIP_XY = np.array([-1.0, -1.0, 1.0])
 _STL_HEADER_BYTES = 80
 
 
-def _coordinates(coordinates: str) -> str:
+def check_mesh_coordinates(coordinates: str, name: str = "coordinates") -> str:
+    """``coordinates`` if it is one of :data:`MESH_COORDINATES`, else an error naming
+    ``name``."""
     if coordinates not in MESH_COORDINATES:
-        raise argument_error(
-            "coordinates", f"expected one of {MESH_COORDINATES}, got {coordinates!r}"
-        )
+        raise argument_error(name, f"expected one of {MESH_COORDINATES}, got {coordinates!r}")
     return coordinates
 
 
@@ -57,7 +57,7 @@ def save_mesh(
     suffix = path.suffix.lower()
     if suffix not in MESH_FORMATS:
         raise argument_error("path", f"{path}: expected a suffix in {MESH_FORMATS}")
-    space = _coordinates(coordinates).upper()
+    space = check_mesh_coordinates(coordinates).upper()
     if len(mesh.faces) == 0:
         raise UltronInputError(path, "mesh", "refusing to write an empty mesh")
     vertices = np.asarray(mesh.vertices, dtype=np.float64)

@@ -35,19 +35,28 @@ def faced_observation(
     )  # fmt: skip
 
 
+def with_observation(
+    result: Reconstruction, dataset: SweepDataset, observed: ObservedSurfaceConfig | None = None
+) -> Reconstruction:
+    """``result`` as it is when it carries its observation; else with
+    :func:`faced_observation` (``observed``'s criterion, default the annotator's, and
+    ``surface="all"``: the method's surface is flagged, never cropped)."""
+    if result.observation is not None:
+        return result
+    config = replace(observed or ObservedSurfaceConfig(), surface="all")
+    observation = faced_observation(result.mesh, dataset, result.grid.voxel_mm, config)
+    return replace(result, observation=observation)
+
+
 def reconstruction_evidence(
     result: Reconstruction, dataset: SweepDataset, observed: ObservedSurfaceConfig | None = None
 ) -> tuple[Reconstruction, dict[str, SurfaceEvidence]]:
-    """``result`` with its observation (computed by :func:`faced_observation` with
-    ``observed``'s criterion, default the annotator's, and ``surface="all"`` when the method
-    did not compute one: :func:`ultron.methods.run.run_method` does, with the request's) and
+    """``result`` with its observation (:func:`with_observation`; :func:`ultron.methods.run.
+    run_method` already adds it, with the request's criterion) and
     the evidence of its mesh (``"mesh"``) and, when the observed crop dropped faces, of the
     whole extracted surface (``"extracted"``)."""
+    result = with_observation(result, dataset, observed)
     observation = result.observation
-    if observation is None:
-        config = replace(observed or ObservedSurfaceConfig(), surface="all")
-        observation = faced_observation(result.mesh, dataset, result.grid.voxel_mm, config)
-        result = replace(result, observation=observation)
     bone = bone_points_mm(dataset, result.selection)
     extracted = surface_evidence(observation.extracted.vertices, observation.observed, bone)
     kept = SurfaceEvidence(

@@ -37,7 +37,7 @@ from ultron.data.dataset import SweepDataset
 from ultron.data.labels import select_label_frames
 from ultron.errors import UltronInputError, argument_error
 from ultron.fields.occupancy import OccupancyNetwork
-from ultron.mesh.export import MESH_COORDINATES
+from ultron.mesh.export import check_mesh_coordinates
 from ultron.methods.model_io import NETWORK_FILE, load_network
 from ultron.methods.runinfo import StageTimer
 from ultron.methods.ultron_method import (
@@ -80,11 +80,7 @@ class FinetuneConfig:
     mesh_coordinates: str = "lps"
 
     def __post_init__(self) -> None:
-        if self.mesh_coordinates not in MESH_COORDINATES:
-            raise argument_error(
-                "mesh_coordinates",
-                f"expected one of {MESH_COORDINATES}, got {self.mesh_coordinates!r}",
-            )
+        check_mesh_coordinates(self.mesh_coordinates, "mesh_coordinates")
         if isinstance(self.label_fraction, bool) or not 0 < self.label_fraction <= 1:
             raise argument_error(
                 "label_fraction", f"expected a value in (0, 1], got {self.label_fraction!r}"

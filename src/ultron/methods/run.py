@@ -23,9 +23,14 @@ from ultron import atomic
 from ultron.data.dataset import SweepDataset
 from ultron.errors import argument_error
 from ultron.mesh.compounding import CompoundingConfig, compound_labels
-from ultron.mesh.export import MESH_COORDINATES, load_mesh, save_mesh, save_volume_nifti
+from ultron.mesh.export import check_mesh_coordinates, load_mesh, save_mesh, save_volume_nifti
 from ultron.mesh.extract import extract_surface
-from ultron.methods.evidence import evidence_summary, faced_observation, reconstruction_evidence
+from ultron.methods.evidence import (
+    evidence_summary,
+    faced_observation,
+    reconstruction_evidence,
+    with_observation,
+)
 from ultron.methods.model_io import save_network
 from ultron.methods.on_method import ONConfig, reconstruct_on
 from ultron.methods.resources import check_run_resources
@@ -64,11 +69,7 @@ class ReconstructionRequest:
             raise argument_error(
                 "label_fraction", f"expected a value in (0, 1], got {self.label_fraction}"
             )
-        if self.mesh_coordinates not in MESH_COORDINATES:
-            raise argument_error(
-                "mesh_coordinates",
-                f"expected one of {MESH_COORDINATES}, got {self.mesh_coordinates!r}",
-            )
+        check_mesh_coordinates(self.mesh_coordinates, "mesh_coordinates")
         if self.rocosdf_preset not in ROCOSDF_PRESETS:
             raise argument_error(
                 "preset", f"expected one of {ROCOSDF_PRESETS}, got {self.rocosdf_preset!r}"
@@ -99,9 +100,7 @@ def run_method(
     result = _run_method(dataset, request, fitted, timer, truth, dataset_name)
     if result.observation is None:
         with timer.stage("mesh_observed"):
-            config = replace(request.ultron.observed, surface="all")
-            observation = faced_observation(result.mesh, dataset, result.grid.voxel_mm, config)
-        result = replace(result, observation=observation)
+            result = with_observation(result, dataset, request.ultron.observed)
     return result
 
 
