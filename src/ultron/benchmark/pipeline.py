@@ -31,6 +31,7 @@ from ultron.benchmark.plan import BenchmarkConfig, Plan, Task, plan_benchmark
 from ultron.benchmark.ray_executor import check_executor
 from ultron.benchmark.runner import Outcome, default_threads, run_tasks
 from ultron.benchmark.tables import TARGETS, aggregate, json_safe, markdown_table
+from ultron.device import resolve_device
 from ultron.errors import UltronInputError, argument_error
 
 BENCHMARK_JSON = "benchmark.json"
@@ -109,9 +110,11 @@ def run_benchmark(
         + (f"{config.jobs} job(s)" if executor == "local" else "Ray tasks")
         + f" × {threads} torch thread(s)"
     )
+    gpus = 1.0 if resolve_device(config.device, "device").type == "cuda" else 0.0
     outcomes = run_tasks(
-        tasks, config.jobs, threads, _reporter(say), executor=executor, address=address
-    )
+        tasks, config.jobs, threads, _reporter(say), executor=executor, address=address,
+        gpus=gpus,
+    )  # fmt: skip
     payload = build_payload(config, plan, outcomes, out, threads)
     out.mkdir(parents=True, exist_ok=True)
     atomic.write_json(out / BENCHMARK_JSON, payload)

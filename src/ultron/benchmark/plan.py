@@ -25,6 +25,7 @@ from pathlib import Path
 from typing import Any
 
 from ultron.data.auto_labels import AutoLabelConfig
+from ultron.device import resolve_device
 from ultron.errors import argument_error
 from ultron.methods.on_method import ONConfig
 from ultron.methods.run import ROCOSDF_PRESETS, ReconstructionRequest
@@ -118,6 +119,9 @@ class BenchmarkConfig:
     generalisation: bool = True
     quick: bool = False
     rocosdf_preset: str = "fast"
+    #: Where every task's networks compute (not a setting of the results' identity: a DIR
+    #: resumed on another device keeps its finished cells).
+    device: str = "cpu"
     simulation: SimulationConfig = field(default_factory=SimulationConfig)
     field_fit: FieldTrainConfig = field(default_factory=FieldTrainConfig)
     ultron: UltronConfig = field(default_factory=UltronConfig)
@@ -154,6 +158,7 @@ class BenchmarkConfig:
             raise argument_error(
                 "preset", f"expected one of {ROCOSDF_PRESETS}, got {self.rocosdf_preset!r}"
             )
+        resolve_device(self.device, "device")
 
     def settings(self) -> dict[str, Any]:
         """The settings that shape a cell's result (a resumed DIR must have been made with
@@ -245,6 +250,7 @@ class FieldJob:
     dataset_dir: str
     config: FieldTrainConfig
     out: str
+    device: str = "cpu"
 
 
 @dataclass(frozen=True)
@@ -277,6 +283,7 @@ class FinetuneJob:
     out: str
     meshing: UltronConfig
     metrics: MetricsConfig
+    device: str = "cpu"
 
 
 @dataclass(frozen=True)
@@ -382,6 +389,7 @@ class _Planner:
                 dataset_dir,
                 replace(config.field_fit, seed=spec.seed),
                 str(spec.field_dir(self.out)),
+                config.device,
             )
             self.plan.tasks[field_id] = Task(field_id, (sim_id,), job)
         return sim_id, field_id
@@ -409,7 +417,7 @@ class _Planner:
             model_dir = self.plan.tasks[model_task].job.out
             job: Any = FinetuneJob(
                 model_dir, dataset_dir, field_dir, row.label_fraction, int(row.finetune_iters or 0),
-                spec.seed, out, config.ultron, config.metrics,
+                spec.seed, out, config.ultron, config.metrics, config.device,
             )  # fmt: skip
             deps: tuple[str, ...] = (field_id, model_task)
         else:
@@ -421,6 +429,7 @@ class _Planner:
                 on=config.on,
                 rocosdf_preset=config.rocosdf_preset,
                 metrics=config.metrics,
+                device=config.device,
             )
             needs_field = row.method in ("ultron", "ultron-noloss")
             data_id = sim_id

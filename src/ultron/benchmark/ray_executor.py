@@ -76,9 +76,12 @@ def run_graph_on_ray(
     worker: Callable[[Any], dict],
     address: str | None,
     crash: Callable[[BaseException], dict],
+    gpus: float = 0.0,
 ) -> None:
-    """Run ``graph``'s tasks (:class:`ultron.benchmark.runner._Graph`) on Ray (module doc);
-    a task whose Ray worker died finishes with ``crash(exc)``'s outcome."""
+    """Run ``graph``'s tasks (:class:`ultron.benchmark.runner._Graph`) on Ray (module doc),
+    each reserving ``threads`` CPUs and ``gpus`` GPUs (Ray then sets CUDA_VISIBLE_DEVICES,
+    so ``cuda`` in a task is the GPU it was given); a task whose Ray worker died finishes
+    with ``crash(exc)``'s outcome."""
     ray = import_ray()
     started = not ray.is_initialized()
     if started:
@@ -87,7 +90,7 @@ def run_graph_on_ray(
         else:
             ray.init(address=address, log_to_driver=False)
     try:
-        remote = ray.remote(num_cpus=threads, max_retries=0)(_run_with_threads)
+        remote = ray.remote(num_cpus=threads, num_gpus=gpus, max_retries=0)(_run_with_threads)
         running: dict[Any, Any] = {}
 
         def submit_ready() -> None:

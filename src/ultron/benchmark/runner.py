@@ -114,7 +114,7 @@ def fit(job: FieldJob) -> bool:
     if done and _normalised(read_field_json(out).get("train")) == _normalised(job.config.to_dict()):
         return True
     # resumes a checkpoint (also a larger iteration count); other settings are an error
-    fit_field(SweepDataset.load(job.dataset_dir), job.config, out, resume=True)
+    fit_field(SweepDataset.load(job.dataset_dir), job.config, out, resume=True, device=job.device)
     atomic.write_text(out / FIELD_DONE, "ok\n")
     return False
 
@@ -186,6 +186,7 @@ def finetune_cell(job: FinetuneJob) -> bool:
         seed=job.seed,
         meshing=job.meshing,  # the benchmark's meshing and metrics
         metrics=job.metrics,
+        device=job.device,
     )
     finetune(job.model_dir, job.dataset_dir, config, job.out, field_dir=job.field_dir)
     return False
@@ -285,13 +286,14 @@ def run_tasks(
     worker: Callable[[Task], Outcome] = execute,
     executor: str = "local",
     address: str | None = None,
+    gpus: float = 0.0,
 ) -> dict[str, Outcome]:
     """Run every task after its dependencies (module doc); outcomes by task id.
 
     ``worker`` (a module-level function, picklable for the pool) runs one task. ``executor``
     ``"local"`` runs ``jobs`` tasks at a time on this machine; ``"ray"`` runs them as Ray tasks
-    of ``threads`` CPUs each (:mod:`ultron.benchmark.ray_executor`; ``address``: a Ray cluster
-    to join, default a local one).
+    of ``threads`` CPUs and ``gpus`` GPUs each (:mod:`ultron.benchmark.ray_executor`;
+    ``address``: a Ray cluster to join, default a local one).
     """
     check_executor(executor, address)
     ids = {t.id for t in tasks}
@@ -302,7 +304,7 @@ def run_tasks(
     graph = _Graph(tasks, report)
     threads = threads or default_threads(jobs)
     if executor == "ray":
-        run_graph_on_ray(graph, threads, worker, address, _crash)
+        run_graph_on_ray(graph, threads, worker, address, _crash, gpus)
     elif jobs == 1:
         _run_serial(graph, threads, worker)
     else:

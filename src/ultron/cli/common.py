@@ -6,7 +6,7 @@ import functools
 import math
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from typing import ParamSpec, TypeVar
+from typing import Annotated, ParamSpec, TypeVar
 
 import typer
 from rich.console import Console
@@ -134,3 +134,22 @@ def stage_progress(
             bar.update(task, description=stage, completed=done, total=total)
 
         yield report
+
+
+#: ``--device`` of every command that trains or evaluates a network.
+DeviceOption = Annotated[
+    str,
+    typer.Option(
+        "--device",
+        help="Where networks compute: auto (CUDA when available, else the CPU), cpu, cuda,"
+        " cuda:N or mps. cpu reproduces the CPU figures exactly.",
+    ),
+]
+
+
+def check_device(value: str) -> str:
+    """``--device``'s value resolved to an available device (``auto`` → cuda or cpu), as the
+    string the library takes; a malformed or unavailable one is a one-line error."""
+    from ultron.device import resolve_device
+
+    return str(resolve_device(value, "--device"))

@@ -9,7 +9,9 @@ from typing import TYPE_CHECKING, Annotated
 import typer
 
 from ultron.cli.common import (
+    DeviceOption,
     check_count,
+    check_device,
     check_range,
     check_seed,
     console,
@@ -119,6 +121,7 @@ def fit_field_command(
     threads: Annotated[
         int | None, typer.Option("--threads", help="torch CPU threads (default: torch's choice).")
     ] = None,
+    device: DeviceOption = "auto",
     no_resume: Annotated[
         bool,
         typer.Option(
@@ -149,6 +152,7 @@ def fit_field_command(
     check_range("--max-memory", max_memory, 0.0, low_open=True)
     check_count("--threads", threads)
     check_output_dir(out)
+    device = check_device(device)
 
     import torch
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
@@ -204,11 +208,14 @@ def fit_field_command(
                 task, completed=entry["step"], loss=entry["loss"], psnr=entry["psnr"], **extra
             )
 
-        fitted = fit_field(data, config, out, progress=progress, resume=not no_resume)
+        fitted = fit_field(
+            data, config, out, progress=progress, resume=not no_resume, device=device
+        )
     stats = fitted.theta_stats
     console.print(
         f"wrote {out}: field.json, checkpoint.pt, theta_stats.json, train_log.jsonl"
-        f" ({config.field.backend}, fitted at {fitted.probe.height_px}×{fitted.probe.width_px} px)",
+        f" ({config.field.backend}, fitted at {fitted.probe.height_px}×{fitted.probe.width_px} px"
+        f" on {device})",
         highlight=False,
     )
     if stats is not None:
@@ -248,9 +255,11 @@ def render_command(
             " dataset_sha256 differs).",
         ),
     ] = False,
+    device: DeviceOption = "auto",
 ) -> None:
     """Render B-mode frames from a fitted field at given probe poses (field's probe geometry)."""
     check_seed("--seed", seed)
+    device = check_device(device)
 
     import numpy as np
 
@@ -267,7 +276,7 @@ def render_command(
     for target in (out, *(out.with_suffix(suffix) for suffix in extras)):
         check_output_file(target, "--out")
     pose_array = _read_poses(poses, sweep) if poses is not None else None
-    fitted = load_field(field_dir)
+    fitted = load_field(field_dir, device)
     if pose_array is None:
         if sweep is None:
             raise argument_error("--sweep", "required with --dataset")

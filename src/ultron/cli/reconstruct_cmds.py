@@ -8,8 +8,10 @@ from typing import Annotated
 import typer
 
 from ultron.cli.common import (
+    DeviceOption,
     check_choice,
     check_count,
+    check_device,
     check_range,
     check_seed,
     console,
@@ -88,54 +90,62 @@ def _request(
     preset: str = "fast",
     visibility: str = "field",
     oracle: bool = False,
-    surface: str = "observed",
-    theta_context: str = "1,2",
-    positive_weight: str = "1",
-    negatives: str = "observed",
+    surface: str | None = None,
+    theta_context: str | None = None,
+    positive_weight: str | None = None,
+    negatives: str | None = None,
+    device: str = "cpu",
 ):
+    """The request of ``preset`` (:mod:`ultron.methods.presets`) with the options given (None:
+    the preset's)."""
     from dataclasses import replace
 
     from ultron.fields.context import ThetaContextConfig
-    from ultron.mesh.observed import ObservedSurfaceConfig
-    from ultron.methods.on_method import ONConfig
+    from ultron.methods.presets import pipeline_preset
     from ultron.methods.run import ReconstructionRequest
-    from ultron.methods.ultron_method import UltronConfig
     from ultron.metrics.surface import MetricsConfig
-    from ultron.train.occupancy import OccupancyTrainConfig, parse_positive_weight
+    from ultron.train.occupancy import parse_positive_weight
     from ultron.train.visibility import visibility_config
 
-    occupancy = OccupancyTrainConfig(
-        seed=seed, positive_weight=parse_positive_weight(positive_weight), negatives=negatives
-    )
-    if occupancy_iters is not None:
-        occupancy = replace(occupancy, iters=occupancy_iters)
-    on = ONConfig()
+    base = pipeline_preset(preset, seed)
+    occupancy, on = base.ultron.occupancy, base.on
+    changes = {
+        "positive_weight": None
+        if positive_weight is None
+        else parse_positive_weight(positive_weight),
+        "negatives": negatives,
+        "iters": occupancy_iters,
+    }
+    occupancy = replace(occupancy, **{k: v for k, v in changes.items() if v is not None})
     if occupancy_iters is not None:
         on = replace(on, occupancy=replace(on.occupancy, iters=occupancy_iters))
+    ultron = replace(
+        base.ultron, occupancy=occupancy, visibility=visibility_config(visibility, oracle)
+    )
+    if surface is not None:
+        ultron = replace(ultron, observed=replace(ultron.observed, surface=surface))
+    if theta_context is not None:
+        ultron = replace(ultron, context=ThetaContextConfig.parse(theta_context))
     return ReconstructionRequest(
         method=method,
         label_fraction=label_fraction,
         seed=seed,
-        ultron=UltronConfig(
-            occupancy=occupancy,
-            visibility=visibility_config(visibility, oracle),
-            observed=ObservedSurfaceConfig(surface=surface),
-            context=ThetaContextConfig.parse(theta_context),
-        ),
+        ultron=ultron,
         on=on,
-        rocosdf_preset=preset,
+        rocosdf_preset=base.rocosdf_preset,
         metrics=MetricsConfig(n_points=points),
+        device=device,
     )
 
 
-def _field_config(field_iters: int | None, seed: int):
-    from ultron.train.field_fit import FieldTrainConfig
+def _field_config(field_iters: int | None, seed: int, preset: str = "fast"):
+    """The field fit of ``preset`` (with ``field_iters`` iterations when given)."""
+    from dataclasses import replace
 
-    return (
-        FieldTrainConfig(seed=seed)
-        if field_iters is None
-        else FieldTrainConfig(iterations=field_iters, seed=seed)
-    )
+    from ultron.methods.presets import pipeline_preset
+
+    config = pipeline_preset(preset, seed).field
+    return config if field_iters is None else replace(config, iterations=field_iters)
 
 
 @user_errors
@@ -169,7 +179,13 @@ def reconstruct(
         int, typer.Option("--points", help="Points per surface for metrics.")
     ] = 100_000,
     preset: Annotated[
-        str, typer.Option("--preset", help="RoCoSDF/UNSR settings: fast or paper.")
+        str,
+        typer.Option(
+            "--preset",
+            help="Settings of every stage: fast (this project's, minutes on a CPU) or paper (the"
+            " UltrON paper's: 8 × 128 MLP field, 75k + 50k iterations, θ alone, BCE(T·f, y),"
+            " whole surface, RoCoSDF's paper settings; for a GPU). Options given win.",
+        ),
     ] = "fast",
     visibility: Annotated[
         str,
@@ -189,40 +205,42 @@ def reconstruct(
         ),
     ] = False,
     surface: Annotated[
-        str,
+        str | None,
         typer.Option(
             "--surface",
             help="ultron* and compounding: observed (keep the faces some frame saw facing the"
-            " probe with T ≥ 0.3 above them — compounding: T = 1 —, default) or all (the"
-            " closed iso-surface).",
+            " probe with T ≥ 0.3 above them — compounding: T = 1) or all (the"
+            " closed iso-surface) [default: the preset's: observed; paper: all].",
         ),
-    ] = "observed",
+    ] = None,
     theta_context: Annotated[
-        str,
+        str | None,
         typer.Option(
             "--theta-context",
             help="ultron*: radii (mm, comma-separated) of the world-axis neighbours whose θ f"
-            " reads besides θ(x); 'none' for θ(x) alone, as in the paper.",
+            " reads besides θ(x); 'none' for θ(x) alone, as in the paper [default: the"
+            " preset's: 1,2; paper: none].",
         ),
-    ] = "1,2",
+    ] = None,
     positive_weight: Annotated[
-        str,
+        str | None,
         typer.Option(
             "--positive-weight",
             help="ultron*: loss weight of the bone labels: 1 (unweighted, the paper's), another"
             " number > 0, or 'balanced' (n_background / n_bone, at most 20: a fuller but less"
-            " accurate surface, e.g. for very short runs).",
+            " accurate surface, e.g. for very short runs) [default: 1].",
         ),
-    ] = "1",
+    ] = None,
     negatives: Annotated[
-        str,
+        str | None,
         typer.Option(
             "--negatives",
             help="ultron: background labels in the compensated loss: 'observed' (full weight"
             " where T ≥ 0.3, none below: only observed free space is evidence) or 'weighted'"
-            " (scaled by T: the paper's BCE(T·f, y)).",
+            " (scaled by T: the paper's BCE(T·f, y)) [default: the preset's: observed; paper:"
+            " weighted].",
         ),
-    ] = "observed",
+    ] = None,
     allow_other_field: Annotated[
         bool,
         typer.Option(
@@ -233,6 +251,7 @@ def reconstruct(
     ] = False,
     max_memory: MaxMemory = None,
     mesh_coordinates: MeshCoordinates = "lps",
+    device: DeviceOption = "auto",
 ) -> None:
     """Reconstruct a bone surface: mesh.ply/.stl/.obj, occupancy.nii.gz, metrics.json, run.json.
 
@@ -241,14 +260,17 @@ def reconstruct(
     _check_common(label_fraction, seed, field_iters, points, max_memory)
     check_count("--occupancy-iters", occupancy_iters, 0)
     check_choice("--mesh-coordinates", mesh_coordinates, MESH_COORDINATES)
+    device = check_device(device)
 
     from dataclasses import replace
 
+    from ultron.methods.presets import PIPELINE_PRESETS
     from ultron.methods.run import reconstruct as run
 
+    check_choice("--preset", preset, PIPELINE_PRESETS)
     request = _request(
         method, label_fraction, seed, occupancy_iters, points, preset, visibility,
-        oracle_transmission, surface, theta_context, positive_weight, negatives,
+        oracle_transmission, surface, theta_context, positive_weight, negatives, device,
     )  # fmt: skip
     request = replace(request, mesh_coordinates=mesh_coordinates)
     bar, update = _field_progress()
@@ -258,7 +280,7 @@ def reconstruct(
             request,
             out,
             field,
-            _field_config(field_iters, seed),
+            _field_config(field_iters, seed, preset),
             progress=update,
             allow_other_field=allow_other_field,
             max_memory_gib=max_memory,
@@ -288,11 +310,13 @@ def demo(
     seed: Annotated[
         int, typer.Option("--seed", help="Seed of simulation, labels and training.")
     ] = 0,
+    device: DeviceOption = "auto",
 ) -> None:
     """Simulate L3, fit the acoustic field, run UltrON and UltrON w/o loss at 10%, compare.
 
     --out/ultron and --out/ultron-noloss must be new, empty or earlier reconstruct runs."""
     check_seed("--seed", seed)
+    device = check_device(device)
 
     from ultron.data.dataset import SweepDataset
     from ultron.methods.run import reconstruct as run
@@ -317,14 +341,13 @@ def demo(
     field_dir = out / "field"
     bar, update = _field_progress()
     with bar:
-        fit_field(dataset, _field_config(None, seed), field_dir, progress=update, resume=True)
-    console.print(f"acoustic field → {field_dir}")
+        fit_field(dataset, _field_config(None, seed), field_dir, update, resume=True, device=device)
+    console.print(f"acoustic field → {field_dir} (fitted on {device})")
     summaries = {}
     for method, label in labels.items():
         with console.status(f"{label}: occupancy, mesh, metrics"):
-            summaries[label] = run(
-                dataset_dir, _request(method, 0.1, seed, None, 100_000), out / method, field_dir
-            )
+            request = _request(method, 0.1, seed, None, 100_000, device=device)
+            summaries[label] = run(dataset_dir, request, out / method, field_dir)
     _print_summary(summaries)
     for method in labels:
         console.print(
@@ -374,6 +397,7 @@ def finetune(
     ] = False,
     max_memory: MaxMemory = None,
     mesh_coordinates: MeshCoordinates = "lps",
+    device: DeviceOption = "auto",
 ) -> None:
     """Adapt a trained UltrON network to a new shape: freeze its last two layers, train the rest
     on a few labelled frames through the new dataset's own acoustic field, mesh, evaluate.
@@ -383,6 +407,7 @@ def finetune(
     _check_common(label_fraction, seed, field_iters, points, max_memory)
     check_count("--iters", iters, 0)
     check_choice("--mesh-coordinates", mesh_coordinates, MESH_COORDINATES)
+    device = check_device(device)
 
     from ultron.methods.finetune import FinetuneConfig
     from ultron.methods.finetune import finetune as run
@@ -396,6 +421,7 @@ def finetune(
         metrics=MetricsConfig(n_points=points),
         visibility=None if visibility is None else visibility_config(visibility),
         mesh_coordinates=mesh_coordinates,
+        device=device,
     )
     bar, update = _field_progress()
     with bar:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from ultron.device import module_device
 from ultron.fields.properties import AcousticProperties, HeadConfig, properties_from_raw
 
 
@@ -35,4 +36,4 @@ class AcousticField(nn.Module):
 
         Backends may evaluate it stochastically; ``generator`` makes that reproducible.
         """
-        return torch.zeros(())
+        return torch.zeros((), device=module_device(self))

@@ -31,6 +31,7 @@ import torch
 
 from ultron.data.dataset import ProbeGeometry
 from ultron.data.geometry import UnitCube, as_pose_tensor
+from ultron.device import evaluation_chunk, module_device, resolve_device
 from ultron.errors import UltronInputError, argument_error
 from ultron.fields.base import AcousticField
 from ultron.fields.factory import FieldConfig, build_field
@@ -70,8 +71,8 @@ class ThetaStatistics:
         """(θ − mean) / std for a (…, C) tensor in :attr:`channels` order."""
         if theta.shape[-1] != len(self.channels):
             raise argument_error("theta", f"expected {len(self.channels)} channels")
-        mean = torch.tensor(self.mean, dtype=theta.dtype)
-        std = torch.tensor(self.std, dtype=theta.dtype)
+        mean = torch.tensor(self.mean, dtype=theta.dtype, device=theta.device)
+        std = torch.tensor(self.std, dtype=theta.dtype, device=theta.device)
         return (theta - mean) / std
 
     def to_dict(self) -> dict[str, Any]:
@@ -106,7 +107,11 @@ def probe_to_dict(probe: ProbeGeometry) -> dict[str, Any]:
 
 
 class FittedField:
-    """A trained acoustic field with its geometry: query θ, render B-mode, θ and T maps."""
+    """A trained acoustic field with its geometry: query θ, render B-mode, θ and T maps.
+
+    The field computes on its device (:meth:`to`); every method takes inputs on any device
+    (or numpy) and returns CPU tensors or numpy arrays.
+    """
 
     def __init__(
         self,
@@ -128,6 +133,16 @@ class FittedField:
         self.fit_progress = fit_progress
 
     @property
+    def device(self) -> torch.device:
+        """Where the field computes."""
+        return module_device(self.field)
+
+    def to(self, device: torch.device | str) -> FittedField:
+        """This field, moved to ``device`` (in place; returns self)."""
+        self.field.to(resolve_device(device, "device"))
+        return self
+
+    @property
     def channels(self) -> tuple[str, ...]:
         return CHANNELS_WITH_DENSITY if self.field.learn_density else CHANNELS
 
@@ -142,9 +157,11 @@ class FittedField:
 
     @torch.no_grad()
     def query(
-        self, points_mm: np.ndarray | torch.Tensor, chunk: int = 1 << 17
+        self, points_mm: np.ndarray | torch.Tensor, chunk: int | None = None
     ) -> AcousticProperties:
-        """θ at world points (…, 3) in mm, float32 tensors of shape (…)."""
+        """θ at world points (…, 3) in mm, float32 tensors of shape (…), evaluated ``chunk``
+        points at a time (default 2¹⁷ on the CPU, more on an accelerator)."""
+        chunk = chunk or evaluation_chunk(self.device, 1 << 17)
         points = torch.as_tensor(
             np.asarray(points_mm) if not torch.is_tensor(points_mm) else points_mm
         )
@@ -152,15 +169,18 @@ class FittedField:
             raise argument_error("points_mm", f"expected (..., 3), got {tuple(points.shape)}")
         if not torch.isfinite(points).all():
             raise argument_error("points_mm", "contains NaN or infinite values")
-        flat = self.unit_cube.to_unit(points.reshape(-1, 3).to(torch.float64), torch.float32)
-        parts = [self.field(flat[i : i + chunk]).stack() for i in range(0, flat.shape[0], chunk)]
+        flat = self.unit_cube.to_unit(points.reshape(-1, 3).cpu().to(torch.float64), torch.float32)
+        parts = [
+            self.field(flat[i : i + chunk].to(self.device)).stack().cpu()
+            for i in range(0, flat.shape[0], chunk)
+        ]
         stacked = torch.cat(parts, dim=0) if parts else torch.zeros(0, len(self.channels))
         return AcousticProperties.unstack(
             stacked.reshape(*points.shape[:-1], len(self.channels)), self.channels
         )
 
     def _poses(self, probe_to_world: np.ndarray | torch.Tensor) -> torch.Tensor:
-        poses = as_pose_tensor(probe_to_world, "probe_to_world").to(torch.float64)
+        poses = as_pose_tensor(probe_to_world, "probe_to_world").cpu().to(torch.float64)
         if not torch.isfinite(poses).all():
             raise argument_error("probe_to_world", "contains NaN or infinite values")
         return poses
@@ -201,7 +221,7 @@ class FittedField:
         chunks = self._render_chunks(poses, seed, expected, chunk_frames)
         if not chunks:
             return np.zeros((0, *self.probe.image_shape), dtype=np.float32)
-        return torch.cat([c.intensity for c in chunks]).clamp(0, 1).numpy().astype(np.float32)
+        return torch.cat([c.intensity.cpu() for c in chunks]).clamp(0, 1).numpy().astype(np.float32)
 
     def render_maps(
         self,
@@ -220,10 +240,10 @@ class FittedField:
                 empty, empty[..., None].repeat(len(self.channels), -1), self.channels, empty
             )
         return FieldMaps(
-            bmode=torch.cat([c.intensity for c in chunks]).clamp(0, 1).numpy(),
-            theta=torch.cat([c.properties.stack() for c in chunks]).numpy(),
+            bmode=torch.cat([c.intensity.cpu() for c in chunks]).clamp(0, 1).numpy(),
+            theta=torch.cat([c.properties.stack().cpu() for c in chunks]).numpy(),
             channels=self.channels,
-            transmission=torch.cat([c.transmission for c in chunks]).numpy(),
+            transmission=torch.cat([c.transmission.cpu() for c in chunks]).numpy(),
         )
 
     @torch.no_grad()
@@ -251,7 +271,10 @@ class FittedField:
         grid = self.probe if probe is None else probe
         if probe is not None:
             self.check_probe(probe, "argument")
-        idx = [torch.as_tensor(np.asarray(a), dtype=torch.int64) for a in (frame_index, rows, cols)]
+        idx = [
+            torch.as_tensor(a.cpu() if torch.is_tensor(a) else np.asarray(a), dtype=torch.int64)
+            for a in (frame_index, rows, cols)
+        ]
         frame_idx, row_idx, col_idx = torch.broadcast_tensors(*idx)
         frame_idx, row_idx, col_idx = (
             frame_idx.reshape(-1),
@@ -284,9 +307,9 @@ class FittedField:
                 frames[local.clamp(max=frames.shape[0] - 1)] == frame_idx
             )
             sel = mask.nonzero().squeeze(1)
-            f, r, c = local[sel], row_idx[sel], col_idx[sel]
-            theta[sel] = rendered.properties.stack()[f, r, c]
-            transmission[sel] = rendered.transmission[f, r, c]
+            f, r, c = (i[sel].to(self.device) for i in (local, row_idx, col_idx))
+            theta[sel] = rendered.properties.stack()[f, r, c].cpu()
+            transmission[sel] = rendered.transmission[f, r, c].cpu()
         return theta, transmission
 
 
@@ -339,8 +362,11 @@ def read_checkpoint(field_dir: Path) -> dict[str, Any]:
         raise UltronInputError(path, CHECKPOINT, f"cannot be read ({type(exc).__name__})") from None
 
 
-def load_field(field_dir: str | Path) -> FittedField:
-    """Load a fitted field from FIELD_DIR (field.json + checkpoint.pt [+ theta_stats.json])."""
+def load_field(field_dir: str | Path, device: torch.device | str = "cpu") -> FittedField:
+    """Load a fitted field from FIELD_DIR (field.json + checkpoint.pt [+ theta_stats.json])
+    onto ``device`` (the checkpoint's tensors are read onto the CPU, then moved: a field
+    fitted on any device loads on any other)."""
+    device = resolve_device(device, "device")
     root = Path(field_dir)
     if not root.is_dir():
         raise UltronInputError(root, "field_dir", "is not a directory")
@@ -370,6 +396,7 @@ def load_field(field_dir: str | Path) -> FittedField:
     if stats_path.is_file():
         stats = ThetaStatistics.from_dict(json.loads(stats_path.read_text(encoding="utf-8")))
     progress = fit_progress(meta, checkpoint)
+    module.to(device)
     return FittedField(module, field_config, unit_cube, probe, render_config, stats, progress)
 
 

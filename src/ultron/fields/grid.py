@@ -158,9 +158,10 @@ class GridField(AcousticField):
         A stochastic, unbiased estimate of the whole-plane means (``generator`` draws it): a plane
         larger than ``TV_WINDOW`` is evaluated on one random window, and only with probability
         ``TV_LARGE_PLANE_PROBABILITY`` (then scaled by its inverse), because the gradient of a
-        window still costs a pass over the whole plane.
+        window still costs a pass over the whole plane. The draws are made on ``generator``'s
+        device (the fit's CPU generator), the penalty on the planes'.
         """
-        total = torch.zeros(())
+        total = torch.zeros((), device=self.planes[0].device)
         if self.config.smoothness_weight == 0:
             return total
         for plane in self.planes:

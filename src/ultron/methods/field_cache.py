@@ -40,8 +40,14 @@ def dataset_hash(dataset_dir: str | Path, extra: dict[str, Any] | None = None) -
     return digest.hexdigest()[:20]
 
 
-def cached_field_dir(dataset_dir: str | Path, config_dict: dict[str, Any]) -> Path:
-    return cache_root() / "fields" / dataset_hash(dataset_dir, config_dict)
+def cached_field_dir(
+    dataset_dir: str | Path, config_dict: dict[str, Any], device_type: str = "cpu"
+) -> Path:
+    """The cache directory of a fit of this dataset and configuration on a device of
+    ``device_type``: fields fitted on an accelerator are kept apart (their float arithmetic
+    differs), while CPU fits keep the keys they had before devices existed."""
+    extra = config_dict if device_type == "cpu" else {**config_dict, "device": device_type}
+    return cache_root() / "fields" / dataset_hash(dataset_dir, extra)
 
 
 def get_or_fit_field(
@@ -49,25 +55,29 @@ def get_or_fit_field(
     dataset,
     config,
     progress: Callable[[dict[str, Any]], None] | None = None,
+    device: Any = "cpu",
 ):
-    """Load the cached field for this dataset and configuration, fitting it first if needed.
+    """Load the cached field for this dataset and configuration onto ``device``, fitting it
+    there first if needed (see :func:`cached_field_dir` for the key).
 
     An interrupted fit resumes, unless its field.json records another dataset content hash
     (:meth:`SweepDataset.content_hash`, which covers the labels too, while the cache key does
     not): then the fit starts afresh, so that field.json names the dataset it is used with."""
+    from ultron.device import resolve_device
     from ultron.errors import UltronInputError
     from ultron.fields.fitted import CHECKPOINT, FIELD_JSON, load_field
     from ultron.train.field_fit import fit_field
 
-    field_dir = cached_field_dir(dataset_dir, config.to_dict())
+    device = resolve_device(device, "device")
+    field_dir = cached_field_dir(dataset_dir, config.to_dict(), device.type)
     done = field_dir / "done"
     if done.is_file() and (field_dir / FIELD_JSON).is_file() and (field_dir / CHECKPOINT).is_file():
-        return load_field(field_dir), field_dir, True
+        return load_field(field_dir, device), field_dir, True
     try:
-        fitted = fit_field(dataset, config, field_dir, progress=progress, resume=True)
+        fitted = fit_field(dataset, config, field_dir, progress, resume=True, device=device)
     except UltronInputError as exc:
         if exc.field != "dataset_sha256":
             raise
-        fitted = fit_field(dataset, config, field_dir, progress=progress, resume=False)
+        fitted = fit_field(dataset, config, field_dir, progress, resume=False, device=device)
     done.write_text("ok\n")
     return fitted, field_dir, False

@@ -35,6 +35,7 @@ from torch import nn
 
 from ultron.data.dataset import SweepDataset
 from ultron.data.labels import select_label_frames
+from ultron.device import describe_device, module_device, resolve_device
 from ultron.errors import UltronInputError, argument_error
 from ultron.fields.occupancy import OccupancyNetwork
 from ultron.mesh.export import check_mesh_coordinates
@@ -78,9 +79,11 @@ class FinetuneConfig:
     metrics: MetricsConfig = field(default_factory=MetricsConfig)
     visibility: VisibilityConfig | None = None  # None: the model's own source
     mesh_coordinates: str = "lps"
+    device: str = "cpu"  # where the field and f_ω compute (ultron.device.resolve_device)
 
     def __post_init__(self) -> None:
         check_mesh_coordinates(self.mesh_coordinates, "mesh_coordinates")
+        resolve_device(self.device, "device")
         if isinstance(self.label_fraction, bool) or not 0 < self.label_fraction <= 1:
             raise argument_error(
                 "label_fraction", f"expected a value in (0, 1], got {self.label_fraction!r}"
@@ -177,7 +180,7 @@ def finetune_ultron(
         trainable = freeze_last_layers(model, config.frozen_layers)
         with timer.stage("finetune"):
             model, log = fit_occupancy(
-                data, config.training(spec), model, lambda _: trainable, progress
+                data, config.training(spec), model, lambda _: trainable, progress, fitted.device
             )
         for parameter in model.parameters():
             parameter.requires_grad_(True)
@@ -191,8 +194,9 @@ def finetune_ultron(
         }
     model.eval()
     mesh, volume, grid = mesh_occupancy(
-        occupancy_function(fitted, model, spec.context), dataset, config.meshing, timer
-    )
+        occupancy_function(fitted, model, spec.context), dataset, config.meshing, timer,
+        module_device(model),
+    )  # fmt: skip
     with timer.stage("mesh_observed"):
         meshing = replace(config.meshing, visibility=visibility)
         observation = keep_observed_surface(mesh, dataset, fitted, meshing, grid.voxel_mm, truth)
@@ -243,10 +247,12 @@ def finetune(
         # the source the model was trained with (``field`` if not recorded)
         visibility = config.visibility or VisibilityConfig.from_dict(meta, where)
         truth = load_oracle_truth(visibility, dataset_dir, dataset) if config.iters > 0 else None
+    device = resolve_device(config.device, "device")
     with timer.stage("field"):
         fitted, extra = load_or_fit_field(
-            dataset_dir, dataset, field_dir, field_config, progress, allow_other_field
+            dataset_dir, dataset, field_dir, field_config, progress, allow_other_field, device
         )
+    extra = {"device": describe_device(device), **extra}
     spec = check_theta_model(network, meta, fitted, where)
     result = finetune_ultron(
         dataset, fitted, network, spec, config, timer, visibility=visibility, truth=truth

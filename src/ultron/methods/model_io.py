@@ -47,7 +47,7 @@ def save_network(out_dir: str | Path, network: nn.Module, meta: dict[str, Any]) 
         "format": NETWORK_FORMAT,
         "kind": kind,
         "config": network.config.to_dict(),
-        "state_dict": {k: v.detach().clone() for k, v in network.state_dict().items()},
+        "state_dict": {k: v.detach().cpu().clone() for k, v in network.state_dict().items()},
         "meta": dict(meta),
     }
     buffer = io.BytesIO()

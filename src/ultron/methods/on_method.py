@@ -23,6 +23,7 @@ import torch
 from ultron.data.dataset import SweepDataset
 from ultron.data.geometry import UnitCube, field_of_view_bounds_mm
 from ultron.data.labels import gather_labelled_pixels, select_label_frames
+from ultron.device import module_device
 from ultron.errors import argument_error
 from ultron.fields.occupancy import OccupancyNetworkConfig
 from ultron.methods.runinfo import StageTimer
@@ -69,8 +70,9 @@ def reconstruct_on(
     seed: int,
     config: ONConfig | None = None,
     timer: StageTimer | None = None,
+    device: torch.device | str = "cpu",
 ) -> Reconstruction:
-    """Fit ON on ``label_fraction`` of the annotated frames and mesh it."""
+    """Fit ON on ``label_fraction`` of the annotated frames (on ``device``) and mesh it."""
     config = config or ONConfig()
     timer = timer or StageTimer()
     occupancy = replace(config.occupancy, seed=seed)
@@ -79,12 +81,13 @@ def reconstruct_on(
         cube = scan_unit_cube(dataset)
         data = on_training_data(dataset, cube, selection)
     with timer.stage("occupancy_fit"):
-        network, log = fit_occupancy(data, occupancy)
+        network, log = fit_occupancy(data, occupancy, device=device)
 
     def fn(points_mm: torch.Tensor) -> torch.Tensor:
-        return network.occupancy(cube.to_unit(points_mm, dtype=torch.float32))
+        unit = cube.to_unit(points_mm, dtype=torch.float32)
+        return network.occupancy(unit.to(module_device(network))).cpu()
 
-    mesh, volume, grid = mesh_occupancy(fn, dataset, config.meshing, timer)
+    mesh, volume, grid = mesh_occupancy(fn, dataset, config.meshing, timer, module_device(network))
     info = {
         "selection": selection.to_dict(),
         "n_label_frames": selection.n_frames,

@@ -76,6 +76,7 @@ import torch
 
 from ultron.data.dataset import SweepDataset
 from ultron.data.labels import FrameSelection, gather_labelled_pixels
+from ultron.device import module_device
 from ultron.errors import UltronInputError, argument_error
 from ultron.fields.sdf import SDFNetwork, SDFNetworkConfig
 from ultron.mesh.extract import NoSurfaceError, keep_large_components
@@ -377,7 +378,7 @@ def mesh_sdf(
 
     def fn(points_mm: torch.Tensor) -> torch.Tensor:
         unit = (points_mm.to(torch.float64) - center) / normalisation.scale_mm
-        return network(unit.float())
+        return network(unit.float().to(module_device(network))).cpu()
 
     sdf = evaluate_on_grid(fn, grid, config.chunk_points)
     n_inside = int((sdf < 0).sum())
@@ -426,6 +427,7 @@ def reconstruct_rocosdf(
     progress: Progress | None = None,
     timer: StageTimer | None = None,
     dataset_name: str | None = None,
+    device: torch.device | str = "cpu",
 ) -> Reconstruction:
     """RoCoSDF (``views`` = ("row", "column")) or UNSR on one view (("row",) → ``unsr-row``,
     ("column",) → ``unsr-col``) from the selected frames' bone labels (module doc).
@@ -434,7 +436,8 @@ def reconstruct_rocosdf(
     field is RoCoSDF's stage-1 row field. ``progress`` receives per-stage dicts every 100
     steps; ``timer`` records ``rocosdf_points``, ``rocosdf_stage1/2/3`` and ``mesh``. Raises
     :class:`UltronInputError` for missing sweeps or bone labels and :class:`NoSurfaceError`
-    when the final SDF has no zero level on the meshing grid.
+    when the final SDF has no zero level on the meshing grid. The networks train on
+    ``device``; every draw comes from the stages' CPU generators.
     """
     config = config or RoCoSDFConfig()
     views = _check_views(views)
@@ -454,7 +457,7 @@ def reconstruct_rocosdf(
         for view in views:
             fit = fit_view_sdf(
                 clouds_unit[view], config.view_fit, _stage_generator(seed, f"stage1_{view}"),
-                progress, name=view,
+                progress, name=view, device=device,
             )  # fmt: skip
             fits[view] = fit.network
             stage1[view] = fit.log
@@ -479,11 +482,12 @@ def reconstruct_rocosdf(
                 config.resample,
                 _stage_generator(seed, "stage2"),
                 candidate_bounds=data_box_unit(frame_unit, config.mesh_margin),
+                device=device,
             )
         info["stage2"] = {k: getattr(samples, k) for k in ("n_grid", "n_surface", "rounds")}
         with stage("rocosdf_stage3"):
             refined = fit_refined_sdf(
-                samples, config.refine, _stage_generator(seed, "stage3"), progress
+                samples, config.refine, _stage_generator(seed, "stage3"), progress, device
             )
         info["stage3"] = refined.log
         network = refined.network

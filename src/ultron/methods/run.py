@@ -21,6 +21,7 @@ from typing import Any
 
 from ultron import atomic
 from ultron.data.dataset import SweepDataset
+from ultron.device import describe_device, resolve_device
 from ultron.errors import argument_error
 from ultron.mesh.compounding import CompoundingConfig, compound_labels
 from ultron.mesh.export import check_mesh_coordinates, load_mesh, save_mesh, save_volume_nifti
@@ -61,6 +62,8 @@ class ReconstructionRequest:
     rocosdf_preset: str = "fast"
     metrics: MetricsConfig = field(default_factory=MetricsConfig)
     mesh_coordinates: str = "lps"
+    #: Where the networks train and are evaluated (:func:`ultron.device.resolve_device`).
+    device: str = "cpu"
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -70,6 +73,7 @@ class ReconstructionRequest:
                 "label_fraction", f"expected a value in (0, 1], got {self.label_fraction}"
             )
         check_mesh_coordinates(self.mesh_coordinates, "mesh_coordinates")
+        resolve_device(self.device, "device")
         if self.rocosdf_preset not in ROCOSDF_PRESETS:
             raise argument_error(
                 "preset", f"expected one of {ROCOSDF_PRESETS}, got {self.rocosdf_preset!r}"
@@ -115,6 +119,7 @@ def _run_method(
     """:func:`run_method` before the observed / inferred split of methods without one."""
     from ultron.data.labels import select_label_frames
 
+    device = resolve_device(request.device, "device")
     if request.method in FIELD_METHODS:
         if fitted is None:
             raise argument_error(
@@ -127,9 +132,11 @@ def _run_method(
                 "seed": request.seed,
             }
         )
-        return reconstruct_ultron(dataset, fitted, request.method, config, timer, truth)
+        return reconstruct_ultron(dataset, fitted, request.method, config, timer, truth, device)
     if request.method == "on":
-        result = reconstruct_on(dataset, request.label_fraction, request.seed, request.on, timer)
+        result = reconstruct_on(
+            dataset, request.label_fraction, request.seed, request.on, timer, device
+        )
         return replace(
             result, selection=select_label_frames(dataset, request.label_fraction, request.seed)
         )
@@ -146,6 +153,7 @@ def _run_method(
             SDF_VIEWS[request.method],
             timer=timer,
             dataset_name=dataset_name,
+            device=device,
         )
         return replace(result, selection=selection)
     with timer.stage("labels"):
@@ -323,12 +331,15 @@ def reconstruct(
         if to_fit is not None:
             check_run_resources(dataset, dataset_dir, mesh=False, field_config=to_fit,
                                 max_memory_gib=max_memory_gib)  # fmt: skip
-    fitted, extra = None, {}
+    device = resolve_device(request.device, "device")
+    fitted, extra = None, {"device": describe_device(device)}
     if request.method in FIELD_METHODS:
         with timer.stage("field"):
-            fitted, extra = load_or_fit_field(
-                dataset_dir, dataset, field_dir, field_config, progress, allow_other_field
-            )
+            fitted, field_extra = load_or_fit_field(
+                dataset_dir, dataset, field_dir, field_config, progress, allow_other_field,
+                device,
+            )  # fmt: skip
+        extra |= field_extra
     result = run_method(dataset, request, fitted, timer, truth, dataset_name=str(dataset_dir))
     identity = {
         "command": "reconstruct",
@@ -350,9 +361,10 @@ def load_or_fit_field(
     field_config: Any = None,
     progress: Callable[[dict[str, Any]], None] | None = None,
     allow_other_field: bool = False,
+    device: Any = "cpu",
 ) -> tuple[Any, dict[str, Any]]:
-    """The dataset's acoustic field and what run.json records of it (``field_dir``,
-    ``field_cached`` and, for a given field, ``field_dataset_match``).
+    """The dataset's acoustic field on ``device`` and what run.json records of it
+    (``field_dir``, ``field_cached`` and, for a given field, ``field_dataset_match``).
 
     A given FIELD_DIR must match the dataset's probe geometry and, where its field.json records
     one, the dataset's content hash (:func:`ultron.fields.fitted.check_field_dataset`; a
@@ -365,7 +377,7 @@ def load_or_fit_field(
     from ultron.train.field_fit import FieldTrainConfig
 
     if field_dir is not None:
-        fitted = load_field(field_dir)
+        fitted = load_field(field_dir, device)
         fitted.check_probe(dataset.probe, where=str(dataset_dir))
         match = check_field_dataset(
             field_dir, dataset.content_hash(), str(dataset_dir), allow_other_field
@@ -374,6 +386,6 @@ def load_or_fit_field(
         extra: dict[str, Any] = {"field_dataset_match": match}
     else:
         config = field_config or FieldTrainConfig()
-        fitted, used_dir, cached = get_or_fit_field(dataset_dir, dataset, config, progress)
+        fitted, used_dir, cached = get_or_fit_field(dataset_dir, dataset, config, progress, device)
         extra = {}
     return fitted, {"field_dir": str(Path(used_dir).resolve()), "field_cached": cached, **extra}

@@ -38,6 +38,7 @@ import torch
 from ultron.data.dataset import SweepDataset
 from ultron.data.geometry import field_of_view_bounds_mm, median_frame_gap_mm
 from ultron.data.labels import FrameSelection, gather_labelled_pixels, select_label_frames
+from ultron.device import evaluation_chunk, module_device
 from ultron.errors import UltronInputError, argument_error
 from ultron.fields.context import ThetaContextConfig, theta_features
 from ultron.fields.occupancy import OccupancyNetwork
@@ -179,17 +180,23 @@ def occupancy_training_data(
 
 
 def occupancy_function(fitted, network: OccupancyNetwork, context: ThetaContextConfig):
-    """points (M, 3) world mm → f(g(x)) ∈ (0, 1), g the input of ``context``."""
+    """points (M, 3) world mm → f(g(x)) ∈ (0, 1) on the CPU, g the input of ``context``
+    (computed by the field on its device; f on the network's)."""
 
     def fn(points_mm: torch.Tensor) -> torch.Tensor:
-        return network.occupancy(theta_features(fitted, points_mm, context))
+        features = theta_features(fitted, points_mm, context)
+        return network.occupancy(features.to(module_device(network))).cpu()
 
     return fn
 
 
-def mesh_occupancy(fn, dataset: SweepDataset, config: UltronConfig, timer: StageTimer) -> tuple:
+def mesh_occupancy(
+    fn, dataset: SweepDataset, config: UltronConfig, timer: StageTimer, device=None
+) -> tuple:
     """Evaluate ``fn`` on the scan grid inside the field of view and extract the surface;
-    returns (mesh, occupancy volume, the volume's grid).
+    returns (mesh, occupancy volume, the volume's grid). ``device``: where ``fn`` computes,
+    which sets the evaluation chunk (:func:`~ultron.device.evaluation_chunk` of
+    ``config.chunk_points``).
 
     The grid is worked in tiles (:mod:`ultron.mesh.tiles`): the field-of-view mask is
     rasterised on the coarse grid of the coarse-to-fine evaluation
@@ -215,8 +222,9 @@ def mesh_occupancy(fn, dataset: SweepDataset, config: UltronConfig, timer: Stage
         )
     with timer.stage("mesh_evaluate"):
         evaluated = evaluate_tiles(
-            fn, grid, config.extraction.threshold, factor, mask, tile, config.chunk_points
-        )
+            fn, grid, config.extraction.threshold, factor, mask, tile,
+            evaluation_chunk(device, config.chunk_points),
+        )  # fmt: skip
     with timer.stage("mesh_extract"):
         mesh = extract_surface_tiles(evaluated.tiles, grid, config.extraction)
     return mesh, evaluated.volume.values, evaluated.volume.grid
@@ -263,9 +271,11 @@ def reconstruct_ultron(
     config: UltronConfig,
     timer: StageTimer,
     truth: Mapping[str, np.ndarray] | None = None,
+    device: torch.device | str | None = None,
 ) -> Reconstruction:
     """Run stages 2 and 3 of UltrON (``method`` ``ultron`` or ``ultron-noloss``); ``truth``
-    is the oracle's true T per sweep (only for ``config.visibility.source == "oracle"``)."""
+    is the oracle's true T per sweep (only for ``config.visibility.source == "oracle"``).
+    f_ω trains and is evaluated on ``device`` (default: the fitted field's)."""
     if method not in METHOD_LOSSES:
         raise argument_error("method", f"expected one of {tuple(METHOD_LOSSES)}, got {method!r}")
     occupancy_config = replace(
@@ -279,9 +289,10 @@ def reconstruct_ultron(
             dataset, fitted, selection, config.visibility, truth, config.context
         )
     with timer.stage("occupancy_fit"):
-        network, log = fit_occupancy(data, occupancy_config)
+        device = fitted.device if device is None else device
+        network, log = fit_occupancy(data, occupancy_config, device=device)
     fn = occupancy_function(fitted, network, config.context)
-    mesh, volume, grid = mesh_occupancy(fn, dataset, config, timer)
+    mesh, volume, grid = mesh_occupancy(fn, dataset, config, timer, module_device(network))
     with timer.stage("mesh_observed"):
         observation = keep_observed_surface(mesh, dataset, fitted, config, grid.voxel_mm, truth)
     info = {

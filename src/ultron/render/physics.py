@@ -94,6 +94,7 @@ def sample_scatterers(
     generator: torch.Generator | None,
     temperature: float = DEFAULT_SCATTER_TEMPERATURE,
     dtype: torch.dtype = torch.float32,
+    device: torch.device | None = None,
 ) -> torch.Tensor:
     """Draw relaxed-Bernoulli (binary Concrete) scatterer indicators S ∈ (0, 1).
 
@@ -102,17 +103,27 @@ def sample_scatterers(
 
     ``probability`` p is a float or a tensor broadcastable to ``shape``; gradients flow to a
     tensor p (a learned density) through the reparameterisation, never to the noise. The noise
-    comes from ``generator`` (pass one for reproducible draws).
+    comes from ``generator`` (pass one for reproducible draws) on the generator's device and is
+    then moved to ``device`` (default: p's), so a CPU generator gives the same draws on every
+    device.
     """
     if not temperature > 0:
         raise argument_error("temperature", f"expected > 0, got {temperature}")
-    p = torch.as_tensor(probability, dtype=dtype)
-    if ((p <= 0) | (p >= 1)).any():
+    if torch.is_tensor(probability):  # (a check that synchronises an accelerator)
+        inside = bool(((probability > 0) & (probability < 1)).all())
+    else:
+        inside = 0 < float(probability) < 1
+    if not inside:
         raise argument_error("probability", "expected values strictly inside (0, 1)")
-    uniform = torch.rand(shape, generator=generator, dtype=dtype)
-    uniform = uniform.clamp(1e-6, 1 - 1e-6)
+    p = torch.as_tensor(probability, dtype=dtype, device=device)
+    uniform = torch.rand(shape, generator=generator, dtype=dtype, device=_device_of(generator))
+    uniform = uniform.to(p.device).clamp(1e-6, 1 - 1e-6)
     logistic = torch.log(uniform) - torch.log1p(-uniform)
     return torch.sigmoid((torch.logit(p) + logistic) / temperature)
+
+
+def _device_of(generator: torch.Generator | None) -> torch.device | None:
+    return None if generator is None else generator.device
 
 
 def relaxed_bernoulli_mean(
@@ -131,7 +142,7 @@ def relaxed_bernoulli_mean(
     p = torch.as_tensor(probability)
     if not torch.is_floating_point(p):
         p = p.to(torch.get_default_dtype())
-    u = (torch.arange(n_quadrature, dtype=p.dtype) + 0.5) / n_quadrature
+    u = (torch.arange(n_quadrature, dtype=p.dtype, device=p.device) + 0.5) / n_quadrature
     logistic = torch.log(u) - torch.log1p(-u)
     values = torch.sigmoid((torch.logit(p)[..., None] + logistic) / temperature)
     return values.mean(dim=-1)
@@ -184,10 +195,11 @@ def convolution_matrix(
     if size < 1 or (valid and size < taps):
         raise argument_error("size", f"expected ≥ {taps if valid else 1}, got {size}")
     out_rows = size - taps + 1 if valid else size
-    rows = torch.arange(out_rows)[:, None].expand(out_rows, taps)
-    offsets = torch.arange(taps)[None, :]
+    device = kernel.device
+    rows = torch.arange(out_rows, device=device)[:, None].expand(out_rows, taps)
+    offsets = torch.arange(taps, device=device)[None, :]
     cols = rows + offsets if valid else (rows + offsets - center).clamp(0, size - 1)
-    matrix = torch.zeros(out_rows, size, dtype=dtype or kernel.dtype)
+    matrix = torch.zeros(out_rows, size, dtype=dtype or kernel.dtype, device=device)
     values = kernel.to(matrix.dtype)[None, :].expand(out_rows, taps)
     return matrix.index_put_(
         (rows.reshape(-1), cols.reshape(-1)), values.reshape(-1), accumulate=True

@@ -14,6 +14,7 @@ import torch
 
 from ultron.data.dataset import ProbeGeometry
 from ultron.data.geometry import UnitCube, apply_pose, as_pose_tensor, probe_points_mm
+from ultron.device import module_device
 from ultron.errors import argument_error, config_from_dict
 from ultron.fields.base import AcousticField
 from ultron.fields.properties import AcousticProperties
@@ -41,11 +42,13 @@ class RenderConfig:
             raise argument_error("scatter_temperature", "expected > 0")
         physics.gaussian_psf(self.psf_size, self.psf_sigma_axial_px, self.psf_sigma_lateral_px)
 
-    def kernels(self, dtype: torch.dtype = torch.float32) -> tuple[torch.Tensor, torch.Tensor]:
-        """(axial, lateral) 1D PSF kernels."""
+    def kernels(
+        self, dtype: torch.dtype = torch.float32, device: torch.device | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """(axial, lateral) 1D PSF kernels (built on the CPU, then moved to ``device``)."""
         return (
-            physics.gaussian_kernel_1d(self.psf_size, self.psf_sigma_axial_px, dtype),
-            physics.gaussian_kernel_1d(self.psf_size, self.psf_sigma_lateral_px, dtype),
+            physics.gaussian_kernel_1d(self.psf_size, self.psf_sigma_axial_px, dtype).to(device),
+            physics.gaussian_kernel_1d(self.psf_size, self.psf_sigma_lateral_px, dtype).to(device),
         )
 
     def rescaled(self, native: ProbeGeometry, target: ProbeGeometry) -> RenderConfig:
@@ -92,10 +95,10 @@ def pixel_points_mm(
     """
     poses = as_pose_tensor(probe_to_world).to(torch.float64)
     n = poses.shape[0]
-    rows = torch.arange(probe.height_px, dtype=torch.float64)
+    rows = torch.arange(probe.height_px, dtype=torch.float64, device=poses.device)
     if cols is None:
         cols = torch.arange(probe.width_px, dtype=torch.float64)
-    cols = torch.as_tensor(cols, dtype=torch.float64)
+    cols = torch.as_tensor(cols, dtype=torch.float64, device=poses.device)
     if cols.ndim == 1:
         points = probe_points_mm(rows[:, None], cols[None, :], probe)  # (H, C, 3)
         points = points.unsqueeze(0).expand(n, *points.shape)
@@ -117,20 +120,22 @@ def render_properties(
 
     T = A·R (exclusive), S ~ relaxed Bernoulli(p, τ) drawn from ``generator`` without gradient
     (p = the learned density when present, then reparameterised), or its expectation E[S]
-    when ``expected``; I = T·(G ∗ (S·φ)) + log(1 + π T β)/log(1 + π).
+    when ``expected``; I = T·(G ∗ (S·φ)) + log(1 + π T β)/log(1 + π). Everything is computed
+    on θ's device; the draws come from ``generator``'s (a CPU generator draws the same S on
+    every device, :func:`~ultron.render.physics.sample_scatterers`).
     """
     if not expected and generator is None:
         raise argument_error("generator", "sampling scatterers needs a torch.Generator")
     transmission = physics.total_transmission(
         properties.attenuation, properties.reflection, step_mm
     )
-    dtype = properties.scattering.dtype
+    dtype, device = properties.scattering.dtype, properties.scattering.device
     probability: torch.Tensor | float = (
         properties.density if properties.density is not None else config.scatter_probability
     )
     if expected:
         scatterers = physics.relaxed_bernoulli_mean(probability, config.scatter_temperature)
-        scatterers = torch.as_tensor(scatterers, dtype=dtype)
+        scatterers = torch.as_tensor(scatterers, dtype=dtype, device=device)
     else:
         scatterers = physics.sample_scatterers(
             probability,
@@ -138,10 +143,11 @@ def render_properties(
             generator,
             config.scatter_temperature,
             dtype,
+            device,
         )
         if properties.density is None:
             scatterers = scatterers.detach()
-    kernel_axial, kernel_lateral = config.kernels(dtype)
+    kernel_axial, kernel_lateral = config.kernels(dtype, device)
     intensity, speckle, reflection = physics.bmode_intensity(
         transmission,
         properties.reflection,
@@ -166,12 +172,16 @@ def render_field(
 ) -> RenderedFrames:
     """Query ``field`` at the pixels of ``cols`` (see :func:`pixel_points_mm`) and render.
 
+    The pixel geometry is computed in float64 on the poses' device (the CPU, as a rule: MPS has
+    no float64) and its unit-cube coordinates are moved, as float32, to the field's device,
+    where the rendering happens; the result stays there.
     ``hold_scattering``: render with φ replaced by this constant (a fit's curriculum: the
     image's dark regions can then only be explained by a loss of transmission).
     Differentiable w.r.t. the field; wrap in ``torch.no_grad()`` for inference.
     """
     points_mm = pixel_points_mm(probe_to_world, probe, cols)
-    properties = field(unit_cube.to_unit(points_mm, dtype=torch.float32))
+    unit = unit_cube.to_unit(points_mm, dtype=torch.float32).to(module_device(field))
+    properties = field(unit)
     if hold_scattering is not None:
         held = torch.full_like(properties.scattering, hold_scattering)
         properties = replace(properties, scattering=held)

@@ -42,6 +42,7 @@ import torch
 from ultron import atomic
 from ultron.data.dataset import ProbeGeometry, SweepDataset
 from ultron.data.geometry import UnitCube, field_of_view_bounds_mm
+from ultron.device import cpu_state, describe_device, resolve_device
 from ultron.errors import UltronInputError, argument_error
 from ultron.fields.base import AcousticField
 from ultron.fields.factory import FieldConfig, build_field
@@ -112,10 +113,14 @@ def training_step(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """One optimisation step on a batch of random patches; returns (image loss, MSE), detached.
 
+    The batch is drawn from ``generator`` (the fit's CPU generator) and rendered on the
+    module's device, where ``frames.images`` must be (:meth:`FrameSet.to`).
+
     ``hold_scattering`` renders with φ held at its initial value (the curriculum's first phase:
     the image's dark regions can then only be explained by a loss of transmission).
     """
     frame_idx, cols = sample_patches(frames, config.frames_per_batch, config.patch_width, generator)
+    device = frames.images.device
     rendered = render_field(
         module,
         cube,
@@ -127,14 +132,15 @@ def training_step(
         expected=config.train_scatterers == "expected",
         hold_scattering=module.head_config.initial_scattering if hold_scattering else None,
     )
-    patch_cols = cols[:, None, :].expand(-1, frames.probe.height_px, -1)
-    target = torch.gather(frames.images[frame_idx], 2, patch_cols)
+    patch_cols = cols[:, None, :].expand(-1, frames.probe.height_px, -1).to(device)
+    batch = frame_idx.to(device)
+    target = torch.gather(frames.images[batch], 2, patch_cols)
     loss, mse = ultranerf_loss(rendered.intensity, target, config.ssim_weight, config.mse_weight)
     total = loss + module.regularization(generator)
     if config.confidence_prior_weight > 0:
         if frames.confidence is None:
             raise argument_error("frames", "the confidence prior needs FrameSet.with_confidence()")
-        confidence = torch.gather(frames.confidence[frame_idx], 2, patch_cols)
+        confidence = torch.gather(frames.confidence[batch], 2, patch_cols)
         total = total + config.confidence_prior_weight * confidence_transmission_prior(
             rendered.transmission, confidence, config.confidence_prior_margin
         )
@@ -164,9 +170,9 @@ def _save_checkpoint(
     step: int,
     iterations: int,
 ) -> None:
-    state = {
-        "model": module.state_dict(),
-        "optimizer": optimizer.state_dict(),
+    state = {  # CPU copies, so that the checkpoint loads on any device
+        "model": cpu_state(module.state_dict()),
+        "optimizer": cpu_state(optimizer.state_dict()),
         "generator": generator.get_state(),
         "step": step,
         "iterations": iterations,
@@ -197,9 +203,11 @@ def _field_meta(
     cube: UnitCube,
     step: int,
     dataset_sha256: str,
+    device: torch.device,
 ) -> dict[str, Any]:
     return {
         "format": FIELD_FORMAT,
+        "fitted_on": describe_device(device),
         "units": "mm",
         "dataset_sha256": dataset_sha256,
         "field": resolved.to_dict(),
@@ -222,7 +230,7 @@ def evaluate_frames(
     if limit is not None and index.numel() > limit:
         index = index[np.linspace(0, index.numel() - 1, limit).round().astype(np.int64)]
     rendered = torch.from_numpy(fitted.render(frames.probe_to_world[index], expected=True))
-    target = frames.images[index]
+    target = frames.images[index].cpu()
     return {
         "psnr": psnr(rendered, target),
         "ssim": float(ssim(rendered, target, k1=0.01, k2=METRIC_SSIM_K2)),
@@ -389,8 +397,14 @@ def fit_field(
     out_dir: str | Path,
     progress: Progress | None = None,
     resume: bool = True,
+    device: torch.device | str = "cpu",
 ) -> FittedField:
     """Fit a field to ``dataset`` and write FIELD_DIR ``out_dir`` (see ultron.fields.fitted).
+
+    ``device`` (:func:`ultron.device.resolve_device`'s spellings) holds the field, the frames
+    and the rendering; the batches and scatterer draws come from one seeded CPU generator, so
+    a run draws the same batches on every device and a checkpoint (CPU tensors) resumes on any
+    device. field.json records the device (``fitted_on``).
 
     With ``resume`` and a checkpoint in ``out_dir`` the run continues from it, provided it was
     fitted on the same dataset (field.json's ``dataset_sha256``, when recorded, equals
@@ -419,9 +433,11 @@ def fit_field(
     if out.exists() and not out.is_dir():
         raise UltronInputError(out, "out", "exists and is not a directory")
     check_fit_frames(dataset.probe, config)
+    device = resolve_device(device, "device")
     dataset_sha256 = dataset.content_hash()
     resuming = resume and check_resumable(out, config, dataset_sha256)
     frames, cube, module, resolved = _prepare(dataset, config)
+    frames, module = frames.to(device), module.to(device)
     optimizer = make_optimizer(module, config.lr)
     generator = torch.Generator().manual_seed(config.seed)
     step, log = (
@@ -436,7 +452,9 @@ def fit_field(
     def save(at_step: int) -> None:  # the log first: it may run ahead, never fall behind
         atomic.write_text(out / TRAIN_LOG, "".join(json.dumps(e) + "\n" for e in log))
         _save_checkpoint(out, module, optimizer, generator, at_step, config.iterations)
-        meta = _field_meta(config, resolved, render_config, frames, cube, at_step, dataset_sha256)
+        meta = _field_meta(
+            config, resolved, render_config, frames, cube, at_step, dataset_sha256, device
+        )
         atomic.write_json(out / FIELD_JSON, meta)
 
     started = time.perf_counter()

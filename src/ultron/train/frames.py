@@ -77,7 +77,11 @@ def holdout_indices(n_frames: int, holdout_every: int) -> np.ndarray:
 
 @dataclass(frozen=True)
 class FrameSet:
-    """All frames of a dataset at the fitting resolution, with the train/hold-out split."""
+    """All frames of a dataset at the fitting resolution, with the train/hold-out split.
+
+    The images (and confidence maps) live on the fit's device (:meth:`to`); poses and indices
+    stay on the CPU, where the pixel geometry is computed in float64 and batches are drawn.
+    """
 
     images: torch.Tensor  # (N, H, W) float32 in [0, 1]
     probe_to_world: torch.Tensor  # (N, 4, 4) float64
@@ -89,8 +93,14 @@ class FrameSet:
     def with_confidence(self) -> FrameSet:
         """These frames with their ultrasound confidence maps (at the fitting resolution,
         :func:`ultron.train.visibility.confidence_map` with its default settings)."""
-        maps = np.stack([confidence_map(image.numpy()) for image in self.images])
-        return replace(self, confidence=torch.from_numpy(maps.astype(np.float32)))
+        maps = np.stack([confidence_map(image.cpu().numpy()) for image in self.images])
+        confidence = torch.from_numpy(maps.astype(np.float32)).to(self.images.device)
+        return replace(self, confidence=confidence)
+
+    def to(self, device: torch.device) -> FrameSet:
+        """These frames with the images (and confidence maps) on ``device``."""
+        confidence = None if self.confidence is None else self.confidence.to(device)
+        return replace(self, images=self.images.to(device), confidence=confidence)
 
     @classmethod
     def from_dataset(

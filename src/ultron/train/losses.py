@@ -42,7 +42,7 @@ def ssim_map(
     a, b = _as_batch("x", x), _as_batch("y", y)
     if min(a.shape[-2:]) < window:
         raise argument_error("x", f"images must be at least {window} pixels on each side")
-    kernel = gaussian_kernel_1d(window, sigma, a.dtype)
+    kernel = gaussian_kernel_1d(window, sigma, a.dtype).to(a.device)
     c1, c2 = (k1 * data_range) ** 2, (k2 * data_range) ** 2
     stacked = torch.cat([a, b, a * a, b * b, a * b], dim=1)  # (B, 5, H, W)
     height, width = a.shape[-2:]

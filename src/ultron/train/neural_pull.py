@@ -72,6 +72,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from ultron.device import resolve_device
 from ultron.errors import argument_error
 from ultron.fields.sdf import SDFDiscriminator, SDFNetwork, SDFNetworkConfig
 from ultron.train.sdf_queries import (  # noqa: F401  (re-exported: the stage-1 data API)
@@ -276,26 +277,31 @@ def fit_view_sdf(
     generator: torch.Generator,
     progress: Progress | None = None,
     name: str = "view",
+    device: torch.device | str = "cpu",
 ) -> SDFFit:
     """Stage 1: fit one view's SDF to its point cloud (normalised coordinates) by Neural-Pull
     with the sign-consistency and adversarial terms (module doc). ``progress`` receives a dict
-    (stage, step, iterations, losses) every 100 steps and at the last."""
+    (stage, step, iterations, losses) every 100 steps and at the last. The networks are built
+    on the CPU from ``generator`` (the CPU generator that also draws the batches) and trained
+    on ``device``, where the returned network stays."""
     start = time.perf_counter()
+    device = resolve_device(device, "device")
     data = make_queries(points_unit, config, _numpy_rng(generator))
-    network = SDFNetwork(config.network, generator)
-    discriminator = SDFDiscriminator(config.discriminator_hidden, generator)
+    queries_all, targets_all = data.queries.to(device), data.targets.to(device)
+    network = SDFNetwork(config.network, generator).to(device)
+    discriminator = SDFDiscriminator(config.discriminator_hidden, generator).to(device)
     optimiser = torch.optim.Adam(network.parameters(), lr=config.lr)
     d_optimiser = torch.optim.Adam(discriminator.parameters(), lr=config.discriminator_lr)
     n_queries = data.queries.shape[0]
     batch = min(config.batch_size, n_queries)
-    real = torch.zeros(1)
+    real = torch.zeros(1, device=device)
     losses: dict[str, float] = {}
     network.train()
     for step in range(config.iterations):
         for group in optimiser.param_groups:
             group["lr"] = warmup_cosine_lr(step, config.iterations, config.warmup, config.lr)
-        index = torch.randint(0, n_queries, (batch,), generator=generator)
-        queries, targets = data.queries[index], data.targets[index]
+        index = torch.randint(0, n_queries, (batch,), generator=generator).to(device)
+        queries, targets = queries_all[index], targets_all[index]
         sdf, grad = network.sdf_and_gradient(queries, create_graph=True)
         pulled = pull_points(queries, sdf, grad)
         l_pull = pull_loss(pulled, targets)
@@ -345,12 +351,19 @@ class SDFSamples:
     rounds: int
 
 
-def evaluate_sdf(fn: SDFFunction, points: torch.Tensor, chunk: int = 65_536) -> torch.Tensor:
-    """fn on points (M, 3) in chunks, without gradients; returns float32 (M,)."""
+def evaluate_sdf(
+    fn: SDFFunction,
+    points: torch.Tensor,
+    chunk: int = 65_536,
+    device: torch.device | str | None = None,
+) -> torch.Tensor:
+    """fn on points (M, 3) in chunks, without gradients, each chunk moved to ``device``
+    (default: where it is); returns float32 (M,) on the CPU."""
     out = torch.empty(points.shape[0])
     with torch.no_grad():
         for start in range(0, points.shape[0], chunk):
-            out[start : start + chunk] = fn(points[start : start + chunk]).reshape(-1).float()
+            values = fn(points[start : start + chunk].to(device))
+            out[start : start + chunk] = values.reshape(-1).float().cpu()
     return out
 
 
@@ -359,10 +372,12 @@ def fuse_and_resample(
     config: ResampleConfig,
     generator: torch.Generator,
     candidate_bounds: np.ndarray | None = None,
+    device: torch.device | str | None = None,
 ) -> SDFSamples:
     """Stage 2: f_csg = max of ``sdf_fns`` sampled on the two-cube grids and near its zero
     level (module doc). With ``config.candidates == "box"`` the near-surface candidates are
-    uniform in ``candidate_bounds`` ((2, 3) normalised [min, max], required then)."""
+    uniform in ``candidate_bounds`` ((2, 3) normalised [min, max], required then). The
+    functions are evaluated on ``device`` (their networks'); the samples are CPU tensors."""
     if len(sdf_fns) == 0:
         raise argument_error("sdf_fns", "expected at least one SDF function")
     box = None
@@ -377,7 +392,7 @@ def fuse_and_resample(
     rng = _numpy_rng(generator)
 
     def f_csg(points: torch.Tensor) -> torch.Tensor:
-        return csg_intersection([evaluate_sdf(fn, points) for fn in sdf_fns])
+        return csg_intersection([evaluate_sdf(fn, points, device=device) for fn in sdf_fns])
 
     res = config.grid_resolution
     grid = torch.from_numpy(two_cube_grid_points(config.grid_samples, (res, res), rng)).float()
@@ -411,13 +426,17 @@ def fit_refined_sdf(
     config: RefineConfig,
     generator: torch.Generator,
     progress: Progress | None = None,
+    device: torch.device | str = "cpu",
 ) -> SDFFit:
-    """Stage 3: a fresh SDF network regressing f_csg with L = mean|f − f_csg| + 0.4·mean|f|."""
+    """Stage 3: a fresh SDF network regressing f_csg with L = mean|f − f_csg| + 0.4·mean|f|,
+    built on the CPU from ``generator`` and trained on ``device`` (where it stays)."""
     start = time.perf_counter()
+    device = resolve_device(device, "device")
     n = samples.points.shape[0]
     if n == 0:
         raise argument_error("samples", "no samples to fit")
-    network = SDFNetwork(config.network, generator)
+    points, targets = samples.points.to(device), samples.sdf.to(device)
+    network = SDFNetwork(config.network, generator).to(device)
     optimiser = torch.optim.Adam(network.parameters(), lr=config.lr)
     batch = min(config.batch_size, n)
     losses: dict[str, float] = {}
@@ -425,9 +444,9 @@ def fit_refined_sdf(
     for step in range(config.iterations):
         for group in optimiser.param_groups:
             group["lr"] = warmup_cosine_lr(step, config.iterations, config.warmup, config.lr)
-        index = torch.randint(0, n, (batch,), generator=generator)
-        pred = network(samples.points[index])
-        loss = refine_loss(pred, samples.sdf[index], config.zero_weight)
+        index = torch.randint(0, n, (batch,), generator=generator).to(device)
+        pred = network(points[index])
+        loss = refine_loss(pred, targets[index], config.zero_weight)
         optimiser.zero_grad(set_to_none=True)
         loss.backward()
         optimiser.step()

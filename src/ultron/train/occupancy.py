@@ -40,6 +40,7 @@ from typing import Any
 
 import torch
 
+from ultron.device import resolve_device
 from ultron.errors import argument_error
 from ultron.fields.occupancy import OccupancyNetwork, OccupancyNetworkConfig
 
@@ -226,12 +227,17 @@ def fit_occupancy(
     network: OccupancyNetwork | None = None,
     trainable: Callable[[OccupancyNetwork], list[torch.nn.Parameter]] | None = None,
     progress: Callable[[int, float], None] | None = None,
+    device: torch.device | str = "cpu",
 ) -> tuple[OccupancyNetwork, list[dict[str, float]]]:
     """Train (a copy-free, in-place) ``network`` on ``data``; returns it and a loss log.
 
     ``trainable`` selects the parameters to optimise (default: all), e.g. for fine-tuning with
-    frozen layers. ``progress(step, loss)`` is called every step.
+    frozen layers. ``progress(step, loss)`` is called every step. The network (built on the
+    CPU, so its initial weights do not depend on the device) and the data are moved to
+    ``device`` and the network is returned there; the minibatch order comes from a CPU
+    generator seeded by ``config.seed``, the same on every device.
     """
+    device = resolve_device(device, "device")
     generator = torch.Generator().manual_seed(config.seed)
     if network is None:
         torch.manual_seed(config.seed)
@@ -241,11 +247,13 @@ def fit_occupancy(
                 **{**asdict(network_config), "in_dim": data.inputs.shape[1]}
             )
         network = OccupancyNetwork(network_config)
+    network.to(device)
+    inputs, transmission = data.inputs.to(device), data.transmission.to(device)
     parameters = trainable(network) if trainable else list(network.parameters())
     optimiser = torch.optim.Adam(parameters, lr=config.lr)
     gamma = config.final_lr_factor ** (1.0 / max(config.iters, 1))
     scheduler = torch.optim.lr_scheduler.ExponentialLR(optimiser, gamma)
-    labels = data.labels.to(torch.float32)
+    labels = data.labels.to(device, torch.float32)
     pos_weight = positive_class_weight(labels, config)
     n = labels.shape[0]
     log: list[dict[str, float]] = []
@@ -257,17 +265,17 @@ def fit_occupancy(
         if cursor + config.batch_size > n:
             order = torch.randperm(n, generator=generator)
             cursor = 0
-        batch = order[cursor : cursor + min(config.batch_size, n)]
+        batch = order[cursor : cursor + min(config.batch_size, n)].to(device)
         cursor += config.batch_size
         y = labels[batch]
         weight = torch.where(y > 0.5, pos_weight, 1.0)
-        f = network.occupancy(data.inputs[batch])
+        f = network.occupancy(inputs[batch])
         if config.loss == "ultron" and config.negatives == "observed":
             loss = observed_negatives_bce(
-                f, data.transmission[batch], y, config.observed_transmission, weight
+                f, transmission[batch], y, config.observed_transmission, weight
             )
         elif config.loss == "ultron":
-            loss = attenuation_compensated_bce(f, data.transmission[batch], y, weight)
+            loss = attenuation_compensated_bce(f, transmission[batch], y, weight)
         else:
             loss = binary_cross_entropy(f, y, weight)
         optimiser.zero_grad(set_to_none=True)

@@ -1,0 +1,186 @@
+"""Benchmark: per-step and end-to-end times of the pipeline on the CPU and on a GPU (issue 18).
+
+For one simulated dataset (default L3, seed 0) and every device asked for (default: ``cpu``,
+plus ``cuda`` when this machine has one) it measures
+
+1. per-step times (median of ``--steps`` steps after 3 warm-up steps, the device synchronised
+   around each): a field step of the ``fast`` preset (grid field, 8 patches of 32 scanlines)
+   and of the ``paper`` preset (8 × 128 MLP, 4 whole frames), an occupancy step of each
+   preset's f_ω (4096 labelled pixels), and 100 fine-tuning iterations (1024 pixels a step,
+   the last two layers frozen, as ``ultron finetune``);
+2. end to end, through the library exactly as ``ultron reconstruct`` runs it: simulate → fit
+   the field → UltrON (10 %) → mesh → metrics, with the ``fast`` preset on every device and,
+   on a GPU (or with ``--paper-end-to-end``), the ``paper`` preset (75k + 50k iterations);
+   a preset not run end to end is estimated from its per-step times × its iterations.
+
+It prints one table; the figures quoted in the README and the issue notes come from it.
+Targets on one GPU of the H100 class (issue 18): the paper preset end to end ≤ 15 min, the
+fast preset ≥ 10× faster than on 2 CPU cores, 100 fine-tuning iterations ≤ 0.5 s.
+
+Usage::
+
+    python benchmarks/device.py --out runs/device            # cpu (+ cuda when present)
+    python benchmarks/device.py --out runs/device --devices cuda --paper-end-to-end
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import torch
+
+from ultron.data.dataset import SweepDataset
+from ultron.device import describe_device, resolve_device
+from ultron.fields.occupancy import OccupancyNetwork
+from ultron.methods.finetune import freeze_last_layers
+from ultron.methods.presets import pipeline_preset
+from ultron.methods.run import ReconstructionRequest, reconstruct
+from ultron.metrics.surface import MetricsConfig
+from ultron.phantom import SimulationConfig, simulate_dataset
+from ultron.train.field_fit import _prepare, make_optimizer, training_step
+from ultron.train.occupancy import OccupancyTrainConfig, OccupancyTrainingData, fit_occupancy
+
+
+def synchronise(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def timed(device: torch.device, fn, steps: int, warmup: int = 3) -> float:
+    """Median seconds of ``fn()`` over ``steps`` calls after ``warmup`` ones."""
+    for _ in range(warmup):
+        fn()
+    times = []
+    for _ in range(steps):
+        synchronise(device)
+        start = time.perf_counter()
+        fn()
+        synchronise(device)
+        times.append(time.perf_counter() - start)
+    return statistics.median(times)
+
+
+def field_step_seconds(dataset: SweepDataset, preset: str, device: torch.device, steps: int):
+    config = pipeline_preset(preset).field
+    frames, cube, module, _ = _prepare(dataset, config)
+    frames, module = frames.to(device), module.to(device)
+    optimizer = make_optimizer(module, config.lr)
+    generator = torch.Generator().manual_seed(0)
+    render = config.render.rescaled(dataset.probe, frames.probe)
+
+    def step() -> None:
+        training_step(module, optimizer, frames, cube, render, config, generator)
+
+    return timed(device, step, steps)
+
+
+def occupancy_data(in_dim: int, n: int = 200_000) -> OccupancyTrainingData:
+    generator = torch.Generator().manual_seed(0)
+    inputs = torch.randn(n, in_dim, generator=generator)
+    labels = (torch.rand(n, generator=generator) < 0.05).to(torch.uint8)
+    return OccupancyTrainingData(inputs, torch.rand(n, generator=generator), labels)
+
+
+def occupancy_seconds(preset: str, device: torch.device, steps: int) -> tuple[float, float]:
+    """(seconds per occupancy step of the preset, seconds for 100 fine-tuning iterations)."""
+    ultron = pipeline_preset(preset).ultron
+    network_config = ultron.context.network(ultron.occupancy.network, 3)
+    data = occupancy_data(network_config.in_dim)
+    config = replace(ultron.occupancy, iters=steps, network=network_config)
+    synchronise(device)
+    start = time.perf_counter()
+    fit_occupancy(data, config, device=device)
+    synchronise(device)
+    per_step = (time.perf_counter() - start) / steps
+    tuned = OccupancyNetwork(network_config)
+    trainable = freeze_last_layers(tuned, 2)
+    finetune = OccupancyTrainConfig(iters=100, batch_size=1024, lr=1e-3, network=network_config)
+    fit_occupancy(data, replace(finetune, iters=3), tuned, lambda _: trainable, device=device)
+    synchronise(device)
+    start = time.perf_counter()
+    fit_occupancy(data, finetune, tuned, lambda _: trainable, device=device)
+    synchronise(device)
+    return per_step, time.perf_counter() - start
+
+
+def end_to_end(dataset_dir: Path, preset: str, device: torch.device, out: Path) -> dict:
+    """Field fit + UltrON (10 %) + mesh + metrics through ``reconstruct``; stage seconds."""
+    stages = pipeline_preset(preset)
+    request = ReconstructionRequest(
+        method="ultron", label_fraction=0.1, ultron=stages.ultron, on=stages.on,
+        rocosdf_preset=stages.rocosdf_preset, metrics=MetricsConfig(), device=str(device),
+    )  # fmt: skip
+    start = time.perf_counter()
+    summary = reconstruct(
+        dataset_dir, request, out, field_config=stages.field, report=False, max_memory_gib=None
+    )
+    seconds = time.perf_counter() - start
+    metrics = (summary.get("metrics") or {}).get("mean", {})
+    return {"seconds": seconds, "timings_s": summary["timings_s"], "cd": metrics.get("cd"),
+            "cd_visible": metrics.get("cd_visible")}  # fmt: skip
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", type=Path, default=Path("runs/device"))
+    parser.add_argument("--phantom", default="L3")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--devices", default=None, help="comma-separated (default: cpu[,cuda])")
+    parser.add_argument("--steps", type=int, default=10, help="timed steps per measurement")
+    parser.add_argument("--paper-end-to-end", action="store_true",
+                        help="run the paper preset end to end on every device (days on a CPU)")  # fmt: skip
+    args = parser.parse_args()
+    names = args.devices or ("cpu,cuda" if torch.cuda.is_available() else "cpu")
+    devices = [resolve_device(name) for name in names.split(",")]
+    dataset_dir = args.out / f"{args.phantom}-s{args.seed}"
+    if not (dataset_dir / "dataset.json").is_file():
+        simulate_dataset(SimulationConfig(phantom=args.phantom, seed=args.seed), out=dataset_dir)
+    dataset = SweepDataset.load(dataset_dir)
+    cache = args.out / "cache"
+    os.environ["ULTRON_CACHE"] = str(cache)  # fresh fits: end-to-end times include the field
+    results = {}
+    for device in devices:
+        row: dict = {"device": describe_device(device)}
+        for preset in ("fast", "paper"):
+            stages = pipeline_preset(preset)
+            field_s = field_step_seconds(dataset, preset, device, args.steps)
+            occupancy_s, finetune_s = occupancy_seconds(preset, device, max(args.steps, 20))
+            estimate = (
+                field_s * stages.field.iterations + occupancy_s * stages.ultron.occupancy.iters
+            )
+            row[preset] = {"field_step_s": field_s, "occupancy_step_s": occupancy_s,
+                           "finetune_100_s": finetune_s, "estimate_s": estimate}  # fmt: skip
+            if preset == "fast" or device.type == "cuda" or args.paper_end_to_end:
+                out = args.out / "runs" / f"{device.type}-{preset}"
+                row[preset]["end_to_end"] = end_to_end(dataset_dir, preset, device, out)
+            print(json.dumps({str(device): {preset: row[preset]}}), flush=True)
+        results[str(device)] = row
+    (args.out / "device.json").write_text(json.dumps(results, indent=1))
+    print()
+    print("| device | preset | field step (s) | occupancy step (ms) | fine-tune 100 it (s) "
+          "| end to end (s) | estimate (s) | CD (mm) |")  # fmt: skip
+    print("|---|---|---:|---:|---:|---:|---:|---:|")
+    for name, row in results.items():
+        for preset in ("fast", "paper"):
+            r = row[preset]
+            e2e = r.get("end_to_end", {})
+            total = f"{e2e['seconds']:.1f}" if e2e else "—"
+            cd = f"{e2e['cd']:.3f}" if e2e.get("cd") is not None else "—"
+            print(f"| {name} | {preset} | {r['field_step_s']:.4f} | {1000 * r['occupancy_step_s']:.2f}"
+                  f" | {r['finetune_100_s']:.3f} | {total} | {r['estimate_s']:.0f} | {cd} |")  # fmt: skip
+    if len(results) > 1 and "cpu" in results:
+        cpu = results["cpu"]["fast"].get("end_to_end", {}).get("seconds")
+        for name, row in results.items():
+            other = row["fast"].get("end_to_end", {}).get("seconds")
+            if name != "cpu" and cpu and other:
+                print(f"fast preset end to end: {name} is {cpu / other:.1f}× the CPU's speed")
+
+
+if __name__ == "__main__":
+    main()

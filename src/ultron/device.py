@@ -1,0 +1,144 @@
+"""Where a run computes: ``--device auto|cpu|cuda|cuda:N|mps``.
+
+The rule of the code base: a network or field lives on one device (the run's); public
+functions that evaluate it take inputs on any device and return results on the CPU (numpy or
+CPU tensors), so that data handling, meshing and metrics never see a device. Training loops
+move their data to the module's device once and draw from a generator on that device. On the
+CPU every such move is a no-op and every generator is the CPU generator of before, so
+``--device cpu`` reproduces the figures of a build without this option exactly.
+
+Modules are always *built* on the CPU (the same seed gives the same initial weights on every
+device) and then moved; checkpoints are written from CPU copies and loaded with
+``map_location``, so a model saved on one device loads on any other.
+"""
+
+from __future__ import annotations
+
+import platform
+from typing import Any
+
+import torch
+
+from ultron.errors import UltronInputError
+
+#: Accepted spellings of ``--device`` besides ``cuda:N``.
+DEVICE_CHOICES = ("auto", "cpu", "cuda", "mps")
+CPU = torch.device("cpu")
+
+
+def _mps_available() -> bool:
+    backend = getattr(torch.backends, "mps", None)
+    return bool(backend is not None and backend.is_available())
+
+
+def resolve_device(
+    spec: str | torch.device | None = "auto", option: str = "--device"
+) -> torch.device:
+    """The torch device of ``spec``: ``auto`` (CUDA when available, else the CPU),
+    ``cpu``, ``cuda``, ``cuda:N`` or ``mps``; a device object passes through (checked the same
+    way). A malformed or unavailable device is a one-line :class:`UltronInputError` naming
+    ``option``."""
+    if isinstance(spec, torch.device):
+        text = str(spec)
+    elif spec is None:
+        text = "auto"
+    elif isinstance(spec, str):
+        text = spec.strip().lower()
+    else:
+        raise UltronInputError("argument", option, f"expected a device name, got {spec!r}")
+    if text == "auto":  # MPS only when asked: it has no float64, and is less tested
+        return torch.device("cuda") if torch.cuda.is_available() else CPU
+    try:
+        device = torch.device(text)
+    except (RuntimeError, ValueError):
+        device = None
+    if device is None or device.type not in ("cpu", "cuda", "mps"):
+        raise UltronInputError(
+            "argument", option, f"expected auto, cpu, cuda, cuda:N or mps, got {spec!r}"
+        )
+    if device.type == "cpu":
+        return CPU
+    if device.type == "mps":
+        if not _mps_available():
+            raise UltronInputError("argument", option, "mps is not available on this machine")
+        return device
+    if not torch.cuda.is_available():
+        raise UltronInputError(
+            "argument",
+            option,
+            f"{text} is not available: this torch build ({torch.__version__}) sees no CUDA"
+            " device; use --device cpu",
+        )
+    index = 0 if device.index is None else device.index
+    count = torch.cuda.device_count()
+    if index >= count:
+        raise UltronInputError(
+            "argument", option, f"{text} is not available: this machine has {count} CUDA device(s)"
+        )
+    return device
+
+
+def describe_device(device: torch.device) -> dict[str, Any]:
+    """What run.json and field.json record of ``device``: its name (``cpu``, ``cuda:0``, …),
+    the accelerator's model where there is one, and the torch version."""
+    record: dict[str, Any] = {"device": str(device), "torch": torch.__version__}
+    if device.type == "cuda":
+        index = torch.cuda.current_device() if device.index is None else device.index
+        record["device"] = f"cuda:{index}"
+        record["accelerator"] = torch.cuda.get_device_name(index)
+    elif device.type == "cpu":
+        record["accelerator"] = platform.processor() or platform.machine()
+    else:
+        record["accelerator"] = device.type
+    return record
+
+
+def module_device(module: torch.nn.Module) -> torch.device:
+    """The device of ``module``'s first parameter or buffer (the CPU for one without any)."""
+    for tensor in (*module.parameters(), *module.buffers()):
+        return tensor.device
+    return CPU
+
+
+def generator_on(device: torch.device, seed: int) -> torch.Generator:
+    """A ``torch.Generator`` on ``device`` seeded with ``seed`` (the CPU generator on the CPU,
+    so CPU runs draw exactly what they drew before devices existed)."""
+    return torch.Generator(device=device).manual_seed(int(seed))
+
+
+#: How many times larger an evaluation chunk is on an accelerator than on the CPU: the CPU
+#: chunks are sized for its caches and memory, a GPU wants far more points per kernel launch.
+ACCELERATOR_CHUNK_FACTOR = 16
+
+
+def evaluation_chunk(device: torch.device | None, cpu_chunk: int) -> int:
+    """Points per chunk when evaluating a network on ``device``: ``cpu_chunk`` on the CPU (and
+    for None), ×:data:`ACCELERATOR_CHUNK_FACTOR` elsewhere. Chunking never changes a result
+    beyond float reassociation (every point is evaluated independently)."""
+    if device is None or device.type == "cpu":
+        return cpu_chunk
+    return cpu_chunk * ACCELERATOR_CHUNK_FACTOR
+
+
+def cpu_state(state: Any) -> Any:
+    """``state`` (a state dict, possibly nested) with every tensor copied to the CPU, for a
+    checkpoint that loads anywhere."""
+    if torch.is_tensor(state):
+        return state.detach().cpu()
+    if isinstance(state, dict):
+        return {k: cpu_state(v) for k, v in state.items()}
+    if isinstance(state, list | tuple):
+        return type(state)(cpu_state(v) for v in state)
+    return state
+
+
+__all__ = [
+    "CPU",
+    "DEVICE_CHOICES",
+    "cpu_state",
+    "describe_device",
+    "evaluation_chunk",
+    "generator_on",
+    "module_device",
+    "resolve_device",
+]

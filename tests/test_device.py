@@ -1,0 +1,258 @@
+"""``--device``: resolution, one-line errors, device-correct compute paths, portable files.
+
+No GPU is needed: the compute paths are run with their networks on PyTorch's ``meta`` device,
+which refuses to mix with CPU tensors (as CUDA does) except 0-dim ones, so a tensor created
+without the module's device in the renderer, the field fit or the occupancy loss fails here.
+The test that compares CUDA with CPU runs only where CUDA is present.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from typer.testing import CliRunner
+
+from field_configs import quick_field_config
+from strict_device import StrictDevices
+from ultron.cli.main import app
+from ultron.data.geometry import UnitCube
+from ultron.device import cpu_state, describe_device, generator_on, module_device, resolve_device
+from ultron.errors import UltronInputError
+from ultron.fields.factory import build_field
+from ultron.render.renderer import RenderConfig, render_field
+from ultron.train.field_config import FieldTrainConfig
+from ultron.train.field_fit import training_step
+from ultron.train.frames import FrameSet
+from ultron.train.occupancy import OccupancyTrainConfig, observed_negatives_bce
+
+NO_CUDA = not torch.cuda.is_available()
+META = torch.device("meta")
+
+
+# ------------------------------------------------------------------------------ resolution
+def test_cpu_and_auto_resolve():
+    assert resolve_device("cpu") == torch.device("cpu")
+    assert resolve_device(" CPU ") == torch.device("cpu")
+    assert resolve_device(torch.device("cpu")) == torch.device("cpu")
+    expected = "cuda" if torch.cuda.is_available() else "cpu"
+    assert resolve_device("auto").type == expected
+    assert resolve_device(None).type == expected
+
+
+@pytest.mark.parametrize("spec", ["tpu", "cuda:x", "gpu", "", "meta"])
+def test_malformed_device_names_the_option(spec):
+    with pytest.raises(
+        UltronInputError, match=r"--device: expected auto, cpu, cuda, cuda:N or mps"
+    ):
+        resolve_device(spec)
+
+
+@pytest.mark.skipif(not NO_CUDA, reason="this machine has CUDA")
+@pytest.mark.parametrize("spec", ["cuda", "cuda:0", "cuda:3"])
+def test_unavailable_cuda_is_one_line(spec):
+    with pytest.raises(UltronInputError) as info:
+        resolve_device(spec, "--device")
+    message = str(info.value)
+    assert message.startswith("argument: --device:") and "\n" not in message
+    assert spec in message and "--device cpu" in message
+
+
+def test_describe_device_records_name_and_torch():
+    record = describe_device(torch.device("cpu"))
+    assert record["device"] == "cpu" and record["torch"] == torch.__version__
+    assert json.dumps(record)  # JSON-able, for run.json
+
+
+def test_generator_on_cpu_draws_as_before():
+    a = torch.rand(5, generator=generator_on(torch.device("cpu"), 7))
+    b = torch.rand(5, generator=torch.Generator().manual_seed(7))
+    assert torch.equal(a, b)
+
+
+def test_cpu_state_copies_nested_tensors_to_cpu():
+    state = {"a": torch.ones(2), "b": [torch.zeros(1), 3], "c": {"d": torch.arange(3)}}
+    copied = cpu_state(state)
+    assert copied["b"][1] == 3 and torch.equal(copied["c"]["d"], torch.arange(3))
+    assert copied["a"] is not state["a"] or copied["a"].device.type == "cpu"
+
+
+# ------------------------------------------------------------------ device-correct compute
+def _meta_field():
+    config = quick_field_config()
+    cube = UnitCube((0.0, 20.0, 0.0), 40.0)
+    module, _ = build_field(config.field, cube.half_extent_mm, 0.5, seed=0)
+    return config, cube, module.to(META)
+
+
+def test_render_field_computes_on_the_field_device(tiny_dataset):
+    _, cube, module = _meta_field()
+    poses = torch.as_tensor(tiny_dataset.all_poses()[:2])
+    for expected in (True, False):
+        with StrictDevices():
+            rendered = render_field(
+                module, cube, tiny_dataset.probe, poses, RenderConfig(), torch.arange(8),
+                generator=torch.Generator().manual_seed(0), expected=expected,
+            )  # fmt: skip
+        assert rendered.intensity.device == META and rendered.transmission.device == META
+        assert rendered.intensity.shape == (2, tiny_dataset.probe.height_px, 8)
+    assert module_device(module) == META
+
+
+@pytest.mark.parametrize("prior", [0.0, 1.0])
+def test_training_step_runs_on_the_field_device(tiny_l3, prior):
+    from ultron.data.dataset import SweepDataset
+
+    tiny_dataset = SweepDataset.load(tiny_l3)
+    config = quick_field_config(confidence_prior_weight=prior, scattering_tv_weight=0.1)
+    _, cube, module = _meta_field()
+    frames = FrameSet.from_dataset(tiny_dataset, None, config.holdout_every)
+    if prior:
+        frames = frames.with_confidence()
+    frames = frames.to(META)
+    assert frames.probe_to_world.device.type == "cpu"  # geometry and batches stay on the CPU
+    optimizer = torch.optim.Adam(module.parameters(), lr=config.lr)  # fused has no meta kernel
+    generator = torch.Generator().manual_seed(0)
+    with StrictDevices():
+        loss, mse = training_step(module, optimizer, frames, cube, config.render, config, generator)
+    assert loss.device == META and mse.device == META
+
+
+def test_occupancy_losses_on_the_network_device():
+    from ultron.fields.occupancy import OccupancyNetwork, OccupancyNetworkConfig
+
+    network = OccupancyNetwork(OccupancyNetworkConfig(in_dim=3)).to(META)
+    inputs = torch.rand(16, 3).to(META)
+    with StrictDevices():
+        f = network.occupancy(inputs)
+        y = torch.zeros(16, device=META)
+        loss = observed_negatives_bce(f, torch.ones(16, device=META), y, 0.3)
+    assert loss.device == META
+
+
+# ----------------------------------------------------------------------- portable outputs
+def _saved_tensors(path: Path) -> list[torch.Tensor]:
+    payload = torch.load(io.BytesIO(path.read_bytes()), weights_only=True)
+    found: list[torch.Tensor] = []
+
+    def walk(value):
+        if torch.is_tensor(value):
+            found.append(value)
+        elif isinstance(value, dict):
+            for v in value.values():
+                walk(v)
+        elif isinstance(value, list | tuple):
+            for v in value:
+                walk(v)
+
+    walk(payload)
+    return found
+
+
+def test_field_checkpoint_is_cpu_and_loads_with_map_location(tiny_l3, tmp_path):
+    from ultron.data.dataset import SweepDataset
+    from ultron.fields.fitted import CHECKPOINT, FIELD_JSON, load_field
+    from ultron.train.field_fit import fit_field
+
+    tiny_dataset = SweepDataset.load(tiny_l3)
+    config = quick_field_config(iterations=4, checkpoint_every=2)
+    fitted = fit_field(tiny_dataset, config, tmp_path / "f", device="cpu")
+    tensors = _saved_tensors(tmp_path / "f" / CHECKPOINT)
+    assert tensors and all(t.device.type == "cpu" for t in tensors)
+    meta = json.loads((tmp_path / "f" / FIELD_JSON).read_text())
+    assert meta["fitted_on"]["device"] == "cpu"
+    loaded = load_field(tmp_path / "f", device="cpu")
+    assert loaded.device.type == "cpu"
+    poses = tiny_dataset.all_poses()[:1]
+    np.testing.assert_array_equal(
+        loaded.render(poses, expected=True), fitted.render(poses, expected=True)
+    )
+    with pytest.raises(UltronInputError, match="device"):
+        load_field(tmp_path / "f", device="tpu")
+
+
+def test_fit_on_device_cpu_equals_the_default(tiny_l3, tmp_path):
+    from ultron.data.dataset import SweepDataset
+    from ultron.train.field_fit import fit_field
+
+    tiny_dataset = SweepDataset.load(tiny_l3)
+    config = quick_field_config(iterations=6)
+    a = fit_field(tiny_dataset, config, tmp_path / "a")
+    b = fit_field(tiny_dataset, config, tmp_path / "b", device="cpu")
+    for (name, x), (_, y) in zip(
+        a.field.state_dict().items(), b.field.state_dict().items(), strict=True
+    ):
+        assert torch.equal(x, y), name
+
+
+# ------------------------------------------------------------------------------------ CLI
+COMMANDS = {
+    "fit-field": ["fit-field", "{d}", "--out", "{o}"],
+    "render": ["render", "{d}", "--out", "{o}.npy", "--poses", "{d}/p.npy"],
+    "reconstruct": ["reconstruct", "{d}", "--out", "{o}"],
+    "finetune": ["finetune", "{d}", "{d}", "--out", "{o}"],
+    "demo": ["demo", "--out", "{o}"],
+    "benchmark": ["benchmark", "--out", "{o}", "--quick"],
+}
+
+
+@pytest.mark.parametrize("command", sorted(COMMANDS))
+def test_every_command_has_device_option(command):
+    result = CliRunner().invoke(app, [command, "--help"], terminal_width=200)
+    assert result.exit_code == 0 and "--device" in result.output
+
+
+@pytest.mark.skipif(not NO_CUDA, reason="this machine has CUDA")
+@pytest.mark.parametrize("command", sorted(COMMANDS))
+def test_unavailable_cuda_fails_in_one_line_before_any_work(command, tmp_path):
+    out = tmp_path / "out"
+    args = [a.format(d=tmp_path, o=out) for a in COMMANDS[command]] + ["--device", "cuda"]
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 2, result.output
+    lines = [line for line in result.output.splitlines() if line.strip()]
+    assert len(lines) == 1 and "--device" in lines[0] and "Traceback" not in result.output
+    assert not out.exists() and not Path(f"{out}.npy").exists()
+
+
+def test_reconstruct_records_the_device(tiny_l3, tmp_path):
+    result = CliRunner().invoke(
+        app,
+        ["reconstruct", str(tiny_l3), "--out", str(tmp_path / "r"), "--method", "compounding",
+         "--label-fraction", "0.5", "--points", "2000", "--device", "cpu"],
+    )  # fmt: skip
+    assert result.exit_code == 0, result.output
+    run = json.loads((tmp_path / "r" / "run.json").read_text())
+    assert run["device"]["device"] == "cpu" and run["device"]["torch"] == torch.__version__
+
+
+def test_request_rejects_a_bad_device():
+    from ultron.methods.run import ReconstructionRequest
+
+    with pytest.raises(UltronInputError, match="device"):
+        ReconstructionRequest(device="tpu")
+
+
+# ---------------------------------------------------------------------------------- GPU
+@pytest.mark.skipif(NO_CUDA, reason="needs a CUDA device")
+def test_tiny_ultron_on_cuda_matches_cpu(tiny_l3, tmp_path, monkeypatch):
+    from ultron.methods.run import ReconstructionRequest, reconstruct
+    from ultron.methods.ultron_method import UltronConfig
+    from ultron.metrics.surface import MetricsConfig
+
+    monkeypatch.setenv("ULTRON_CACHE", str(tmp_path / "cache"))
+    occupancy = OccupancyTrainConfig(iters=600, batch_size=1024, lr=1e-3)
+    field = FieldTrainConfig(iterations=400, check_every=1000, checkpoint_every=1000)
+    metrics = {}
+    for device in ("cpu", "cuda"):
+        request = ReconstructionRequest(
+            method="ultron", label_fraction=0.5, ultron=UltronConfig(occupancy=occupancy),
+            metrics=MetricsConfig(n_points=20_000, repeats=1), device=device,
+        )  # fmt: skip
+        summary = reconstruct(tiny_l3, request, tmp_path / device, field_config=field)
+        metrics[device] = summary["metrics"]["mean"]
+    for name in ("cd", "mad"):
+        assert metrics["cuda"][name] == pytest.approx(metrics["cpu"][name], rel=0.01), name
