@@ -64,6 +64,13 @@ def test_cli_request_takes_the_preset_and_options_win():
     assert request.ultron.occupancy.negatives == "observed"
     assert request.ultron.occupancy.iters == 200 and request.on.occupancy.iters == 200
     assert request.ultron.observed.surface == "observed"
+    assert request.ultron.occupancy.positive_weight == 1.0
+    balanced = _request("ultron", 0.1, 0, None, 1000, positive_weight="balanced")
+    assert balanced.ultron.occupancy.positive_weight is None
+    assert (
+        _request("ultron", 0.1, 0, None, 1, positive_weight="3").ultron.occupancy.positive_weight
+        == 3
+    )
     fast = _request("ultron", 0.1, 0, None, 1000)
     assert fast.ultron == UltronConfig(occupancy=fast.ultron.occupancy)
     assert _field_config(None, 1, "paper").iterations == 75_000

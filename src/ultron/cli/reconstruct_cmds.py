@@ -109,14 +109,10 @@ def _request(
 
     base = pipeline_preset(preset, seed)
     occupancy, on = base.ultron.occupancy, base.on
-    changes = {
-        "positive_weight": None
-        if positive_weight is None
-        else parse_positive_weight(positive_weight),
-        "negatives": negatives,
-        "iters": occupancy_iters,
-    }
+    changes = {"negatives": negatives, "iters": occupancy_iters}
     occupancy = replace(occupancy, **{k: v for k, v in changes.items() if v is not None})
+    if positive_weight is not None:  # "balanced" parses to None: n_background / n_bone
+        occupancy = replace(occupancy, positive_weight=parse_positive_weight(positive_weight))
     if occupancy_iters is not None:
         on = replace(on, occupancy=replace(on.occupancy, iters=occupancy_iters))
     ultron = replace(
