@@ -14,11 +14,28 @@ from ultron.cli.main import app
 runner = CliRunner()
 
 
-@pytest.mark.parametrize("command", [[], ["import-ultranerf"], ["info"]])
+@pytest.mark.parametrize(
+    "command", [[], *([c.name] for c in app.registered_commands)], ids=lambda c: " ".join(c)
+)
 def test_help(command):
-    result = runner.invoke(app, [*command, "--help"])
-    assert result.exit_code == 0
-    assert "Usage" in result.output
+    result = runner.invoke(app, [*command, "--help"], terminal_width=200)
+    assert result.exit_code == 0, result.output
+    assert "Usage" in result.output and "Traceback" not in result.output
+
+
+def test_every_command_is_listed_demo_first():
+    from ultron.cli.main import COMMAND_ORDER
+
+    names = [c.name for c in app.registered_commands]
+    assert names[0] == "demo" and sorted(names) == sorted(COMMAND_ORDER)
+    assert len(names) == 13
+
+
+def test_version():
+    from ultron import __version__
+
+    result = runner.invoke(app, ["--version"])
+    assert result.exit_code == 0 and result.output.strip() == f"ultron {__version__}"
 
 
 def _import(src: Path, out: Path, name: str, kind: str):

@@ -147,12 +147,28 @@ def test_grid_field_overfits_a_tiny_volume(tmp_path: Path) -> None:
     stats = json.loads((tmp_path / "f" / "theta_stats.json").read_text())
     assert stats["channels"] == list(CHANNELS) and all(s > 0 for s in stats["std"])
     assert fitted.theta_stats is not None
+    # the fitted reflector lies where the volume's does: β's deepest-peak row per scanline
+    # (below the first 3 rows) against the truth's, within one pixel (0.375 mm) on the median
+    # and on ≥ 70 % of the scanlines (measured: median 1 / 1 / 0 rows, 76 / 77 / 99 % at
+    # seeds 0 / 1 / 2: the fit sits about one row shallow, with a few scanlines elsewhere)
+    poses = tiny_dataset().sweeps[0].probe_to_world
+    maps = fitted.render_maps(poses, expected=True)
+    beta = maps.theta[..., list(maps.channels).index("reflection")]
+    true_beta = truth(pixel_points_mm(torch.as_tensor(poses), PROBE)).reflection.numpy()
+    error = np.abs((beta[:, 3:].argmax(axis=1) + 3) - true_beta.argmax(axis=1))
+    assert np.median(error) <= 1 and np.mean(error <= 1) >= 0.7, error
 
 
 def test_mlp_backend_trains(tmp_path: Path) -> None:
-    config = quick_config(field=FieldConfig(backend="mlp"), iterations=3, learning_rate=1e-3)
-    fitted = fit_field(tiny_dataset(8), config, tmp_path / "m")
+    """50 steps of the paper's MLP at lr 1e-3 at least halve the image loss (measured: the mean
+    of the last 10 steps is 0.31–0.34× that of the first 5 at seeds 0–3)."""
+    config = quick_config(field=FieldConfig(backend="mlp"), iterations=50, learning_rate=1e-3)
+    losses: list[float] = []
+    fitted = fit_field(
+        tiny_dataset(8), config, tmp_path / "m", progress=lambda e: losses.append(e["loss"])
+    )
     assert fitted.field_config.backend == "mlp"
+    assert np.mean(losses[-10:]) < np.mean(losses[:5]) / 2, losses
     assert load_field(tmp_path / "m").render(np.eye(4), seed=1).shape == (1, 24, 16)
 
 

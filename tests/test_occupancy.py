@@ -185,8 +185,9 @@ def test_compensated_loss_ignores_shadowed_negatives():
         network, _ = fit_occupancy(shadowed, config)
         with torch.no_grad():
             results[loss] = float(network.occupancy(probe))
-    assert results["bce"] < 0.5
-    assert results["ultron"] > results["bce"]
+    # measured f(0.8, 0, 0): compensated 0.68 / 0.99 / 0.75 at seeds 1 / 2 / 3, BCE < 1e-8
+    assert results["bce"] < 0.01
+    assert results["ultron"] > 0.5
 
 
 def test_training_is_deterministic():

@@ -58,6 +58,8 @@ def test_without_reference_no_metrics(tiny: Path, tmp_path: Path):
 
 
 def test_ultron_end_to_end(tiny: Path, tmp_path: Path, monkeypatch):
+    from dataclasses import replace
+
     from ultron.train.field_fit import FieldTrainConfig
 
     monkeypatch.setenv("ULTRON_CACHE", str(tmp_path / "cache"))
@@ -80,14 +82,24 @@ def test_ultron_end_to_end(tiny: Path, tmp_path: Path, monkeypatch):
     assert 0 <= run["transmission_stats"]["background_mean"] <= 1
     mesh = load_mesh(tmp_path / "out" / "mesh.ply")
     assert len(mesh.faces) > 100
-    # a smoke test of the whole pipeline on a 64 × 48-pixel, 24-frame phantom: the surface must
-    # lie in the vertebra's neighbourhood (a surface scattered over the 88 × 77 × 47 mm field of
-    # view would be ≈ 15–20 mm away); reconstruction quality itself is a benchmark's job
-    assert summary["metrics"]["mean"]["mad"] < 8.0
+    # on this 64 × 48-pixel, 24-frame phantom (measured: UltrON CD vis. 1.52, MAD 1.48 mm; w/o
+    # loss 3.13 / 1.51; compounding of the same labels 2.13 / 0.88): the surface lies on the
+    # vertebra within the bound the compounding test asserts (a surface scattered over the
+    # 88 × 77 × 47 mm field of view would be ≈ 15–20 mm away), the compensated loss beats its
+    # ablation on the visible reference, and UltrON is no worse there than compounding
+    ours = summary["metrics"]["mean"]
+    assert ours["mad"] < 2.0
     # a second run reuses the cached field
     again = reconstruct(tiny, request, tmp_path / "again", field_config=field_config)
     assert json.loads((tmp_path / "again" / "run.json").read_text())["field_cached"] is True
-    assert again["metrics"]["mean"]["mad"] == pytest.approx(summary["metrics"]["mean"]["mad"])
+    assert again["metrics"]["mean"]["mad"] == pytest.approx(ours["mad"])
+    others = {}
+    for method in ("ultron-noloss", "compounding"):
+        other = replace(request, method=method)
+        result = reconstruct(tiny, other, tmp_path / method, field_config=field_config)
+        others[method] = result["metrics"]["mean"]["cd_visible"]
+    assert ours["cd_visible"] < others["ultron-noloss"], (ours["cd_visible"], others)
+    assert ours["cd_visible"] <= others["compounding"], (ours["cd_visible"], others)
 
 
 def test_unknown_method_is_a_clear_error():

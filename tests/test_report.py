@@ -290,3 +290,40 @@ def test_metrics_html_shows_unmeasured_as_na():
     text = metrics_html(metrics)
     assert "<td>cd_visible</td><td>n/a</td>" in text
     assert "1.250 ± 0.500" in text and "inf" in text and "None" not in text
+
+
+def _panel_pixels(png: bytes) -> np.ndarray:
+    """The decoded RGB pixels (H, W', 3) left of the colour bar (the figure's left 86 %)."""
+    import io
+
+    from matplotlib import image
+
+    rgb = image.imread(io.BytesIO(png), format="png")[..., :3]
+    return rgb[:, : int(rgb.shape[1] * 0.86)]
+
+
+def _share_near(pixels: np.ndarray, colour: np.ndarray, tolerance: float = 0.06) -> float:
+    return float((np.abs(pixels - colour).max(axis=-1) < tolerance).mean())
+
+
+def test_distance_figure_reads_the_shift():
+    """A box shifted 1 mm, coloured on a 0–2 mm scale: its panels show the colour of 1 mm
+    (viridis at 0.5) and none of 1.5 or 2 mm; the unshifted box shows only the colour of 0 mm.
+    The figure is not blank."""
+    import trimesh
+    from matplotlib import colormaps
+
+    viridis = colormaps["viridis"]
+    at = {mm: np.asarray(viridis(mm / 2.0)[:3]) for mm in (0.0, 1.0, 1.5, 2.0)}
+    box = trimesh.creation.box(extents=(10.0, 10.0, 10.0))
+    shifted = box.copy()
+    shifted.apply_translation((1.0, 0.0, 0.0))
+    moved = _panel_pixels(mesh_distance_figure(shifted, box, "box", n_points=4000, clip_mm=2.0))
+    same = _panel_pixels(mesh_distance_figure(box, box, "box", n_points=4000, clip_mm=2.0))
+    # measured shares of the panels' pixels: shifted 0.21 % at 0 mm, 0.094 % at 1 mm, none
+    # beyond; unshifted 0.41 % at 0 mm and nothing else
+    for pixels in (moved, same):
+        assert (np.abs(pixels - 1.0).max(axis=-1) > 0.05).mean() > 0.05  # not blank
+        assert _share_near(pixels, at[1.5]) == 0.0 and _share_near(pixels, at[2.0]) == 0.0
+    assert _share_near(moved, at[1.0]) > 0.0005
+    assert _share_near(same, at[1.0]) == 0.0 and _share_near(same, at[0.0]) > 0.002
