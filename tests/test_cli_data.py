@@ -93,3 +93,34 @@ def test_console_script_exit_code(tmp_path: Path):
     assert result.returncode == 2
     assert result.stderr.strip().count("\n") == 0
     assert "dataset.json" in result.stderr and "Traceback" not in result.stderr
+
+
+THREADED = ("reconstruct", "finetune", "demo", "render", "simulate", "compound", "label",
+            "fit-field")  # fmt: skip
+
+
+@pytest.mark.parametrize("command", THREADED)
+def test_heavy_commands_take_threads(command, tmp_path):
+    help_text = runner.invoke(app, [command, "--help"], terminal_width=200).output
+    assert "--threads" in help_text
+    positional = {"reconstruct": 1, "finetune": 2, "render": 1, "compound": 1, "label": 1,
+                  "fit-field": 1}.get(command, 0)  # fmt: skip
+    args = [command, *[str(tmp_path)] * positional, "--threads", "0"]
+    out = [] if command == "label" else ["--out", str(tmp_path / "o")]  # label writes in place
+    result = runner.invoke(app, [*args, *out])
+    assert result.exit_code == 2 and "--threads" in result.output, result.output
+    assert not (tmp_path / "o").exists()
+
+
+def test_field_progress_prints_plain_lines_off_a_terminal(capsys):
+    from ultron.cli.reconstruct_cmds import _field_progress
+
+    bar, update = _field_progress()
+    with bar:
+        for step in range(1, 101):
+            update({"step": step, "iterations": 100, "loss": 0.5, "psnr": 20.0})
+    lines = [line for line in capsys.readouterr().out.splitlines() if "step " in line]
+    assert len(lines) == 20  # every 5 %
+    assert lines[0].startswith("fitting acoustic field: step 5/100 (5 %)")
+    assert lines[-1].startswith("fitting acoustic field: step 100/100 (100 %)")
+    assert "3001" not in " ".join(lines) and "101/100" not in " ".join(lines)

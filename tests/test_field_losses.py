@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -67,3 +68,23 @@ def test_confidence_prior_is_one_sided_and_hand_worked() -> None:
         confidence_transmission_prior(t, c[:1], 0.3)
     with pytest.raises(UltronInputError, match="margin"):
         confidence_transmission_prior(t, c, float("nan"))
+
+
+def test_ssim_equals_scikit_image():
+    """Our SSIM is Wang et al.'s: with scikit-image's Gaussian window (σ 1.5, truncated at
+    3.5 σ: 11 taps; scikit-image fixes the truncation, so the loss's 7-tap window cannot be
+    compared) and population covariances, the mean over the valid region is scikit-image's to
+    float64 rounding, for both constants the code uses."""
+    from skimage.metrics import structural_similarity
+
+    rng = np.random.default_rng(0)
+    x = rng.random((40, 33))
+    for noise in (0.02, 0.1, 0.5):
+        y = np.clip(x + noise * rng.standard_normal(x.shape), 0, 1)
+        for k2 in (0.03, 0.1):
+            ours = float(ssim(torch.tensor(x), torch.tensor(y), window=11, k1=0.01, k2=k2))
+            reference = structural_similarity(
+                x, y, data_range=1.0, gaussian_weights=True, sigma=1.5,
+                use_sample_covariance=False, K1=0.01, K2=k2,
+            )  # fmt: skip
+            assert ours == pytest.approx(reference, abs=1e-12), (noise, k2)

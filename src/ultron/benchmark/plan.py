@@ -28,6 +28,7 @@ from ultron.data.auto_labels import AutoLabelConfig
 from ultron.device import resolve_device
 from ultron.errors import argument_error
 from ultron.methods.on_method import ONConfig
+from ultron.methods.registry import get_method
 from ultron.methods.run import ROCOSDF_PRESETS, ReconstructionRequest
 from ultron.methods.ultron_method import UltronConfig
 from ultron.metrics.surface import METRIC_NAMES, MetricsConfig
@@ -431,7 +432,7 @@ class _Planner:
                 metrics=config.metrics,
                 device=config.device,
             )
-            needs_field = row.method in ("ultron", "ultron-noloss")
+            needs_field = get_method(row.method).needs_field
             data_id = sim_id
             if row.labels == "auto":
                 data_id = self.auto_labelled(spec, sim_id)

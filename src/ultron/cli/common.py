@@ -153,3 +153,18 @@ def check_device(value: str) -> str:
     from ultron.device import resolve_device
 
     return str(resolve_device(value, "--device"))
+
+
+#: ``--threads`` of every command that computes with torch.
+ThreadsOption = Annotated[
+    int | None, typer.Option("--threads", help="torch CPU threads (default: torch's choice).")
+]
+
+
+def apply_threads(threads: int | None) -> None:
+    """Check ``--threads`` and, when given, set torch's CPU thread count."""
+    check_count("--threads", threads)
+    if threads is not None:
+        import torch
+
+        torch.set_num_threads(threads)

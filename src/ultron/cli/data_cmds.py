@@ -24,7 +24,7 @@ def import_ultranerf(
     ],
     sweep_name: Annotated[
         str | None,
-        typer.Option("--sweep-name", help="Name of the new sweep [default: SRC's folder name]."),
+        typer.Option("--sweep-name", help="Name of the new sweep (default: SRC's folder name)."),
     ] = None,
     kind: Annotated[
         str, typer.Option("--kind", help="Sweep kind: row, column, tilted or other.")
@@ -98,7 +98,7 @@ def import_plus(
     ] = "Reference",
     sweep_name: Annotated[
         str | None,
-        typer.Option("--sweep-name", help="Name of the new sweep [default: the file's stem]."),
+        typer.Option("--sweep-name", help="Name of the new sweep (default: the file's stem)."),
     ] = None,
     kind: Annotated[
         str, typer.Option("--kind", help="Sweep kind: row, column, tilted or other.")

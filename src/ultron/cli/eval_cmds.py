@@ -19,14 +19,14 @@ def evaluate(
         typer.Option(
             "--reference-visible",
             help="The part of the reference the sweeps could see (e.g. a simulated dataset's "
-            "reference_visible.ply): adds CD vis. and Comp. vis. [default: n/a].",
+            "reference_visible.ply): adds CD vis. and Comp. vis. (default: n/a).",
         ),
     ] = None,
     points: Annotated[int, typer.Option("--points", help="Points sampled per surface.")] = 100_000,
     repeats: Annotated[int, typer.Option("--repeats", help="Repeats with different seeds.")] = 3,
     seed: Annotated[int, typer.Option("--seed", help="First sampling seed.")] = 0,
     out: Annotated[
-        Path | None, typer.Option("--out", help="JSON output [default: MESH with .metrics.json].")
+        Path | None, typer.Option("--out", help="JSON output (default: MESH with .metrics.json).")
     ] = None,
 ) -> None:
     """Compare MESH with REFERENCE: CD, HD, MAD, RMSE, HD95 (one-sided and symmetric),

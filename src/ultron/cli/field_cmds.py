@@ -10,6 +10,8 @@ import typer
 
 from ultron.cli.common import (
     DeviceOption,
+    ThreadsOption,
+    apply_threads,
     check_count,
     check_device,
     check_range,
@@ -118,9 +120,7 @@ def fit_field_command(
             " before any work (default: the machine's memory, or the cgroup's limit).",
         ),
     ] = None,
-    threads: Annotated[
-        int | None, typer.Option("--threads", help="torch CPU threads (default: torch's choice).")
-    ] = None,
+    threads: ThreadsOption = None,
     device: DeviceOption = "auto",
     no_resume: Annotated[
         bool,
@@ -150,11 +150,10 @@ def fit_field_command(
     check_count("--check-every", check_every)
     check_count("--checkpoint-every", checkpoint_every)
     check_range("--max-memory", max_memory, 0.0, low_open=True)
-    check_count("--threads", threads)
+    apply_threads(threads)
     check_output_dir(out)
     device = check_device(device)
 
-    import torch
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
     from ultron.data.dataset import SweepDataset
@@ -162,8 +161,6 @@ def fit_field_command(
     from ultron.train import field_preset, fit_field
     from ultron.train.field_fit import check_resumable
 
-    if threads is not None:
-        torch.set_num_threads(threads)
     data = SweepDataset.load(dataset)
     changes = {
         "backend": backend,
@@ -256,8 +253,10 @@ def render_command(
         ),
     ] = False,
     device: DeviceOption = "auto",
+    threads: ThreadsOption = None,
 ) -> None:
     """Render B-mode frames from a fitted field at given probe poses (field's probe geometry)."""
+    apply_threads(threads)
     check_seed("--seed", seed)
     device = check_device(device)
 

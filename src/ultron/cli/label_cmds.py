@@ -7,7 +7,14 @@ from typing import Annotated
 
 import typer
 
-from ultron.cli.common import console, stage_progress, sweep_names, user_errors
+from ultron.cli.common import (
+    ThreadsOption,
+    apply_threads,
+    console,
+    stage_progress,
+    sweep_names,
+    user_errors,
+)
 
 
 @user_errors
@@ -32,8 +39,10 @@ def label(
         bool,
         typer.Option("--replace", help="Overwrite the labels a sweep already has."),
     ] = False,
+    threads: ThreadsOption = None,
 ) -> None:
     """Write bone labels (1 bone, 0 background, 255 unsure) into a dataset's sweeps."""
+    apply_threads(threads)
     from ultron.data.auto_label_dataset import auto_label_dataset, check_labelling
     from ultron.errors import argument_error
 

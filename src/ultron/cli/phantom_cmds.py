@@ -8,6 +8,8 @@ from typing import Annotated
 import typer
 
 from ultron.cli.common import (
+    ThreadsOption,
+    apply_threads,
     check_count,
     check_range,
     check_seed,
@@ -70,8 +72,10 @@ def simulate(
     preview: Annotated[
         bool, typer.Option("--preview", help="Also write OUT/preview.png (frames + labels).")
     ] = False,
+    threads: ThreadsOption = None,
 ) -> None:
     """Simulate a tracked multi-sweep B-mode dataset of a vertebra phantom, with labels."""
+    apply_threads(threads)
     from ultron.outputs import check_output_dir
     from ultron.phantom.dataset import MAX_VOXEL_MM
 

@@ -9,6 +9,8 @@ import typer
 
 from ultron.cli.common import (
     DeviceOption,
+    ThreadsOption,
+    apply_threads,
     check_choice,
     check_count,
     check_device,
@@ -53,7 +55,9 @@ def _check_common(
 
 
 def _field_progress():
-    """A rich progress bar fed by the field fit's per-step dicts; returns (bar, callback)."""
+    """A rich progress bar fed by the field fit's per-step dicts; returns (bar, callback).
+    When the console is not a terminal (a log file, a batch job) the bar stays silent, so a
+    plain line is printed every 5 % of the steps instead."""
     from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
     bar = Progress(
@@ -71,12 +75,11 @@ def _field_progress():
         status = f"loss {entry.get('loss', float('nan')):.4f}"
         if "psnr" in entry:
             status += f"  PSNR {entry['psnr']:.2f} dB"
-        bar.update(
-            task,
-            total=entry.get("iterations", 1),
-            completed=entry.get("step", 0) + 1,
-            status=status,
-        )
+        step, total = entry.get("step", 0), entry.get("iterations", 1)  # step: updates done
+        bar.update(task, total=total, completed=step, status=status)
+        if not console.is_terminal and (step % max(1, total // 20) == 0 or step == total):
+            line = f"fitting acoustic field: step {step}/{total} ({100 * step / total:.0f} %), "
+            console.print(line + status, highlight=False)
 
     return bar, update
 
@@ -162,14 +165,23 @@ def reconstruct(
     ] = 0.1,
     field: Annotated[
         Path | None,
-        typer.Option("--field", help="A fitted FIELD_DIR [default: fit and cache one]."),
+        typer.Option("--field", help="A fitted FIELD_DIR (default: fit and cache one)."),
     ] = None,
     seed: Annotated[int, typer.Option("--seed", help="Seed of label selection and training.")] = 0,
     field_iters: Annotated[
-        int | None, typer.Option("--field-iters", help="Field iterations when fitting.")
+        int | None,
+        typer.Option(
+            "--field-iters",
+            help="Field iterations when fitting (default: the preset's: 3000; paper: 75000).",
+        ),
     ] = None,
     occupancy_iters: Annotated[
-        int | None, typer.Option("--occupancy-iters", help="Occupancy iterations (ultron*, on).")
+        int | None,
+        typer.Option(
+            "--occupancy-iters",
+            help="Occupancy iterations of ultron* and on (default: the preset's: 1500; paper:"
+            " 50000).",
+        ),
     ] = None,
     points: Annotated[
         int, typer.Option("--points", help="Points per surface for metrics.")
@@ -206,7 +218,7 @@ def reconstruct(
             "--surface",
             help="ultron* and compounding: observed (keep the faces some frame saw facing the"
             " probe with T ≥ 0.3 above them — compounding: T = 1) or all (the"
-            " closed iso-surface) [default: the preset's: observed; paper: all].",
+            " closed iso-surface) (default: the preset's: observed; paper: all).",
         ),
     ] = None,
     theta_context: Annotated[
@@ -214,8 +226,8 @@ def reconstruct(
         typer.Option(
             "--theta-context",
             help="ultron*: radii (mm, comma-separated) of the world-axis neighbours whose θ f"
-            " reads besides θ(x); 'none' for θ(x) alone, as in the paper [default: the"
-            " preset's: 1,2; paper: none].",
+            " reads besides θ(x); 'none' for θ(x) alone, as in the paper (default: the"
+            " preset's: 1,2; paper: none).",
         ),
     ] = None,
     positive_weight: Annotated[
@@ -224,7 +236,7 @@ def reconstruct(
             "--positive-weight",
             help="ultron*: loss weight of the bone labels: 1 (unweighted, the paper's), another"
             " number > 0, or 'balanced' (n_background / n_bone, at most 20: a fuller but less"
-            " accurate surface, e.g. for very short runs) [default: 1].",
+            " accurate surface, e.g. for very short runs) (default: 1).",
         ),
     ] = None,
     negatives: Annotated[
@@ -233,8 +245,8 @@ def reconstruct(
             "--negatives",
             help="ultron: background labels in the compensated loss: 'observed' (full weight"
             " where T ≥ 0.3, none below: only observed free space is evidence) or 'weighted'"
-            " (scaled by T: the paper's BCE(T·f, y)) [default: the preset's: observed; paper:"
-            " weighted].",
+            " (scaled by T: the paper's BCE(T·f, y)) (default: the preset's: observed; paper:"
+            " weighted).",
         ),
     ] = None,
     allow_other_field: Annotated[
@@ -248,11 +260,13 @@ def reconstruct(
     max_memory: MaxMemory = None,
     mesh_coordinates: MeshCoordinates = "lps",
     device: DeviceOption = "auto",
+    threads: ThreadsOption = None,
 ) -> None:
     """Reconstruct a bone surface: mesh.ply/.stl/.obj, occupancy.nii.gz, metrics.json, run.json.
 
     --out must be new, empty or an earlier reconstruct run, which the new run replaces as a
     whole."""
+    apply_threads(threads)
     _check_common(label_fraction, seed, field_iters, points, max_memory)
     check_count("--occupancy-iters", occupancy_iters, 0)
     check_choice("--mesh-coordinates", mesh_coordinates, MESH_COORDINATES)
@@ -261,8 +275,10 @@ def reconstruct(
     from dataclasses import replace
 
     from ultron.methods.presets import PIPELINE_PRESETS
+    from ultron.methods.registry import METHODS
     from ultron.methods.run import reconstruct as run
 
+    check_choice("--method", method, tuple(METHODS))
     check_choice("--preset", preset, PIPELINE_PRESETS)
     request = _request(
         method, label_fraction, seed, occupancy_iters, points, preset, visibility,
@@ -307,10 +323,12 @@ def demo(
         int, typer.Option("--seed", help="Seed of simulation, labels and training.")
     ] = 0,
     device: DeviceOption = "auto",
+    threads: ThreadsOption = None,
 ) -> None:
     """Simulate L3, fit the acoustic field, run UltrON and UltrON w/o loss at 10%, compare.
 
     --out/ultron and --out/ultron-noloss must be new, empty or earlier reconstruct runs."""
+    apply_threads(threads)
     check_seed("--seed", seed)
     device = check_device(device)
 
@@ -367,11 +385,14 @@ def finetune(
     ] = 100,
     field: Annotated[
         Path | None,
-        typer.Option("--field", help="The new dataset's FIELD_DIR [default: fit and cache one]."),
+        typer.Option("--field", help="The new dataset's FIELD_DIR (default: fit and cache one)."),
     ] = None,
     seed: Annotated[int, typer.Option("--seed", help="Seed of label selection and training.")] = 0,
     field_iters: Annotated[
-        int | None, typer.Option("--field-iters", help="Field iterations when fitting.")
+        int | None,
+        typer.Option(
+            "--field-iters", help="Field iterations when fitting (default: the fast preset's 3000)."
+        ),
     ] = None,
     points: Annotated[
         int, typer.Option("--points", help="Points per surface for metrics.")
@@ -380,7 +401,7 @@ def finetune(
         str | None,
         typer.Option(
             "--visibility",
-            help="Source of the loss's T: field, confidence or labels [default: the model's].",
+            help="Source of the loss's T: field, confidence or labels (default: the model's).",
         ),
     ] = None,
     allow_other_field: Annotated[
@@ -394,12 +415,14 @@ def finetune(
     max_memory: MaxMemory = None,
     mesh_coordinates: MeshCoordinates = "lps",
     device: DeviceOption = "auto",
+    threads: ThreadsOption = None,
 ) -> None:
     """Adapt a trained UltrON network to a new shape: freeze its last two layers, train the rest
     on a few labelled frames through the new dataset's own acoustic field, mesh, evaluate.
 
     --out must be new, empty or an earlier finetune run, which the new run replaces as a
     whole."""
+    apply_threads(threads)
     _check_common(label_fraction, seed, field_iters, points, max_memory)
     check_count("--iters", iters, 0)
     check_choice("--mesh-coordinates", mesh_coordinates, MESH_COORDINATES)

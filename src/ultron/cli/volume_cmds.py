@@ -8,7 +8,15 @@ from typing import TYPE_CHECKING, Annotated
 
 import typer
 
-from ultron.cli.common import check_choice, check_range, console, sweep_names, user_errors
+from ultron.cli.common import (
+    ThreadsOption,
+    apply_threads,
+    check_choice,
+    check_range,
+    console,
+    sweep_names,
+    user_errors,
+)
 
 if TYPE_CHECKING:
     from ultron.mesh.image_compounding import CompoundedImage, ImageCompoundingConfig
@@ -59,6 +67,7 @@ def compound(
             " both filled ends included (PLUS's StickLengthLimit; 0 = no filling).",
         ),
     ] = 0,
+    threads: ThreadsOption = None,
 ) -> None:
     """Compound B-mode frames into a NIfTI volume (PLUS's volume reconstruction).
 
@@ -71,6 +80,7 @@ def compound(
     voxel (i, j, k) to (−x, −y, z) for world point (x, y, z): Slicer shows the
     volume where it shows the meshes.
     """
+    apply_threads(threads)
     from ultron.data.dataset import SweepDataset
     from ultron.data.outliers import check_pose_outliers
     from ultron.mesh.image_compounding import (

@@ -100,5 +100,9 @@ def reconstruct_on(
     }  # fmt: skip
     model = {"input": "unit_cube", "unit_cube": cube.to_dict()}
     return Reconstruction(
-        mesh=mesh, volume=volume, grid=grid, info=info | {"network": network, "model": model}
+        mesh=mesh,
+        volume=volume,
+        grid=grid,
+        info=info | {"network": network, "model": model},
+        selection=selection,
     )

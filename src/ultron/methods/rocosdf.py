@@ -498,5 +498,9 @@ def reconstruct_rocosdf(
     info["volume"] = "sigmoid(-f / voxel): inside indicator, 0.5 on the zero level"
     model = {"input": "normalised_mm", "normalisation": info["normalisation"]}
     return Reconstruction(
-        mesh=mesh, volume=volume, grid=grid, info=info | {"network": network, "model": model}
+        mesh=mesh,
+        volume=volume,
+        grid=grid,
+        info=info | {"network": network, "model": model},
+        selection=selection,
     )

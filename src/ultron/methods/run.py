@@ -15,7 +15,7 @@ oracle's files, outlier poses and the grids' memory (:mod:`ultron.methods.resour
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -23,29 +23,21 @@ from ultron import atomic
 from ultron.data.dataset import SweepDataset
 from ultron.device import describe_device, resolve_device
 from ultron.errors import argument_error
-from ultron.mesh.compounding import CompoundingConfig, compound_labels
+from ultron.mesh.compounding import CompoundingConfig
 from ultron.mesh.export import check_mesh_coordinates, load_mesh, save_mesh, save_volume_nifti
-from ultron.mesh.extract import extract_surface
-from ultron.methods.evidence import (
-    evidence_summary,
-    faced_observation,
-    reconstruction_evidence,
-    with_observation,
-)
+from ultron.methods.evidence import evidence_summary, reconstruction_evidence, with_observation
 from ultron.methods.model_io import save_network
-from ultron.methods.on_method import ONConfig, reconstruct_on
+from ultron.methods.on_method import ONConfig
+from ultron.methods.registry import FIELD_METHODS, MethodInputs, get_method
 from ultron.methods.resources import check_run_resources
 from ultron.methods.rundir import check_run_dir, staged_run_dir
 from ultron.methods.runinfo import StageTimer, write_run_json
-from ultron.methods.ultron_method import Reconstruction, UltronConfig, reconstruct_ultron
+from ultron.methods.ultron_method import Reconstruction, UltronConfig
 from ultron.metrics.surface import MetricsConfig, evaluate_meshes
 from ultron.train.visibility import load_oracle_truth
 
-FIELD_METHODS = ("ultron", "ultron-noloss")
 #: The whole iso-surface with its evidence, written when the observed crop dropped faces.
 EXTRACTED_MESH = "surface_extracted.ply"
-SDF_VIEWS = {"rocosdf": ("row", "column"), "unsr-row": ("row",), "unsr-col": ("column",)}
-METHODS = (*FIELD_METHODS, "compounding", "on", *SDF_VIEWS)
 ROCOSDF_PRESETS = ("fast", "paper")
 
 
@@ -66,8 +58,7 @@ class ReconstructionRequest:
     device: str = "cpu"
 
     def __post_init__(self) -> None:
-        if self.method not in METHODS:
-            raise argument_error("method", f"expected one of {METHODS}, got {self.method!r}")
+        get_method(self.method)
         if not 0 < self.label_fraction <= 1:
             raise argument_error(
                 "label_fraction", f"expected a value in (0, 1], got {self.label_fraction}"
@@ -101,85 +92,14 @@ def run_method(
 
     Every result carries its observed / inferred split (:mod:`ultron.methods.evidence`): a
     method that computes none (ON, RoCoSDF) is flagged with T ≡ 1 and keeps its surface."""
-    result = _run_method(dataset, request, fitted, timer, truth, dataset_name)
+    inputs = MethodInputs(
+        request, timer, fitted, truth, dataset_name, resolve_device(request.device, "device")
+    )
+    result = get_method(request.method).fit(dataset, inputs)
     if result.observation is None:
         with timer.stage("mesh_observed"):
             result = with_observation(result, dataset, request.ultron.observed)
     return result
-
-
-def _run_method(
-    dataset: SweepDataset,
-    request: ReconstructionRequest,
-    fitted,
-    timer: StageTimer,
-    truth: dict[str, Any] | None,
-    dataset_name: str | None,
-) -> Reconstruction:
-    """:func:`run_method` before the observed / inferred split of methods without one."""
-    from ultron.data.labels import select_label_frames
-
-    device = resolve_device(request.device, "device")
-    if request.method in FIELD_METHODS:
-        if fitted is None:
-            raise argument_error(
-                "field", f"method {request.method!r} needs a fitted acoustic field"
-            )
-        config = UltronConfig(
-            **{
-                **request.ultron.__dict__,
-                "label_fraction": request.label_fraction,
-                "seed": request.seed,
-            }
-        )
-        return reconstruct_ultron(dataset, fitted, request.method, config, timer, truth, device)
-    if request.method == "on":
-        result = reconstruct_on(
-            dataset, request.label_fraction, request.seed, request.on, timer, device
-        )
-        return replace(
-            result, selection=select_label_frames(dataset, request.label_fraction, request.seed)
-        )
-    if request.method in SDF_VIEWS:
-        from ultron.methods.rocosdf import RoCoSDFConfig, reconstruct_rocosdf
-
-        with timer.stage("labels"):
-            selection = select_label_frames(dataset, request.label_fraction, request.seed)
-        result = reconstruct_rocosdf(
-            dataset,
-            selection,
-            RoCoSDFConfig.preset(request.rocosdf_preset),
-            request.seed,
-            SDF_VIEWS[request.method],
-            timer=timer,
-            dataset_name=dataset_name,
-            device=device,
-        )
-        return replace(result, selection=selection)
-    with timer.stage("labels"):
-        selection = select_label_frames(dataset, request.label_fraction, request.seed)
-    with timer.stage("mesh"):
-        compounded = compound_labels(dataset, selection, request.compounding)
-        mesh = extract_surface(compounded.volume, compounded.grid, request.ultron.extraction)
-    with timer.stage("mesh_observed"):
-        observation = faced_observation(
-            mesh, dataset, compounded.grid.voxel_mm, request.ultron.observed
-        )
-    info = {
-        **observation.info,
-        "selection": selection.to_dict(),
-        "n_label_frames": selection.n_frames,
-        "hole_fill_radius_mm": compounded.hole_fill_radius_mm,
-        "compounding_config": request.compounding.__dict__,
-    }
-    return Reconstruction(
-        mesh=observation.kept,
-        volume=compounded.volume,
-        grid=compounded.grid,
-        info=info,
-        observation=observation,
-        selection=selection,
-    )
 
 
 #: The reference mesh and its visible part (each None when the dataset has none).
@@ -324,7 +244,7 @@ def reconstruct(
     with timer.stage("load"):
         dataset, references = prepare_run(
             out_dir, "reconstruct", dataset_dir, (field_dir,), _meshing_voxel(request),
-            request.method not in SDF_VIEWS, None, max_memory_gib,
+            get_method(request.method).scan_grid, None, max_memory_gib,
         )  # fmt: skip
         # the oracle's files (an input) before the field to fit (its memory and frame size)
         truth = load_oracle_truth(request.ultron.visibility, dataset_dir, dataset)

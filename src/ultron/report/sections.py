@@ -14,9 +14,11 @@ from typing import Any
 
 from ultron.data.dataset import SweepDataset
 from ultron.errors import UltronError, UltronInputError, argument_error
+from ultron.methods.registry import FIELD_METHODS as REGISTERED_FIELD_METHODS
 from ultron.report.html import image_html, paragraph_html, table_html
 
-FIELD_METHODS = ("ultron", "ultron-noloss", "ultron-finetune")
+#: Run methods whose run reads an acoustic field: the registry's, and fine-tuning's.
+FIELD_METHODS = (*REGISTERED_FIELD_METHODS, "ultron-finetune")
 STAGE_KEYS = ("stage1", "stage2", "stage3")
 
 

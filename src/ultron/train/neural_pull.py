@@ -56,8 +56,9 @@ Stage 3 (:func:`fit_refined_sdf`): a fresh network regresses f_csg,
 
 same optimiser and schedule, batches drawn uniformly (with replacement) from all samples.
 
-Randomness comes only from the ``torch.Generator`` passed in (numpy generators are seeded
-from it); nothing here touches global random state or moves tensors to a GPU.
+Randomness comes only from the ``torch.Generator`` passed in (a CPU generator; numpy
+generators are seeded from it); nothing here touches global random state. The networks are
+built on the CPU and train on the ``device`` given (the draws are made on the CPU and moved).
 """
 
 from __future__ import annotations

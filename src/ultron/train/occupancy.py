@@ -240,13 +240,14 @@ def fit_occupancy(
     device = resolve_device(device, "device")
     generator = torch.Generator().manual_seed(config.seed)
     if network is None:
-        torch.manual_seed(config.seed)
         network_config = config.network
         if network_config.in_dim != data.inputs.shape[1]:
             network_config = OccupancyNetworkConfig(
                 **{**asdict(network_config), "in_dim": data.inputs.shape[1]}
             )
-        network = OccupancyNetwork(network_config)
+        with torch.random.fork_rng(devices=[]):  # seeded init, torch's global RNG untouched
+            torch.manual_seed(config.seed)
+            network = OccupancyNetwork(network_config)
     network.to(device)
     inputs, transmission = data.inputs.to(device), data.transmission.to(device)
     parameters = trainable(network) if trainable else list(network.parameters())

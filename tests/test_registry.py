@@ -1,0 +1,73 @@
+"""The method registry: one interface, one list of methods that every caller reads."""
+
+from __future__ import annotations
+
+import pytest
+from typer.testing import CliRunner
+
+from ultron.cli.main import app
+from ultron.errors import UltronInputError
+from ultron.mesh.compounding import CompoundingConfig
+from ultron.methods.on_method import ONConfig
+from ultron.methods.registry import FIELD_METHODS, METHODS, MethodInputs, get_method
+from ultron.methods.rocosdf import RoCoSDFConfig
+from ultron.methods.run import ReconstructionRequest, run_method
+from ultron.methods.runinfo import StageTimer
+from ultron.methods.ultron_method import UltronConfig
+
+NAMES = ("ultron", "ultron-noloss", "compounding", "on", "rocosdf", "unsr-row", "unsr-col")
+
+
+def test_registry_holds_every_method_once():
+    assert tuple(METHODS) == NAMES
+    assert FIELD_METHODS == ("ultron", "ultron-noloss")
+    for name, method in METHODS.items():
+        assert method.name == name and get_method(name) is method
+        assert callable(method.fit)
+    configs = {name: METHODS[name].config_class for name in NAMES}
+    assert configs["ultron"] is UltronConfig and configs["compounding"] is CompoundingConfig
+    assert configs["on"] is ONConfig and configs["unsr-col"] is RoCoSDFConfig
+    assert [n for n in NAMES if not METHODS[n].scan_grid] == ["rocosdf", "unsr-row", "unsr-col"]
+    views = {n: METHODS[n].views for n in ("rocosdf", "unsr-row", "unsr-col")}
+    assert views == {"rocosdf": ("row", "column"), "unsr-row": ("row",), "unsr-col": ("column",)}
+    assert all(METHODS[n].needs_field is (n in FIELD_METHODS) for n in NAMES)
+
+
+def test_registry_is_read_only():
+    with pytest.raises(TypeError):
+        METHODS["magic"] = METHODS["on"]  # type: ignore[index]
+
+
+def test_unknown_method_names_the_argument():
+    with pytest.raises(UltronInputError, match=r"method: expected one of \('ultron'"):
+        get_method("magic")
+    with pytest.raises(UltronInputError, match="method"):
+        ReconstructionRequest(method="magic")
+
+
+@pytest.mark.parametrize("name", FIELD_METHODS)
+def test_a_field_method_without_a_field_is_a_clear_error(name, tiny_dataset):
+    request = ReconstructionRequest(method=name)
+    with pytest.raises(UltronInputError, match="needs a fitted acoustic field"):
+        run_method(tiny_dataset, request, None, StageTimer())
+    with pytest.raises(UltronInputError, match="needs a fitted acoustic field"):
+        METHODS[name].fit(tiny_dataset, MethodInputs(request, StageTimer()))
+
+
+def test_reconstruct_help_lists_every_registered_method():
+    result = CliRunner().invoke(app, ["reconstruct", "--help"], terminal_width=300)
+    assert result.exit_code == 0
+    text = " ".join(result.output.split())
+    for name in METHODS:
+        assert name in text, name
+
+
+def test_benchmark_plans_fields_from_the_registry(tmp_path):
+    from ultron.benchmark import plan_benchmark, quick_config
+    from ultron.benchmark.plan import ReconstructJob
+
+    plan = plan_benchmark(quick_config(generalisation=False), tmp_path)
+    jobs = [t.job for t in plan.tasks.values() if isinstance(t.job, ReconstructJob)]
+    assert jobs
+    for job in jobs:
+        assert (job.field_dir is not None) == METHODS[job.request.method].needs_field
