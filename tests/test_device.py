@@ -256,3 +256,29 @@ def test_tiny_ultron_on_cuda_matches_cpu(tiny_l3, tmp_path, monkeypatch):
         metrics[device] = summary["metrics"]["mean"]
     for name in ("cd", "mad"):
         assert metrics["cuda"][name] == pytest.approx(metrics["cpu"][name], rel=0.01), name
+
+
+def test_map_chunks_equals_one_call_and_keeps_no_graph():
+    from ultron.device import map_chunks
+
+    weight = torch.randn(3, 2, requires_grad=True)
+    inputs = torch.randn(10, 3)
+    whole = (inputs @ weight).detach()
+    for chunk in (1, 3, 10, 100):
+        out = map_chunks(lambda x: x @ weight, inputs, chunk, torch.device("cpu"))
+        assert torch.equal(out, whole) and not out.requires_grad
+    assert map_chunks(lambda x: x, torch.zeros(0, 3), 4).shape == (0,)
+    assert map_chunks(lambda x: x, torch.zeros(0, 3), 4, empty=torch.zeros(0, 3)).shape == (0, 3)
+    # gradients only when asked (and enabled), e.g. the phantoms' SDF
+    kept = map_chunks(lambda x: x @ weight, inputs, 3, gradients=True)
+    assert kept.requires_grad and torch.equal(kept.detach(), whole)
+    with torch.no_grad():
+        assert not map_chunks(lambda x: x @ weight, inputs, 3, gradients=True).requires_grad
+    # gradients only when asked (and enabled), e.g. the phantoms' SDF
+    kept = map_chunks(lambda x: x @ weight, inputs, 3, gradients=True)
+    assert kept.requires_grad and torch.equal(kept.detach(), whole)
+    with torch.no_grad():
+        assert not map_chunks(lambda x: x @ weight, inputs, 3, gradients=True).requires_grad
+    for bad in (0, -1, 1.5, True):
+        with pytest.raises(UltronInputError, match="chunk"):
+            map_chunks(lambda x: x, inputs, bad)

@@ -15,11 +15,12 @@ device) and then moved; checkpoints are written from CPU copies and loaded with
 from __future__ import annotations
 
 import platform
+from collections.abc import Callable
 from typing import Any
 
 import torch
 
-from ultron.errors import UltronInputError
+from ultron.errors import UltronInputError, argument_error
 
 #: Accepted spellings of ``--device`` besides ``cuda:N``.
 DEVICE_CHOICES = ("auto", "cpu", "cuda", "mps")
@@ -120,6 +121,31 @@ def evaluation_chunk(device: torch.device | None, cpu_chunk: int) -> int:
     return cpu_chunk * ACCELERATOR_CHUNK_FACTOR
 
 
+def map_chunks(
+    fn: Callable[[torch.Tensor], torch.Tensor],
+    inputs: torch.Tensor,
+    chunk: int,
+    device: torch.device | str | None = None,
+    empty: torch.Tensor | None = None,
+    gradients: bool = False,
+) -> torch.Tensor:
+    """``fn`` over consecutive row chunks of ``inputs`` (at most ``chunk`` rows each), without
+    gradients unless ``gradients`` — the one chunked evaluator of the code base. Each chunk is
+    moved to ``device`` (None: left where it is), each result to the CPU, and the results are
+    concatenated along their first axis; ``inputs`` without rows give ``empty`` (default: a
+    float32 (0,))."""
+    if isinstance(chunk, bool) or not isinstance(chunk, int) or chunk < 1:
+        raise argument_error("chunk", f"expected an integer ≥ 1, got {chunk!r}")
+    parts = []
+    with torch.set_grad_enabled(gradients and torch.is_grad_enabled()):
+        for start in range(0, inputs.shape[0], chunk):
+            part = inputs[start : start + chunk]
+            parts.append(fn(part if device is None else part.to(device)).cpu())
+    if not parts:
+        return torch.zeros(0) if empty is None else empty
+    return torch.cat(parts)
+
+
 def cpu_state(state: Any) -> Any:
     """``state`` (a state dict, possibly nested) with every tensor copied to the CPU, for a
     checkpoint that loads anywhere."""
@@ -139,6 +165,7 @@ __all__ = [
     "describe_device",
     "evaluation_chunk",
     "generator_on",
+    "map_chunks",
     "module_device",
     "resolve_device",
 ]

@@ -31,7 +31,7 @@ import torch
 
 from ultron.data.dataset import ProbeGeometry
 from ultron.data.geometry import UnitCube, as_pose_tensor
-from ultron.device import evaluation_chunk, module_device, resolve_device
+from ultron.device import evaluation_chunk, map_chunks, module_device, resolve_device
 from ultron.errors import UltronInputError, argument_error
 from ultron.fields.base import AcousticField
 from ultron.fields.factory import FieldConfig, build_field
@@ -170,11 +170,8 @@ class FittedField:
         if not torch.isfinite(points).all():
             raise argument_error("points_mm", "contains NaN or infinite values")
         flat = self.unit_cube.to_unit(points.reshape(-1, 3).cpu().to(torch.float64), torch.float32)
-        parts = [
-            self.field(flat[i : i + chunk].to(self.device)).stack().cpu()
-            for i in range(0, flat.shape[0], chunk)
-        ]
-        stacked = torch.cat(parts, dim=0) if parts else torch.zeros(0, len(self.channels))
+        empty = torch.zeros(0, len(self.channels))
+        stacked = map_chunks(lambda u: self.field(u).stack(), flat, chunk, self.device, empty)
         return AcousticProperties.unstack(
             stacked.reshape(*points.shape[:-1], len(self.channels)), self.channels
         )

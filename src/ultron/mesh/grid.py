@@ -12,6 +12,7 @@ import torch
 
 from ultron.data.dataset import ProbeGeometry
 from ultron.data.geometry import as_bounds_mm, as_pose_tensor, pixel_to_world
+from ultron.device import map_chunks
 from ultron.errors import argument_error
 
 PointsFn = Callable[[torch.Tensor], torch.Tensor]
@@ -133,12 +134,8 @@ def evaluate_at(
     if chunk_points < 1:
         raise argument_error("chunk_points", f"expected ≥ 1, got {chunk_points}")
     flat = torch.from_numpy(np.asarray(flat_indices, dtype=np.int64))
-    out = np.zeros(flat.shape[0], dtype=np.float32)
-    with torch.no_grad():
-        for start in range(0, flat.shape[0], chunk_points):
-            chunk = flat[start : start + chunk_points]
-            out[start : start + chunk.shape[0]] = _call(fn, grid.flat_points_mm(chunk)).numpy()
-    return out
+    values = map_chunks(lambda chunk: _call(fn, grid.flat_points_mm(chunk)), flat, chunk_points)
+    return values.numpy()
 
 
 def evaluate_coarse_to_fine(

@@ -34,6 +34,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
+from ultron.device import map_chunks
 from ultron.errors import argument_error
 from ultron.phantom.long_bone import LongBoneShape
 from ultron.phantom.primitives import Ellipsoid, Primitive, SegmentBox, VertebralBody, union_sdf
@@ -216,12 +217,13 @@ class Phantom:
             points = points.to(torch.float64)
         flat = points.reshape(-1, 3)
         parts = self._primitives
-        chunk = 1 << 19
-        out = [
-            union_sdf(parts, flat[i : i + chunk], self.shape.blend_mm)
-            for i in range(0, flat.shape[0], chunk)
-        ]
-        result = torch.cat(out) if out else flat.new_zeros(0)
+        result = map_chunks(
+            lambda p: union_sdf(parts, p, self.shape.blend_mm),
+            flat,
+            1 << 19,
+            empty=flat.new_zeros(0),
+            gradients=True,  # the SDF's gradient gives surface normals
+        )
         return result.reshape(points.shape[:-1])
 
     @functools.cached_property

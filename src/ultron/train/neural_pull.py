@@ -73,7 +73,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from ultron.device import resolve_device
+from ultron.device import map_chunks, resolve_device
 from ultron.errors import argument_error
 from ultron.fields.sdf import SDFDiscriminator, SDFNetwork, SDFNetworkConfig
 from ultron.train.sdf_queries import (  # noqa: F401  (re-exported: the stage-1 data API)
@@ -360,12 +360,7 @@ def evaluate_sdf(
 ) -> torch.Tensor:
     """fn on points (M, 3) in chunks, without gradients, each chunk moved to ``device``
     (default: where it is); returns float32 (M,) on the CPU."""
-    out = torch.empty(points.shape[0])
-    with torch.no_grad():
-        for start in range(0, points.shape[0], chunk):
-            values = fn(points[start : start + chunk].to(device))
-            out[start : start + chunk] = values.reshape(-1).float().cpu()
-    return out
+    return map_chunks(lambda p: fn(p).reshape(-1).float(), points, chunk, device)
 
 
 def fuse_and_resample(
