@@ -84,7 +84,7 @@ def extract_surface_tiles(
         )
     _check_occupied(tiles.n_inside, grid.n_voxels, config.threshold, tiles.max_value)
     vertices, faces = extract_tiles(tiles, config.min_component_fraction, config.smooth)
-    return _finish(vertices, faces, grid, config)
+    return mesh_on_grid(vertices, faces, grid, config.min_component_fraction)
 
 
 def extract_surface_single_grid(
@@ -115,7 +115,7 @@ def extract_surface_single_grid(
     padded = np.pad(crop, margin, constant_values=False)
     embedding = smooth_constrained(padded) if config.smooth else padded.astype(np.float64) - 0.5
     vertices, faces = mcubes.marching_cubes(embedding, 0.0)
-    return _finish(vertices - margin + lo, faces, grid, config)
+    return mesh_on_grid(vertices - margin + lo, faces, grid, config.min_component_fraction)
 
 
 def _check_occupied(n_inside: int, n_voxels: int, threshold: float, max_value: float) -> None:
@@ -129,9 +129,13 @@ def _check_occupied(n_inside: int, n_voxels: int, threshold: float, max_value: f
         )
 
 
-def _finish(vertices: np.ndarray, faces: np.ndarray, grid: GridSpec, config: ExtractionConfig):
-    """The mesh in world mm from marching cubes' vertices in grid indices: components below
-    the area fraction dropped, normals outward."""
+def mesh_on_grid(
+    vertices: np.ndarray, faces: np.ndarray, grid: GridSpec, min_component_fraction: float
+):
+    """The mesh in world mm from marching cubes' vertices in ``grid``'s indices — the one
+    vertex mapping of every extracted surface (``grid.index_to_world``) —, components below
+    ``min_component_fraction`` of the area dropped, normals outward. Raises
+    :class:`NoSurfaceError` without faces."""
     import trimesh
 
     if len(faces) == 0:
@@ -140,7 +144,7 @@ def _finish(vertices: np.ndarray, faces: np.ndarray, grid: GridSpec, config: Ext
     # process=False: PyMCubes can emit distinct vertices at identical positions; merging them
     # (or dropping the zero-area faces between them) would break the mesh's watertightness.
     mesh = trimesh.Trimesh(vertices=vertices_mm, faces=faces, process=False)
-    mesh = keep_large_components(mesh, config.min_component_fraction)
+    mesh = keep_large_components(mesh, min_component_fraction)
     if mesh.volume < 0:
         mesh.invert()
     return mesh

@@ -79,7 +79,7 @@ from ultron.data.labels import FrameSelection, gather_labelled_pixels
 from ultron.device import module_device
 from ultron.errors import UltronInputError, argument_error
 from ultron.fields.sdf import SDFNetwork, SDFNetworkConfig
-from ultron.mesh.extract import NoSurfaceError, keep_large_components
+from ultron.mesh.extract import NoSurfaceError, mesh_on_grid
 from ultron.mesh.grid import GridSpec, evaluate_on_grid
 from ultron.methods.runinfo import StageTimer
 from ultron.methods.ultron_method import Reconstruction
@@ -372,7 +372,6 @@ def mesh_sdf(
     Raises :class:`NoSurfaceError` when f does not change sign on the grid.
     """
     import mcubes
-    import trimesh
 
     center = torch.tensor(normalisation.center_mm, dtype=torch.float64)
 
@@ -386,12 +385,7 @@ def mesh_sdf(
         where = "no voxel" if n_inside == 0 else "every voxel"
         raise NoSurfaceError(f"no surface: the SDF is negative at {where} of the meshing grid")
     vertices, faces = mcubes.marching_cubes(-sdf.astype(np.float64), 0.0)
-    if len(faces) == 0:
-        raise NoSurfaceError("no surface: marching cubes produced no triangles")
-    mesh = trimesh.Trimesh(vertices=grid.index_to_world(vertices), faces=faces, process=False)
-    mesh = keep_large_components(mesh, config.min_component_fraction)
-    if mesh.volume < 0:
-        mesh.invert()
+    mesh = mesh_on_grid(vertices, faces, grid, config.min_component_fraction)
     voxel_unit = grid.voxel_mm / normalisation.scale_mm
     volume = (1.0 / (1.0 + np.exp(np.clip(sdf / voxel_unit, -60, 60)))).astype(np.float32)
     return mesh, volume
