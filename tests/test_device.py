@@ -21,7 +21,7 @@ from field_configs import quick_field_config
 from strict_device import StrictDevices
 from ultron.cli.main import app
 from ultron.data.geometry import UnitCube
-from ultron.device import cpu_state, describe_device, generator_on, module_device, resolve_device
+from ultron.device import cpu_state, describe_device, module_device, resolve_device
 from ultron.errors import UltronInputError
 from ultron.fields.factory import build_field
 from ultron.render.renderer import RenderConfig, render_field
@@ -66,12 +66,6 @@ def test_describe_device_records_name_and_torch():
     record = describe_device(torch.device("cpu"))
     assert record["device"] == "cpu" and record["torch"] == torch.__version__
     assert json.dumps(record)  # JSON-able, for run.json
-
-
-def test_generator_on_cpu_draws_as_before():
-    a = torch.rand(5, generator=generator_on(torch.device("cpu"), 7))
-    b = torch.rand(5, generator=torch.Generator().manual_seed(7))
-    assert torch.equal(a, b)
 
 
 def test_cpu_state_copies_nested_tensors_to_cpu():

@@ -71,3 +71,14 @@ def test_benchmark_plans_fields_from_the_registry(tmp_path):
     assert jobs
     for job in jobs:
         assert (job.field_dir is not None) == METHODS[job.request.method].needs_field
+
+
+def test_cli_unknown_method_is_one_line_naming_the_option(tmp_path):
+    out = tmp_path / "o"
+    result = CliRunner().invoke(
+        app, ["reconstruct", str(tmp_path), "--out", str(out), "--method", "magic"]
+    )
+    assert result.exit_code == 2
+    lines = [line for line in result.output.splitlines() if line.strip()]
+    assert len(lines) == 1 and "--method" in lines[0] and "unsr-col" in lines[0]
+    assert not out.exists()

@@ -3,9 +3,11 @@
 The rule of the code base: a network or field lives on one device (the run's); public
 functions that evaluate it take inputs on any device and return results on the CPU (numpy or
 CPU tensors), so that data handling, meshing and metrics never see a device. Training loops
-move their data to the module's device once and draw from a generator on that device. On the
-CPU every such move is a no-op and every generator is the CPU generator of before, so
-``--device cpu`` reproduces the figures of a build without this option exactly.
+move their data to the module's device once; their random draws (batches, scatterer noise,
+minibatch orders) come from seeded CPU generators and are moved after drawing, so a run draws
+the same batches on every device and a checkpointed generator resumes on any device. On the
+CPU every such move is a no-op, so ``--device cpu`` reproduces the figures of a build without
+this option exactly.
 
 Modules are always *built* on the CPU (the same seed gives the same initial weights on every
 device) and then moved; checkpoints are written from CPU copies and loaded with
@@ -14,6 +16,7 @@ device) and then moved; checkpoints are written from CPU copies and loaded with
 
 from __future__ import annotations
 
+import itertools
 import platform
 from collections.abc import Callable
 from typing import Any
@@ -22,8 +25,6 @@ import torch
 
 from ultron.errors import UltronInputError, argument_error
 
-#: Accepted spellings of ``--device`` besides ``cuda:N``.
-DEVICE_CHOICES = ("auto", "cpu", "cuda", "mps")
 CPU = torch.device("cpu")
 
 
@@ -96,15 +97,8 @@ def describe_device(device: torch.device) -> dict[str, Any]:
 
 def module_device(module: torch.nn.Module) -> torch.device:
     """The device of ``module``'s first parameter or buffer (the CPU for one without any)."""
-    for tensor in (*module.parameters(), *module.buffers()):
-        return tensor.device
-    return CPU
-
-
-def generator_on(device: torch.device, seed: int) -> torch.Generator:
-    """A ``torch.Generator`` on ``device`` seeded with ``seed`` (the CPU generator on the CPU,
-    so CPU runs draw exactly what they drew before devices existed)."""
-    return torch.Generator(device=device).manual_seed(int(seed))
+    first = next(itertools.chain(module.parameters(), module.buffers()), None)
+    return CPU if first is None else first.device
 
 
 #: How many times larger an evaluation chunk is on an accelerator than on the CPU: the CPU
@@ -160,11 +154,9 @@ def cpu_state(state: Any) -> Any:
 
 __all__ = [
     "CPU",
-    "DEVICE_CHOICES",
     "cpu_state",
     "describe_device",
     "evaluation_chunk",
-    "generator_on",
     "map_chunks",
     "module_device",
     "resolve_device",

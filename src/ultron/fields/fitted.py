@@ -109,8 +109,8 @@ def probe_to_dict(probe: ProbeGeometry) -> dict[str, Any]:
 class FittedField:
     """A trained acoustic field with its geometry: query θ, render B-mode, θ and T maps.
 
-    The field computes on its device (:meth:`to`); every method takes inputs on any device
-    (or numpy) and returns CPU tensors or numpy arrays.
+    The field computes on its device (:func:`load_field`'s ``device``); every method takes
+    inputs on any device (or numpy) and returns CPU tensors or numpy arrays.
     """
 
     def __init__(
@@ -136,11 +136,6 @@ class FittedField:
     def device(self) -> torch.device:
         """Where the field computes."""
         return module_device(self.field)
-
-    def to(self, device: torch.device | str) -> FittedField:
-        """This field, moved to ``device`` (in place; returns self)."""
-        self.field.to(resolve_device(device, "device"))
-        return self
 
     @property
     def channels(self) -> tuple[str, ...]:
