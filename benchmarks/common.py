@@ -68,8 +68,8 @@ def prepare(args: argparse.Namespace) -> tuple[Path, Path, float]:
 
 def run_all(args, runs, dataset_dir: Path, field_dir: Path, requests: dict | None = None) -> dict:
     """Run each (label, method, fraction) as ``ultron reconstruct`` does; summaries by label."""
-    from ultron.methods.run import ReconstructionRequest, reconstruct
     from ultron.metrics.surface import MetricsConfig
+    from ultron.pipeline.run import ReconstructionRequest, reconstruct
 
     results = {}
     for label, method, fraction in runs:
@@ -91,7 +91,7 @@ def meshing_seconds(summary: dict) -> float:
 
 
 def print_results(args, results: dict, dataset_dir: Path, field_dir: Path, field_s: float) -> None:
-    from ultron.methods.runinfo import peak_rss_mb
+    from ultron.timing import peak_rss_mb
 
     print(f"\ndataset {dataset_dir}; field {field_dir} (fit {field_s:.1f} s)")
     print(f"metrics: {args.points} points per surface, {args.repeats} repeats, mean ± std (mm)\n")

@@ -30,9 +30,9 @@ from ultron.mesh.compounding import CompoundingConfig, compound_labels
 from ultron.mesh.extract import ExtractionConfig, extract_surface
 from ultron.mesh.observed import ObservedSurfaceConfig
 from ultron.methods.evidence import faced_observation
-from ultron.methods.run import ReconstructionRequest, load_references, run_method
-from ultron.methods.runinfo import StageTimer
 from ultron.metrics.surface import MetricsConfig, evaluate_meshes
+from ultron.pipeline.run import ReconstructionRequest, load_references, run_method
+from ultron.timing import StageTimer
 
 COLUMNS = ("cd_visible", "completeness_visible", "cd", "hd95", "mad")
 

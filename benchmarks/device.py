@@ -39,10 +39,10 @@ from ultron.data.dataset import SweepDataset
 from ultron.device import describe_device, resolve_device
 from ultron.fields.occupancy import OccupancyNetwork
 from ultron.methods.finetune import freeze_last_layers
-from ultron.methods.presets import pipeline_preset
-from ultron.methods.run import ReconstructionRequest, reconstruct
 from ultron.metrics.surface import MetricsConfig
 from ultron.phantom import SimulationConfig, simulate_dataset
+from ultron.pipeline.presets import pipeline_preset
+from ultron.pipeline.run import ReconstructionRequest, reconstruct
 from ultron.train.field_fit import _prepare, make_optimizer, training_step
 from ultron.train.occupancy import OccupancyTrainConfig, OccupancyTrainingData, fit_occupancy
 

@@ -79,7 +79,7 @@ def main() -> None:
             print(
                 f"  step {entry['step']:5d}  loss {entry['loss']:.4f}  batch PSNR {entry['psnr']:.2f}"
                 f"  held-out PSNR {entry['holdout_psnr']:.2f} SSIM {entry['holdout_ssim']:.4f}"
-                f"  ({entry['elapsed_s']:.0f} s)",
+                f"  ({entry['seconds']:.0f} s)",
                 flush=True,
             )
 

@@ -37,16 +37,16 @@ def main() -> None:
 
     from ultron.data.dataset import SweepDataset
     from ultron.data.labels import select_label_frames
-    from ultron.fields.fitted import load_field
     from ultron.fields.occupancy import OccupancyNetwork, OccupancyNetworkConfig
     from ultron.methods.finetune import FinetuneConfig, ThetaModel, freeze_last_layers
-    from ultron.methods.model_io import load_network
-    from ultron.methods.runinfo import StageTimer
     from ultron.methods.ultron_method import (
         mesh_occupancy,
         occupancy_function,
         occupancy_training_data,
     )
+    from ultron.models.fitted import load_field
+    from ultron.pipeline.model_io import load_network
+    from ultron.timing import StageTimer
     from ultron.train.occupancy import fit_occupancy
 
     dataset_dir, field_dir, _ = prepare(args)

@@ -43,7 +43,7 @@ FINE_RECONSTRUCT = """
 import sys
 from dataclasses import replace
 from ultron.cli.reconstruct_cmds import _request
-from ultron.methods.run import reconstruct
+from ultron.pipeline.run import reconstruct
 dataset, field, out, method, fraction, seed, iters, points, voxel = sys.argv[1:]
 request = _request(method, float(fraction), int(seed), int(iters), int(points))
 voxel = float(voxel)
@@ -108,12 +108,12 @@ def fine_command(dataset: Path, field: Path, out: Path, method: str, args) -> li
 
 def seconds_per_step(field_dir: Path) -> float:
     """Median seconds per training step between logged steps (held-out checks excluded: a
-    step's ``elapsed_s`` is taken before its check)."""
+    step's ``seconds`` is taken before its check)."""
     entries = [
         json.loads(line) for line in (field_dir / "train_log.jsonl").read_text().split("\n") if line
     ]
     pairs = itertools.pairwise(entries)
-    rates = sorted((b["elapsed_s"] - a["elapsed_s"]) / (b["step"] - a["step"]) for a, b in pairs)
+    rates = sorted((b["seconds"] - a["seconds"]) / (b["step"] - a["step"]) for a, b in pairs)
     return rates[len(rates) // 2] if rates else math.nan
 
 
@@ -152,8 +152,8 @@ def run_all(args: argparse.Namespace) -> list[dict]:
 def meshing_lines(dataset, voxel_mm: float | None) -> list[str]:
     """The meshing grid at ``voxel_mm`` and the tiles of it the field of view reaches."""
     from ultron.mesh.tiles import field_of_view_tiles, tile_for_factor
-    from ultron.methods.resources import meshing_memory
     from ultron.methods.ultron_method import UltronConfig, elevation_half_thickness_mm, scan_grid
+    from ultron.pipeline.resources import meshing_memory
 
     grid = scan_grid(dataset, voxel_mm)
     factor = UltronConfig().coarse_factor

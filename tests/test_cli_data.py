@@ -115,8 +115,7 @@ def test_heavy_commands_take_threads(command, tmp_path):
 def test_field_progress_prints_plain_lines_off_a_terminal(capsys):
     from ultron.cli.reconstruct_cmds import _field_progress
 
-    bar, update = _field_progress()
-    with bar:
+    with _field_progress() as update:
         for step in range(1, 101):
             update({"step": step, "iterations": 100, "loss": 0.5, "psnr": 20.0})
     lines = [line for line in capsys.readouterr().out.splitlines() if "step " in line]

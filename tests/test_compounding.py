@@ -112,8 +112,8 @@ def test_reconstruction_keeps_the_surface_facing_the_probe(band_dataset):
     from dataclasses import replace
 
     from ultron.mesh.observed import ObservedSurfaceConfig
-    from ultron.methods.run import ReconstructionRequest, run_method
-    from ultron.methods.runinfo import StageTimer
+    from ultron.pipeline.run import ReconstructionRequest, run_method
+    from ultron.timing import StageTimer
 
     request = ReconstructionRequest(method="compounding", label_fraction=1.0)
     faced = run_method(band_dataset, request, None, StageTimer())

@@ -12,9 +12,9 @@ from ultron.fields.context import (
     stencil_offsets_mm,
     theta_features,
 )
-from ultron.fields.fitted import ThetaStatistics
 from ultron.fields.occupancy import OccupancyNetworkConfig
 from ultron.fields.properties import CHANNELS, AcousticProperties
+from ultron.models.fitted import ThetaStatistics
 
 
 class LinearField:

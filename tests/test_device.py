@@ -149,7 +149,8 @@ def _saved_tensors(path: Path) -> list[torch.Tensor]:
 
 def test_field_checkpoint_is_cpu_and_loads_with_map_location(tiny_l3, tmp_path):
     from ultron.data.dataset import SweepDataset
-    from ultron.fields.fitted import CHECKPOINT, FIELD_JSON, load_field
+    from ultron.models.field_dir import CHECKPOINT, FIELD_JSON
+    from ultron.models.fitted import load_field
     from ultron.train.field_fit import fit_field
 
     tiny_dataset = SweepDataset.load(tiny_l3)
@@ -224,7 +225,7 @@ def test_reconstruct_records_the_device(tiny_l3, tmp_path):
 
 
 def test_request_rejects_a_bad_device():
-    from ultron.methods.run import ReconstructionRequest
+    from ultron.pipeline.run import ReconstructionRequest
 
     with pytest.raises(UltronInputError, match="device"):
         ReconstructionRequest(device="tpu")
@@ -233,9 +234,9 @@ def test_request_rejects_a_bad_device():
 # ---------------------------------------------------------------------------------- GPU
 @pytest.mark.skipif(NO_CUDA, reason="needs a CUDA device")
 def test_tiny_ultron_on_cuda_matches_cpu(tiny_l3, tmp_path, monkeypatch):
-    from ultron.methods.run import ReconstructionRequest, reconstruct
     from ultron.methods.ultron_method import UltronConfig
     from ultron.metrics.surface import MetricsConfig
+    from ultron.pipeline.run import ReconstructionRequest, reconstruct
 
     monkeypatch.setenv("ULTRON_CACHE", str(tmp_path / "cache"))
     occupancy = OccupancyTrainConfig(iters=600, batch_size=1024, lr=1e-3)

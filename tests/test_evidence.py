@@ -26,8 +26,8 @@ from ultron.mesh.export import (
     save_mesh,
 )
 from ultron.mesh.observed import ObservedSurfaceConfig, observe_surface
-from ultron.methods.run import EXTRACTED_MESH, ReconstructionRequest, reconstruct
 from ultron.metrics.surface import MetricsConfig
+from ultron.pipeline.run import EXTRACTED_MESH, ReconstructionRequest, reconstruct
 
 PROBE = ProbeGeometry(width_mm=20.0, depth_mm=20.0, height_px=40, width_px=20)
 FAST_METRICS = MetricsConfig(n_points=3_000, repeats=1)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -23,8 +24,8 @@ from ultron.fields import (
     PositionalEncoding,
     SkipMLP,
     build_field,
-    load_field,
 )
+from ultron.models import load_field
 from ultron.render import RenderConfig, pixel_points_mm, render_properties
 from ultron.train import FieldTrainConfig, field_preset, fit_field, resample_frames
 
@@ -205,7 +206,7 @@ def test_checkpoint_round_trip_and_exact_resume(tmp_path: Path) -> None:
     resumed = fit_field(data, quick_config(iterations=20), tmp_path / "resumed")
     np.testing.assert_array_equal(resumed.render(poses, seed=3), fitted.render(poses, seed=3))
     log = (tmp_path / "resumed" / "train_log.jsonl").read_text().splitlines()
-    assert [json.loads(line)["step"] for line in log] == [5, 10, 15, 20]
+    assert [json.loads(line)["step"] for line in log] == [1, 5, 10, 15, 20]  # first, every 5th
     with pytest.raises(UltronInputError, match="different configuration"):
         fit_field(data, quick_config(iterations=30, seed=1), tmp_path / "resumed")
 
@@ -343,3 +344,13 @@ def test_confidence_prior_defaults_and_old_field_configs() -> None:
             FieldTrainConfig(**bad)
     with pytest.raises(UltronInputError, match="confidence_prior_margin"):
         FieldTrainConfig(confidence_prior_margin=1.0)
+
+
+def test_field_preset_sets_the_scattering_floor_of_its_own_heads() -> None:
+    shadow = field_preset("shadow")
+    changed = field_preset("shadow", scattering_floor=0.25)
+    assert changed.field.heads == replace(shadow.field.heads, scattering_floor=0.25)
+    assert changed.field.heads != shadow.field.heads
+    paper = field_preset("paper", scattering_floor=0.05, backend="grid")
+    assert paper.field.heads == replace(field_preset("paper").field.heads, scattering_floor=0.05)
+    assert paper.field.backend == "grid"

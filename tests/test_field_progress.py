@@ -17,8 +17,8 @@ from ultron import atomic
 from ultron.cli.main import app
 from ultron.data.dataset import ProbeGeometry, Sweep, SweepDataset
 from ultron.errors import UltronInputError
-from ultron.fields import load_field
-from ultron.fields.fitted import FitProgress, fit_progress
+from ultron.models import load_field
+from ultron.models.fitted import FitProgress, fit_progress
 from ultron.train import field_fit
 from ultron.train.field_fit import FieldTrainConfig, fit_field
 
@@ -51,7 +51,7 @@ def snapshot(root: Path) -> dict[str, bytes]:
 
 
 def read_log(field_dir: Path) -> list[tuple]:
-    """(step, loss, psnr, lr) of every log entry (elapsed_s differs between runs)."""
+    """(step, loss, psnr, lr) of every log entry (seconds differ between runs)."""
     lines = (field_dir / "train_log.jsonl").read_text().splitlines()
     return [tuple(json.loads(line)[k] for k in ("step", "loss", "psnr", "lr")) for line in lines]
 
@@ -69,13 +69,13 @@ def one_line(result, stream: str, prefix: str, *needles: str) -> str:
 def test_cli_checkpoint_every_sets_the_save_steps(tmp_path: Path, monkeypatch) -> None:
     make_dataset().save(tmp_path / "d")
     saved: list[int] = []
-    original = field_fit._save_checkpoint
+    original = field_fit.save_checkpoint
 
     def spy(out, module, optimizer, generator, step, iterations):
         saved.append(step)
         original(out, module, optimizer, generator, step, iterations)
 
-    monkeypatch.setattr(field_fit, "_save_checkpoint", spy)
+    monkeypatch.setattr(field_fit, "save_checkpoint", spy)
     base = ["fit-field", str(tmp_path / "d"), "--iters", "7", "--holdout-every", "0"]
     result = runner.invoke(app, [*base, "--out", str(tmp_path / "a"), "--checkpoint-every", "3"])
     assert result.exit_code == 0, result.output
@@ -97,7 +97,7 @@ def test_log_holds_every_step_once_after_a_kill(tmp_path: Path, monkeypatch, kil
     data = make_dataset()
     fit_field(data, quick_config(), tmp_path / "full")
     expected = read_log(tmp_path / "full")
-    assert [entry[0] for entry in expected] == [5, 10, 15, 20, 25, 30]
+    assert [entry[0] for entry in expected] == [1, 5, 10, 15, 20, 25, 30]
 
     progress = None
     if killed_at == "progress":

@@ -18,10 +18,10 @@ from field_configs import quick_field_config
 from ultron.cli.main import app
 from ultron.data.dataset import ProbeGeometry, Sweep, SweepDataset
 from ultron.errors import UltronInputError
-from ultron.fields.fitted import check_field_dataset
-from ultron.methods import run as run_module
-from ultron.methods.run import ReconstructionRequest, load_or_fit_field, reconstruct
 from ultron.metrics.surface import MetricsConfig
+from ultron.models.field_dir import check_field_dataset
+from ultron.pipeline import run as run_module
+from ultron.pipeline.run import ReconstructionRequest, load_or_fit_field, reconstruct
 from ultron.train import field_fit
 from ultron.train.field_fit import FieldTrainConfig, fit_field, learning_rate_at
 
@@ -83,7 +83,7 @@ def test_resume_refuses_another_dataset(tmp_path: Path) -> None:
     steps = [
         json.loads(line)["step"] for line in (out / "train_log.jsonl").read_text().splitlines()
     ]
-    assert steps == [3]  # not the previous run's log
+    assert steps == [1, 3]  # not the previous run's log (1 … 6)
 
 
 def test_field_without_recorded_hash_resumes(tmp_path: Path) -> None:
@@ -243,7 +243,7 @@ def test_allowed_other_field_is_recorded_in_run_json(
 
 
 def test_interrupted_cached_fit_of_a_relabelled_dataset_restarts(tmp_path: Path, monkeypatch):
-    from ultron.methods.field_cache import get_or_fit_field
+    from ultron.pipeline.field_cache import get_or_fit_field
 
     monkeypatch.setenv("ULTRON_CACHE", str(tmp_path / "cache"))
     make_dataset(0).save(tmp_path / "d")

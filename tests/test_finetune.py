@@ -13,23 +13,23 @@ import torch
 
 from ultron.data.dataset import SweepDataset
 from ultron.errors import UltronInputError
-from ultron.fields.fitted import load_field
 from ultron.fields.occupancy import OccupancyNetwork, OccupancyNetworkConfig
 from ultron.fields.sdf import SDFNetwork, SDFNetworkConfig
 from ultron.methods.finetune import (
     FinetuneConfig,
     ThetaModel,
-    finetune,
     finetune_ultron,
     freeze_last_layers,
 )
-from ultron.methods.model_io import NETWORK_FILE, load_network, save_network
-from ultron.methods.run import ReconstructionRequest, reconstruct
-from ultron.methods.runinfo import StageTimer
 from ultron.methods.ultron_method import UltronConfig, mesh_occupancy, occupancy_function
 from ultron.metrics.surface import MetricsConfig
+from ultron.models.fitted import load_field
 from ultron.phantom import SimulationConfig, simulate_dataset
 from ultron.phantom.protocols import ScanConfig
+from ultron.pipeline.finetune import finetune
+from ultron.pipeline.model_io import NETWORK_FILE, load_network, save_network
+from ultron.pipeline.run import ReconstructionRequest, reconstruct
+from ultron.timing import StageTimer
 from ultron.train.field_fit import FieldTrainConfig, fit_field
 from ultron.train.occupancy import OccupancyTrainConfig
 from ultron.train.visibility import VisibilityConfig
@@ -109,7 +109,7 @@ def test_freezing_keeps_last_two_layers_bit_identical(shapes):
     before = {k: v.clone() for k, v in network.state_dict().items()}
     dataset, fitted = SweepDataset.load(shapes["new"]), load_field(shapes["field"])
     result = finetune_ultron(dataset, fitted, network, ThetaModel.from_meta(meta), _config())
-    tuned = result.info["network"].state_dict()
+    tuned = result.model.network.state_dict()
     frozen = {f"trunk.output.{p}" for p in ("weight", "bias")}
     frozen |= {f"trunk.hidden.{len(network.trunk.hidden) - 1}.{p}" for p in ("weight", "bias")}
     for name, value in before.items():
@@ -120,7 +120,7 @@ def test_freezing_keeps_last_two_layers_bit_identical(shapes):
     # the loaded model itself is a copy source: untouched
     for name, value in network.state_dict().items():
         assert torch.equal(value, before[name])
-    assert all(p.requires_grad for p in result.info["network"].parameters())
+    assert all(p.requires_grad for p in result.model.network.parameters())
     assert result.info["n_label_frames"] == 5  # ⌈0.2 × 24⌉
     assert len(result.info["occupancy_log"]) >= 1
 
@@ -199,8 +199,8 @@ def test_finetune_uses_the_given_or_the_models_transmission_source(shapes, tmp_p
     config = _config(iters=5, visibility=labels, meshing=UltronConfig(voxel_mm=2.0))
     result = finetune_ultron(dataset, fitted, network, ThetaModel.from_meta(meta), config)
     assert result.info["transmission_source"] == "labels"
-    assert result.info["model"]["transmission_source"] == "labels"
-    assert result.info["model"]["transmission_parameters"] == {"margin_mm": 0.0, "decay_mm": 1.0}
+    assert result.model.meta["transmission_source"] == "labels"
+    assert result.model.meta["transmission_parameters"] == {"margin_mm": 0.0, "decay_mm": 1.0}
     assert result.info["transmission_stats"]["bone_mean"] == 1.0  # T = 1 through the band
     # a model trained with the oracle keeps it: the new dataset's true T must exist, checked
     # before any work (no field fitted, nothing written)

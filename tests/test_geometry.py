@@ -13,6 +13,7 @@ from ultron.data.geometry import (
     field_of_view_bounds_mm,
     frame_pixels_world,
     pixel_to_world,
+    probe_mm_to_pixel,
     probe_points_mm,
     scanline_rays,
     scanline_sample_points,
@@ -47,6 +48,17 @@ def test_lateral_pixel_offset():
     # column 0 lies half the probe width to the left of the centre
     point = probe_points_mm(torch.tensor(0.0), torch.tensor(0.0), PROBE)
     torch.testing.assert_close(point, torch.tensor([-20.0, 0.0, 0.0]))
+
+
+def test_probe_mm_to_pixel_inverts_probe_points():
+    rows = torch.tensor([0.0, 17.25, H - 1.0], dtype=torch.float64)
+    cols = torch.tensor([0.0, 31.5, W - 1.0], dtype=torch.float64)
+    points = probe_points_mm(rows, cols, PROBE).numpy()
+    back_rows, back_cols = probe_mm_to_pixel(points[:, 0], points[:, 1], PROBE)
+    np.testing.assert_allclose(back_rows, rows.numpy(), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(back_cols, cols.numpy(), rtol=0, atol=1e-12)
+    # hand-worked: the probe's centre line 30 mm deep is row H/2, column W/2
+    assert probe_mm_to_pixel(0.0, 30.0, PROBE) == (H / 2, W / 2)
 
 
 def test_rotation_about_z_by_90_degrees_swaps_axes():

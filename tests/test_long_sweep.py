@@ -11,8 +11,6 @@ from ultron.data.dataset import ProbeGeometry, Sweep, SweepDataset
 from ultron.errors import UltronInputError
 from ultron.mesh.extract import extract_surface_tiles
 from ultron.mesh.tiles import evaluate_tiles, field_of_view_tiles
-from ultron.methods.resources import check_meshing_grid, meshing_memory
-from ultron.methods.runinfo import StageTimer
 from ultron.methods.ultron_method import (
     UltronConfig,
     elevation_half_thickness_mm,
@@ -28,6 +26,8 @@ from ultron.phantom import (
     sweep_spec,
 )
 from ultron.phantom.long_bone import LongBoneShape
+from ultron.pipeline.resources import check_meshing_grid, meshing_memory
+from ultron.timing import StageTimer
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 

@@ -22,6 +22,7 @@ from ultron.mesh import (
     save_mesh,
     save_volume_nifti,
 )
+from ultron.mesh.marching import marching_cubes
 
 RADIUS = 8.0
 CENTER = torch.tensor([3.0, -2.0, 5.0])
@@ -112,6 +113,20 @@ def test_bad_extraction_arguments(sphere_grid):
         ExtractionConfig(threshold=1.5)
     with pytest.raises(UltronInputError, match="voxel_mm"):
         GridSpec.from_bounds(np.zeros((2, 3)), voxel_mm=0)
+    for bad in (np.zeros((4, 4)), np.zeros((1, 4, 4)), np.full((3, 3, 3), np.nan)):
+        with pytest.raises(UltronInputError, match="inside_positive"):
+            marching_cubes(bad)
+
+
+def test_marching_cubes_of_a_hand_worked_cube():
+    # one corner inside at +1, seven outside at −1: one triangle, its vertices halfway along
+    # the corner's three edges
+    cube = -np.ones((2, 2, 2))
+    cube[0, 0, 0] = 1.0
+    vertices, faces = marching_cubes(cube)
+    assert len(faces) == 1
+    expected = {(0.5, 0.0, 0.0), (0.0, 0.5, 0.0), (0.0, 0.0, 0.5)}
+    assert {tuple(float(c) for c in v) for v in vertices[faces[0]]} == expected
 
 
 def test_field_of_view_mask_covers_one_frame_slab():

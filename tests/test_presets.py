@@ -8,13 +8,18 @@ import pytest
 import torch
 from typer.testing import CliRunner
 
+from ultron.benchmark.plan import BenchmarkConfig, benchmark_config, quick_config
 from ultron.cli.main import app
-from ultron.cli.reconstruct_cmds import _field_config, _request
 from ultron.device import ACCELERATOR_CHUNK_FACTOR, evaluation_chunk
 from ultron.errors import UltronInputError
 from ultron.methods.on_method import ONConfig
-from ultron.methods.presets import PAPER_OCCUPANCY_ITERS, pipeline_preset
 from ultron.methods.ultron_method import UltronConfig
+from ultron.pipeline.presets import (
+    PAPER_OCCUPANCY_ITERS,
+    pipeline_preset,
+    preset_field_config,
+    preset_request,
+)
 from ultron.train.field_config import PAPER_ITERATIONS, FieldTrainConfig
 
 
@@ -52,30 +57,30 @@ def test_unknown_preset_names_the_argument():
         pipeline_preset("slow")
 
 
-def test_cli_request_takes_the_preset_and_options_win():
-    request = _request("ultron", 0.1, 0, None, 1000, preset="paper")
+def test_request_takes_the_preset_and_options_win():
+    request = preset_request("paper", "ultron", 0.1, 0, points=1000)
     assert request.ultron.context.radii_mm == () and request.ultron.occupancy.iters == 50_000
-    assert request.rocosdf_preset == "paper"
-    request = _request(
-        "ultron", 0.1, 0, 200, 1000, preset="paper", theta_context="1,2", negatives="observed",
-        surface="observed",
+    assert request.rocosdf_preset == "paper" and request.metrics.n_points == 1000
+    request = preset_request(
+        "paper", "ultron", 0.1, 0, occupancy_iters=200, theta_context="1,2",
+        negatives="observed", surface="observed", mesh_coordinates="ras",
     )  # fmt: skip
     assert request.ultron.context.radii_mm == (1.0, 2.0)
     assert request.ultron.occupancy.negatives == "observed"
     assert request.ultron.occupancy.iters == 200 and request.on.occupancy.iters == 200
-    assert request.ultron.observed.surface == "observed"
+    assert request.ultron.observed.surface == "observed" and request.mesh_coordinates == "ras"
     assert request.ultron.occupancy.positive_weight == 1.0
-    balanced = _request("ultron", 0.1, 0, None, 1000, positive_weight="balanced")
+    balanced = preset_request(positive_weight="balanced")
     assert balanced.ultron.occupancy.positive_weight is None
-    assert (
-        _request("ultron", 0.1, 0, None, 1, positive_weight="3").ultron.occupancy.positive_weight
-        == 3
-    )
-    fast = _request("ultron", 0.1, 0, None, 1000)
+    assert preset_request(positive_weight="3").ultron.occupancy.positive_weight == 3
+    assert preset_request(visibility="labels").ultron.visibility.source == "labels"
+    assert preset_request(oracle=True).ultron.visibility.source == "oracle"
+    fast = preset_request()
     assert fast.ultron == UltronConfig(occupancy=fast.ultron.occupancy)
-    assert _field_config(None, 1, "paper").iterations == 75_000
-    assert _field_config(10, 1, "paper").iterations == 10
-    assert _field_config(None, 1) == FieldTrainConfig(seed=1)
+    assert fast.on == ONConfig() and fast.method == "ultron" and fast.label_fraction == 0.1
+    assert preset_field_config("paper", 1).iterations == 75_000
+    assert preset_field_config("paper", 1, 10).iterations == 10
+    assert preset_field_config("fast", 1) == FieldTrainConfig(seed=1)
 
 
 @pytest.mark.parametrize("command", ["reconstruct", "benchmark"])
@@ -91,6 +96,20 @@ def test_quick_benchmark_refuses_the_paper_preset(tmp_path: Path):
     result = CliRunner().invoke(app, args)
     assert result.exit_code == 2 and "--quick" in result.output
     assert not (tmp_path / "b").exists()
+
+
+def test_benchmark_config_of_a_preset_sets_every_stage():
+    paper = pipeline_preset("paper")
+    config = benchmark_config("paper", seeds=2)
+    assert config.field_fit == paper.field and config.ultron == paper.ultron
+    assert config.on == paper.on and config.rocosdf_preset == paper.rocosdf_preset == "paper"
+    assert config.seeds == 2 and not config.quick
+    assert benchmark_config() == BenchmarkConfig()
+    assert benchmark_config("fast", quick=True, jobs=2) == quick_config(jobs=2)
+    with pytest.raises(UltronInputError, match="preset"):
+        benchmark_config("paper", quick=True)
+    with pytest.raises(UltronInputError, match="preset"):
+        benchmark_config("slow")
 
 
 def test_evaluation_chunk_grows_only_off_the_cpu():

@@ -9,9 +9,9 @@ from pathlib import Path
 import pytest
 
 from ultron.mesh.export import load_mesh
-from ultron.methods.run import ReconstructionRequest, reconstruct
 from ultron.methods.ultron_method import UltronConfig
 from ultron.metrics.surface import MetricsConfig
+from ultron.pipeline.run import ReconstructionRequest, reconstruct
 from ultron.train.occupancy import OccupancyTrainConfig
 
 FAST_METRICS = MetricsConfig(n_points=5_000, repeats=1)

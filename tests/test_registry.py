@@ -11,9 +11,9 @@ from ultron.mesh.compounding import CompoundingConfig
 from ultron.methods.on_method import ONConfig
 from ultron.methods.registry import FIELD_METHODS, METHODS, MethodInputs, get_method
 from ultron.methods.rocosdf import RoCoSDFConfig
-from ultron.methods.run import ReconstructionRequest, run_method
-from ultron.methods.runinfo import StageTimer
 from ultron.methods.ultron_method import UltronConfig
+from ultron.pipeline.run import ReconstructionRequest, run_method
+from ultron.timing import StageTimer
 
 NAMES = ("ultron", "ultron-noloss", "compounding", "on", "rocosdf", "unsr-row", "unsr-col")
 

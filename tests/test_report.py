@@ -15,6 +15,7 @@ import pytest
 from ultron.data.dataset import SweepDataset
 from ultron.errors import UltronInputError
 from ultron.mesh.export import load_mesh, save_mesh
+from ultron.pipeline.record import RunRecord
 from ultron.report import write_benchmark_report, write_run_report
 from ultron.report.figures import (
     frames_figure,
@@ -89,10 +90,10 @@ def kinds(checker: _Checker) -> list[str]:
 def tiny_run(tmp_path_factory) -> dict[str, Path]:
     """A tiny L3 dataset (row + column sweeps, 12 frames of 64 × 48), a 4-step field and a
     compounding run whose run.json names them (dataset_dir, field_dir)."""
-    from ultron.methods.run import ReconstructionRequest, reconstruct
     from ultron.metrics.surface import MetricsConfig
     from ultron.phantom import SimulationConfig, simulate_dataset
     from ultron.phantom.protocols import ScanConfig
+    from ultron.pipeline.run import ReconstructionRequest, reconstruct
     from ultron.train.field_fit import FieldTrainConfig, fit_field
 
     root = tmp_path_factory.mktemp("report")
@@ -327,3 +328,12 @@ def test_distance_figure_reads_the_shift():
         assert _share_near(pixels, at[1.5]) == 0.0 and _share_near(pixels, at[2.0]) == 0.0
     assert _share_near(moved, at[1.0]) > 0.0005
     assert _share_near(same, at[1.0]) == 0.0 and _share_near(same, at[0.0]) > 0.002
+
+
+def test_a_runs_record_round_trips(tiny_run):
+    written = json.loads((tiny_run["run"] / "run.json").read_text(encoding="utf-8"))
+    record = RunRecord.read(tiny_run["run"])
+    assert written["schema"] == "ultron-run/1" and record.command == "reconstruct"
+    assert record.method == "compounding" and record.mesh.vertices > 0
+    assert record.device["device"] == "cpu" and record.total_s > 0
+    assert record.to_dict() == written

@@ -17,7 +17,8 @@ from ultron.data.outliers import (
     pose_outliers,
 )
 from ultron.errors import UltronInputError
-from ultron.methods.resources import (
+from ultron.methods.ultron_method import scan_grid
+from ultron.pipeline.resources import (
     FIELD_BYTES_PER_VALUE,
     FIELD_FIXED_BYTES,
     FIELD_RENDER_BYTES_PER_SAMPLE,
@@ -29,7 +30,6 @@ from ultron.methods.resources import (
     memory_limit,
     meshing_grid_shape,
 )
-from ultron.methods.ultron_method import scan_grid
 from ultron.train.field_config import FieldTrainConfig
 
 

@@ -12,19 +12,20 @@ import torch
 
 from conftest import make_sweep
 from ultron.data.dataset import ProbeGeometry, SweepDataset
+from ultron.data.geometry import UnitCube
 from ultron.data.labels import select_label_frames
 from ultron.errors import UltronInputError
 from ultron.fields.sdf import SDFNetwork, SDFNetworkConfig
 from ultron.methods.rocosdf import (
     PRESETS,
-    Normalisation,
     RoCoSDFConfig,
     check_views_fusable,
+    cloud_normalisation,
     cloud_thickness_mm,
     reconstruct_rocosdf,
     view_point_clouds,
 )
-from ultron.methods.runinfo import StageTimer
+from ultron.timing import StageTimer
 from ultron.train.neural_pull import (
     RefineConfig,
     ResampleConfig,
@@ -192,11 +193,19 @@ def test_normalisation_round_trips_to_mm():
     rng = np.random.default_rng(0)
     row = rng.normal([10.0, -40.0, 3.0], [20.0, 5.0, 8.0], size=(200, 3))
     column = rng.normal([12.0, -35.0, 0.0], [4.0, 6.0, 25.0], size=(150, 3))
-    norm = Normalisation.from_points([row, column])
-    unit = norm.to_unit(np.concatenate([row, column]))
+    norm = cloud_normalisation([row, column])
+    both = np.concatenate([row, column])
+    unit = norm.to_unit(torch.as_tensor(both)).numpy()
     assert unit.min() >= -0.5 - 1e-12 and unit.max() <= 0.5 + 1e-12
     assert float((unit.max(0) - unit.min(0)).max()) == pytest.approx(1.0)
-    np.testing.assert_allclose(norm.to_mm(norm.to_unit(row)), row, atol=1e-9)
+    # hand-worked: centre of the union's box, scale = its largest extent
+    lo, hi = both.min(0), both.max(0)
+    assert norm.center_mm == pytest.approx(tuple((lo + hi) / 2))
+    assert norm.half_extent_mm == pytest.approx(float((hi - lo).max()))
+    back = norm.to_world(norm.to_unit(torch.as_tensor(row))).numpy()
+    np.testing.assert_allclose(back, row, atol=1e-9)
+    with pytest.raises(UltronInputError, match="clouds"):
+        cloud_normalisation([np.zeros((0, 3))])
 
 
 def test_presets_and_bad_preset_name():
@@ -321,7 +330,7 @@ def test_sdf_without_zero_level_is_no_surface():
     from ultron.methods.rocosdf import mesh_grid, mesh_sdf
 
     network = SDFNetwork(TINY_NETWORK, torch.Generator().manual_seed(0))  # ≈ ‖u‖ − 0.5
-    norm = Normalisation((0.0, 0.0, 0.0), 10.0)
+    norm = UnitCube((0.0, 0.0, 0.0), 10.0)
     far = [np.array([[3.0, 3.0, 3.0], [3.5, 3.5, 3.5]])]  # a box well outside the sphere
     grid = mesh_grid(far, norm, replace(TINY, mesh_resolution=16))
     with pytest.raises(NoSurfaceError):

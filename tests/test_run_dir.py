@@ -14,11 +14,12 @@ import pytest
 from ultron import atomic
 from ultron.benchmark.runner import _cell_done
 from ultron.errors import UltronInputError
-from ultron.methods.model_io import load_network
-from ultron.methods.run import ReconstructionRequest, reconstruct
-from ultron.methods.rundir import check_run_dir, run_kind, staged_run_dir
 from ultron.metrics.surface import MetricsConfig
 from ultron.outputs import check_output_dir, check_output_file
+from ultron.pipeline.model_io import load_network
+from ultron.pipeline.record import run_kind
+from ultron.pipeline.run import ReconstructionRequest, reconstruct
+from ultron.pipeline.rundir import check_run_dir, staged_run_dir
 
 REQUEST = ReconstructionRequest(
     method="compounding", label_fraction=1.0, metrics=MetricsConfig(n_points=500, repeats=1)
@@ -66,7 +67,7 @@ def test_failed_run_leaves_the_previous_run_intact(
     def killed(*args, **kwargs):
         raise RuntimeError("killed while writing")
 
-    monkeypatch.setattr("ultron.methods.run.write_run_json", killed)
+    monkeypatch.setattr("ultron.pipeline.run.write_run_json", killed)
     with pytest.raises(RuntimeError, match="killed"):
         _run(tiny_dataset_dir, out)
     assert _tree(out) == before and _hidden_siblings(out) == []

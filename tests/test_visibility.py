@@ -15,9 +15,9 @@ from ultron.data.labels import gather_labelled_pixels, select_label_frames
 from ultron.data.truth import TRANSMISSION_FILE, load_true_transmission
 from ultron.errors import UltronInputError
 from ultron.fields import FieldConfig, GridFieldConfig
-from ultron.methods.model_io import load_network
-from ultron.methods.run import ReconstructionRequest, reconstruct
 from ultron.methods.ultron_method import UltronConfig, occupancy_training_data
+from ultron.pipeline.model_io import load_network
+from ultron.pipeline.run import ReconstructionRequest, reconstruct
 from ultron.render import RenderConfig, pixel_points_mm, render_properties
 from ultron.train import FieldTrainConfig, fit_field
 from ultron.train.occupancy import OccupancyTrainConfig

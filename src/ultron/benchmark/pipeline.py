@@ -33,6 +33,7 @@ from ultron.benchmark.runner import Outcome, default_threads, run_tasks
 from ultron.benchmark.tables import TARGETS, aggregate, json_safe, markdown_table
 from ultron.device import resolve_device
 from ultron.errors import UltronInputError, argument_error
+from ultron.report.bench_report import write_benchmark_report
 
 BENCHMARK_JSON = "benchmark.json"
 TABLES_MD = "tables.md"
@@ -224,8 +225,6 @@ def write_report(out: Path) -> str:
     """DIR/report.html via :func:`ultron.report.bench_report.write_benchmark_report`; returns a
     note saying what happened (the tables are already written: a report failure is reported,
     not raised)."""
-    from ultron.report.bench_report import write_benchmark_report
-
     try:
         write_benchmark_report(out)
     except Exception as exc:  # the tables are written; a report failure must not hide them

@@ -29,13 +29,14 @@ from ultron.device import resolve_device
 from ultron.errors import argument_error
 from ultron.methods.on_method import ONConfig
 from ultron.methods.registry import get_method
-from ultron.methods.run import ROCOSDF_PRESETS, ReconstructionRequest
 from ultron.methods.ultron_method import UltronConfig
 from ultron.metrics.surface import METRIC_NAMES, MetricsConfig
 from ultron.phantom.annotation import AnnotationConfig
 from ultron.phantom.dataset import SimulationConfig
 from ultron.phantom.protocols import TrackingNoise
 from ultron.phantom.shapes import PHANTOMS
+from ultron.pipeline.presets import pipeline_preset
+from ultron.pipeline.run import ROCOSDF_PRESETS, ReconstructionRequest
 from ultron.train.field_fit import FieldTrainConfig
 from ultron.train.occupancy import OccupancyTrainConfig
 
@@ -214,6 +215,23 @@ def quick_config(**changes: Any) -> BenchmarkConfig:
         metrics=MetricsConfig(n_points=QUICK_METRIC_POINTS, repeats=QUICK_METRIC_REPEATS),
     )
     return replace(base, **changes)
+
+
+def benchmark_config(preset: str = "fast", quick: bool = False, **changes: Any) -> BenchmarkConfig:
+    """The benchmark whose every stage has the settings of pipeline preset ``preset``
+    (:func:`~ultron.pipeline.presets.pipeline_preset`: field fit, UltrON, ON, RoCoSDF), reduced
+    as :func:`quick_config` says when ``quick`` (the fast preset only); ``changes`` override any
+    field."""
+    if quick and preset != "fast":
+        raise argument_error(
+            "preset", f"a quick benchmark runs the fast preset only, got {preset!r}"
+        )
+    stages = pipeline_preset(preset)
+    settings: dict[str, Any] = {"rocosdf_preset": stages.rocosdf_preset}
+    if preset != "fast":  # the fast preset's stages are BenchmarkConfig's own defaults
+        settings |= {"field_fit": stages.field, "ultron": stages.ultron, "on": stages.on}
+    settings |= changes
+    return quick_config(**settings) if quick else BenchmarkConfig(**settings)
 
 
 # ---------------------------------------------------------------------------------- tasks

@@ -5,7 +5,7 @@ a cell) and never raises: it returns an outcome dict ``{"status": "ok" | "skippe
 "error": str | None, "runtime_s": float, "cd": float | None}`` (a cell's outcome also holds
 ``"cd_visible"``, None without a visible reference). Work already done is skipped:
 a dataset whose ``dataset.json`` exists (its ``phantom.json`` must hold the same settings), a
-field marked ``done`` (as :func:`ultron.methods.field_cache.get_or_fit_field` marks it) whose
+field marked ``done`` (as :func:`ultron.pipeline.field_cache.get_or_fit_field` marks it) whose
 ``field.json`` holds the same training settings, a cell whose ``run.json`` exists (written
 last by ``reconstruct`` and ``finetune``, after the mesh, network and metrics). A
 failure's traceback goes to ``error.log`` in the task's output directory.
@@ -37,13 +37,22 @@ from ultron.benchmark.plan import (
     Task,
 )
 from ultron.benchmark.ray_executor import check_executor, run_graph_on_ray
+from ultron.data.auto_label_dataset import auto_label_dataset, auto_label_records
+from ultron.data.dataset import SweepDataset
 from ultron.errors import UltronInputError
+from ultron.methods.finetune import FinetuneConfig
+from ultron.models.field_dir import CHECKPOINT, FIELD_JSON, read_field_json
+from ultron.phantom.dataset import simulate_dataset
+from ultron.pipeline.finetune import finetune
+from ultron.pipeline.record import RunRecord
+from ultron.pipeline.run import reconstruct
+from ultron.train.field_fit import fit_field
 
 Outcome = dict[str, Any]
 #: Called with (task, outcome, tasks finished, tasks in total) as each task ends.
 Report = Callable[[Task, Outcome, int, int], None]
 
-FIELD_DONE = "done"  # the completion marker of ultron.methods.field_cache
+FIELD_DONE = "done"  # the completion marker of ultron.pipeline.field_cache
 
 
 def default_threads(jobs: int) -> int:
@@ -60,10 +69,10 @@ def _normalised(data: Any) -> Any:
 
 
 def _previous_runtime(out: Path) -> float:
+    """The finished cell's recorded seconds (0 when its run.json is unreadable)."""
     try:
-        run = json.loads((out / "run.json").read_text(encoding="utf-8"))
-        return float(run.get("timings_s", {}).get("total", 0.0))
-    except (OSError, ValueError, TypeError, AttributeError):
+        return RunRecord.read(out).total_s
+    except UltronInputError:
         return 0.0
 
 
@@ -85,8 +94,6 @@ def _cell_cds(out: Path) -> dict[str, float | None]:
 
 def simulate(job: SimulateJob) -> bool:
     """Simulate the dataset unless it exists; True when skipped."""
-    from ultron.phantom.dataset import simulate_dataset
-
     out = Path(job.out)
     if (out / "dataset.json").is_file():
         saved = out / "phantom.json"
@@ -105,10 +112,6 @@ def simulate(job: SimulateJob) -> bool:
 
 def fit(job: FieldJob) -> bool:
     """Fit the dataset's field unless it is done with the same settings; True when skipped."""
-    from ultron.data.dataset import SweepDataset
-    from ultron.fields.fitted import CHECKPOINT, FIELD_JSON, read_field_json
-    from ultron.train.field_fit import fit_field
-
     out = Path(job.out)
     done = all((out / name).is_file() for name in (FIELD_DONE, FIELD_JSON, CHECKPOINT))
     if done and _normalised(read_field_json(out).get("train")) == _normalised(job.config.to_dict()):
@@ -123,9 +126,6 @@ def auto_label(job: AutoLabelJob) -> bool:
     """Write the dataset's auto-labelled copy unless it exists with the same settings; True
     when skipped. The copy is labelled in a hidden sibling and renamed into place, so a
     killed task leaves no half-labelled dataset."""
-    from ultron.data.auto_label_dataset import auto_label_dataset, auto_label_records
-    from ultron.data.dataset import SweepDataset
-
     out = Path(job.out)
     if (out / "dataset.json").is_file():
         dataset = SweepDataset.load(out)
@@ -151,7 +151,7 @@ def auto_label(job: AutoLabelJob) -> bool:
 def _cell_done(out: str | Path) -> bool:
     """Whether a cell's run.json exists; if not, an earlier failure's ``error.log`` (the only
     file a failed cell leaves: a run replaces its directory as a whole, see
-    :mod:`ultron.methods.rundir`) is removed so that the run may take the directory."""
+    :mod:`ultron.pipeline.rundir`) is removed so that the run may take the directory."""
     if (Path(out) / "run.json").is_file():
         return True
     (Path(out) / "error.log").unlink(missing_ok=True)
@@ -160,8 +160,6 @@ def _cell_done(out: str | Path) -> bool:
 
 def reconstruct_cell(job: ReconstructJob) -> bool:
     """One ``reconstruct`` cell unless its run.json exists; True when skipped."""
-    from ultron.methods.run import reconstruct
-
     if _cell_done(job.out):
         return True
     reconstruct(
@@ -178,7 +176,6 @@ def finetune_cell(job: FinetuneJob) -> bool:
     """One Table 2 fine-tuning cell unless its run.json exists; True when skipped."""
     if _cell_done(job.out):
         return True
-    from ultron.methods.finetune import FinetuneConfig, finetune
 
     config = FinetuneConfig(
         label_fraction=job.label_fraction,

@@ -25,70 +25,83 @@ def _phantom_list(text: str) -> tuple[str, ...]:
     return tuple(name.strip() for name in text.split(",") if name.strip())
 
 
+BenchOut = Annotated[Path, typer.Option("--out", help="Output directory (resumed if it exists).")]
+Quick = Annotated[
+    bool,
+    typer.Option(
+        "--quick",
+        help="L3 (+ L2 for Table 2), one seed, fewer field/occupancy iterations and metric"
+        " points (≈ 10 min on 2 idle cores).",
+    ),
+]
+Seeds = Annotated[
+    int | None,
+    typer.Option("--seeds", help="Seeds 0..K-1 per phantom (default 3; 1 with --quick)."),
+]
+Phantoms = Annotated[
+    str | None,
+    typer.Option(
+        "--phantoms", help="Comma-separated phantoms (default L2,L3,L3b,L4; L3 with --quick)."
+    ),
+]
+Jobs = Annotated[
+    int, typer.Option("--jobs", help="Tasks run in parallel (spawned worker processes).")
+]
+TaskThreads = Annotated[
+    int | None,
+    typer.Option("--threads", help="torch threads per task (default: cores // jobs)."),
+]
+Robustness = Annotated[
+    bool,
+    typer.Option(
+        "--robustness",
+        help="Also UltrON (10%) vs RoCoSDF (100%) on L3 with larger annotation errors and"
+        " with pose misalignment.",
+    ),
+]
+NoGeneralisation = Annotated[
+    bool,
+    typer.Option("--no-generalisation", help="Skip Table 2 (train on L3, apply to L2)."),
+]
+BenchPreset = Annotated[
+    str,
+    typer.Option(
+        "--preset",
+        help="Settings of every stage: fast or paper (the UltrON paper's: 8 × 128 MLP field,"
+        " 75k + 50k iterations, RoCoSDF's paper settings; days on a CPU, for GPUs).",
+    ),
+]
+Executor = Annotated[
+    str,
+    typer.Option(
+        "--executor",
+        help="local (this machine, --jobs at a time) or ray (each task a Ray task of"
+        " --threads CPUs; needs Ray: pip install ray).",
+    ),
+]
+Address = Annotated[
+    str | None,
+    typer.Option(
+        "--address",
+        help="With --executor ray: the Ray cluster to join (auto, ray://host:10001);"
+        " default: start a local one.",
+    ),
+]
+
+
 @user_errors
 def benchmark(
-    out: Annotated[Path, typer.Option("--out", help="Output directory (resumed if it exists).")],
-    quick: Annotated[
-        bool,
-        typer.Option(
-            "--quick",
-            help="L3 (+ L2 for Table 2), one seed, fewer field/occupancy iterations and metric"
-            " points (≈ 10 min on 2 idle cores).",
-        ),
-    ] = False,
-    seeds: Annotated[
-        int | None,
-        typer.Option("--seeds", help="Seeds 0..K-1 per phantom (default 3; 1 with --quick)."),
-    ] = None,
-    phantoms: Annotated[
-        str | None,
-        typer.Option(
-            "--phantoms", help="Comma-separated phantoms (default L2,L3,L3b,L4; L3 with --quick)."
-        ),
-    ] = None,
-    jobs: Annotated[
-        int, typer.Option("--jobs", help="Tasks run in parallel (spawned worker processes).")
-    ] = 1,
-    threads: Annotated[
-        int | None,
-        typer.Option("--threads", help="torch threads per task (default: cores // jobs)."),
-    ] = None,
-    robustness: Annotated[
-        bool,
-        typer.Option(
-            "--robustness",
-            help="Also UltrON (10%) vs RoCoSDF (100%) on L3 with larger annotation errors and"
-            " with pose misalignment.",
-        ),
-    ] = False,
-    no_generalisation: Annotated[
-        bool,
-        typer.Option("--no-generalisation", help="Skip Table 2 (train on L3, apply to L2)."),
-    ] = False,
-    preset: Annotated[
-        str,
-        typer.Option(
-            "--preset",
-            help="Settings of every stage: fast or paper (the UltrON paper's: 8 × 128 MLP field,"
-            " 75k + 50k iterations, RoCoSDF's paper settings; days on a CPU, for GPUs).",
-        ),
-    ] = "fast",
-    executor: Annotated[
-        str,
-        typer.Option(
-            "--executor",
-            help="local (this machine, --jobs at a time) or ray (each task a Ray task of"
-            " --threads CPUs; needs Ray: pip install ray).",
-        ),
-    ] = "local",
-    address: Annotated[
-        str | None,
-        typer.Option(
-            "--address",
-            help="With --executor ray: the Ray cluster to join (auto, ray://host:10001);"
-            " default: start a local one.",
-        ),
-    ] = None,
+    out: BenchOut,
+    quick: Quick = False,
+    seeds: Seeds = None,
+    phantoms: Phantoms = None,
+    jobs: Jobs = 1,
+    threads: TaskThreads = None,
+    robustness: Robustness = False,
+    no_generalisation: NoGeneralisation = False,
+    preset: BenchPreset = "fast",
+    executor: Executor = "local",
+    address: Address = None,
     device: DeviceOption = "auto",
 ) -> None:
     """Run the paper's Tables 1 and 2: simulate, fit, reconstruct every cell, aggregate,
@@ -99,28 +112,25 @@ def benchmark(
     check_count("--threads", threads)
     device = check_device(device)
 
-    from ultron.benchmark import BenchmarkConfig, quick_config, run_benchmark
-    from ultron.methods.presets import PIPELINE_PRESETS, pipeline_preset
+    from ultron.benchmark import run_benchmark
+    from ultron.benchmark.plan import benchmark_config
+    from ultron.pipeline.presets import PIPELINE_PRESETS
 
     check_choice("--preset", preset, PIPELINE_PRESETS)
     if quick and preset != "fast":
         raise argument_error("--preset", "--quick runs the fast preset only")
-    stages = pipeline_preset(preset)
     changes: dict = {
         "jobs": jobs,
         "threads": threads,
         "robustness": robustness,
         "generalisation": not no_generalisation,
-        "rocosdf_preset": stages.rocosdf_preset,
         "device": device,
     }
-    if preset != "fast":  # the fast preset's stages are BenchmarkConfig's own defaults
-        changes |= {"field_fit": stages.field, "ultron": stages.ultron, "on": stages.on}
     if seeds is not None:
         changes["seeds"] = seeds
     if phantoms is not None:
         changes["phantoms"] = _phantom_list(phantoms)
-    config = quick_config(**changes) if quick else BenchmarkConfig(**changes)
+    config = benchmark_config(preset, quick, **changes)
 
     def log(line: str) -> None:
         console.print(line, markup=False, highlight=False, soft_wrap=True)

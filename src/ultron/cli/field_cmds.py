@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from dataclasses import replace
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
 
@@ -26,7 +27,7 @@ from ultron.outputs import check_output_dir, check_output_file
 if TYPE_CHECKING:
     import numpy as np
 
-    from ultron.fields.fitted import FitProgress
+    from ultron.models.fitted import FitProgress, FittedField
 
 
 def _parse_shape(text: str | None) -> tuple[int, int] | None:
@@ -38,98 +39,112 @@ def _parse_shape(text: str | None) -> tuple[int, int] | None:
     return int(parts[0]), int(parts[1])
 
 
+FieldDirOut = Annotated[
+    Path, typer.Option("--out", help="FIELD_DIR to write (resumed if it exists).")
+]
+FieldPreset = Annotated[
+    str,
+    typer.Option(
+        "--preset",
+        help="default (grid, Ultra-NeRF's heads), shadow (grid, φ floor 0.1 and a 500-step"
+        " φ warm-up: the shadow goes into T) or paper (Ultra-NeRF as published: 8 × 128"
+        " MLP, 75k iterations).",
+    ),
+]
+Backend = Annotated[
+    str | None,
+    typer.Option("--backend", help="grid (fast) or mlp (the paper's network); default: preset's."),
+]
+Iters = Annotated[
+    int | None, typer.Option("--iters", help="Training iterations (default: preset's).")
+]
+ScatteringFloor = Annotated[
+    float | None,
+    typer.Option(
+        "--scattering-floor",
+        help="Lower bound φ_min of the scattering amplitude (0: allow anechoic regions);"
+        " default: preset's (shadow 0.1, else 0).",
+    ),
+]
+ScatteringWarmup = Annotated[
+    int | None,
+    typer.Option(
+        "--scattering-warmup",
+        help="Steps with φ held constant before it is learned (default: preset's).",
+    ),
+]
+ConfidencePrior = Annotated[
+    float | None,
+    typer.Option(
+        "--confidence-prior",
+        help="Weight of the one-sided prior T ≤ C + 0.3, C the frame's ultrasound confidence"
+        " map (0: off); default: preset's.",
+    ),
+]
+FitSeed = Annotated[int, typer.Option("--seed", help="Seed of initialisation and batches.")]
+HoldoutEvery = Annotated[
+    int, typer.Option("--holdout-every", help="Hold out every K-th frame for checks (0: none).")
+]
+FitShape = Annotated[
+    str | None,
+    typer.Option(
+        "--fit-shape", help="Fit at HxW pixels, frames area-resampled (default: native size)."
+    ),
+]
+TrainScatterers = Annotated[
+    str,
+    typer.Option(
+        "--train-scatterers",
+        help="expected (E[S], default) or sample (Ultra-NeRF's per-step draw) in training.",
+    ),
+]
+CheckEvery = Annotated[int, typer.Option("--check-every", help="Held-out check every N steps.")]
+CheckpointEvery = Annotated[
+    int | None,
+    typer.Option(
+        "--checkpoint-every",
+        help="Save checkpoint.pt (with train_log.jsonl and field.json) every N steps and at"
+        " the last; an interrupted fit resumes from the latest (default: the preset's, 500).",
+    ),
+]
+FitMaxMemory = Annotated[
+    float | None,
+    typer.Option(
+        "--max-memory",
+        help="GiB the fit may take: its planes, frames and working memory are estimated"
+        " before any work (default: the machine's memory, or the cgroup's limit).",
+    ),
+]
+NoResume = Annotated[
+    bool,
+    typer.Option(
+        "--no-resume",
+        help="Start afresh even if a checkpoint exists: a previous fit's files in --out"
+        " are removed first.",
+    ),
+]
+
+
 @user_errors
 def fit_field_command(
     dataset: Annotated[Path, typer.Argument(help="Dataset directory (ultron-sweeps/1).")],
-    out: Annotated[Path, typer.Option("--out", help="FIELD_DIR to write (resumed if it exists).")],
-    preset: Annotated[
-        str,
-        typer.Option(
-            "--preset",
-            help="default (grid, Ultra-NeRF's heads), shadow (grid, φ floor 0.1 and a 500-step"
-            " φ warm-up: the shadow goes into T) or paper (Ultra-NeRF as published: 8 × 128"
-            " MLP, 75k iterations).",
-        ),
-    ] = "default",
-    backend: Annotated[
-        str | None,
-        typer.Option(
-            "--backend", help="grid (fast) or mlp (the paper's network); default: preset's."
-        ),
-    ] = None,
-    iters: Annotated[
-        int | None, typer.Option("--iters", help="Training iterations (default: preset's).")
-    ] = None,
-    scattering_floor: Annotated[
-        float | None,
-        typer.Option(
-            "--scattering-floor",
-            help="Lower bound φ_min of the scattering amplitude (0: allow anechoic regions);"
-            " default: preset's (shadow 0.1, else 0).",
-        ),
-    ] = None,
-    scattering_warmup: Annotated[
-        int | None,
-        typer.Option(
-            "--scattering-warmup",
-            help="Steps with φ held constant before it is learned (default: preset's).",
-        ),
-    ] = None,
-    confidence_prior: Annotated[
-        float | None,
-        typer.Option(
-            "--confidence-prior",
-            help="Weight of the one-sided prior T ≤ C + 0.3, C the frame's ultrasound confidence"
-            " map (0: off); default: preset's.",
-        ),
-    ] = None,
-    seed: Annotated[int, typer.Option("--seed", help="Seed of initialisation and batches.")] = 0,
-    holdout_every: Annotated[
-        int,
-        typer.Option("--holdout-every", help="Hold out every K-th frame for checks (0: none)."),
-    ] = 10,
-    fit_shape: Annotated[
-        str | None,
-        typer.Option(
-            "--fit-shape", help="Fit at HxW pixels, frames area-resampled (default: native size)."
-        ),
-    ] = None,
-    train_scatterers: Annotated[
-        str,
-        typer.Option(
-            "--train-scatterers",
-            help="expected (E[S], default) or sample (Ultra-NeRF's per-step draw) in training.",
-        ),
-    ] = "expected",
-    check_every: Annotated[
-        int, typer.Option("--check-every", help="Held-out check every N steps.")
-    ] = 250,
-    checkpoint_every: Annotated[
-        int | None,
-        typer.Option(
-            "--checkpoint-every",
-            help="Save checkpoint.pt (with train_log.jsonl and field.json) every N steps and at"
-            " the last; an interrupted fit resumes from the latest (default: the preset's, 500).",
-        ),
-    ] = None,
-    max_memory: Annotated[
-        float | None,
-        typer.Option(
-            "--max-memory",
-            help="GiB the fit may take: its planes, frames and working memory are estimated"
-            " before any work (default: the machine's memory, or the cgroup's limit).",
-        ),
-    ] = None,
+    out: FieldDirOut,
+    preset: FieldPreset = "default",
+    backend: Backend = None,
+    iters: Iters = None,
+    scattering_floor: ScatteringFloor = None,
+    scattering_warmup: ScatteringWarmup = None,
+    confidence_prior: ConfidencePrior = None,
+    seed: FitSeed = 0,
+    holdout_every: HoldoutEvery = 10,
+    fit_shape: FitShape = None,
+    train_scatterers: TrainScatterers = "expected",
+    check_every: CheckEvery = 250,
+    checkpoint_every: CheckpointEvery = None,
+    max_memory: FitMaxMemory = None,
     threads: ThreadsOption = None,
     device: DeviceOption = "auto",
-    no_resume: Annotated[
-        bool,
-        typer.Option(
-            "--no-resume",
-            help="Start afresh even if a checkpoint exists: a previous fit's files in --out"
-            " are removed first.",
-        ),
-    ] = False,
+    no_resume: NoResume = False,
 ) -> None:
     """Fit an acoustic neural field (Ultra-NeRF) to a dataset's frames and write FIELD_DIR.
 
@@ -142,11 +157,7 @@ def fit_field_command(
     check_count("--scattering-warmup", scattering_warmup, 0)
     check_range("--confidence-prior", confidence_prior, 0.0)
     check_seed("--seed", seed)
-    check_count("--holdout-every", holdout_every, 0)
-    if holdout_every == 1:
-        raise argument_error(
-            "--holdout-every", "expected 0 (none) or an integer ≥ 2 (1 holds out every frame)"
-        )
+    _check_holdout(holdout_every)
     check_count("--check-every", check_every)
     check_count("--checkpoint-every", checkpoint_every)
     check_range("--max-memory", max_memory, 0.0, low_open=True)
@@ -154,10 +165,8 @@ def fit_field_command(
     check_output_dir(out)
     device = check_device(device)
 
-    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
-
     from ultron.data.dataset import SweepDataset
-    from ultron.methods.resources import check_run_resources
+    from ultron.pipeline.resources import check_run_resources
     from ultron.train import field_preset, fit_field
     from ultron.train.field_fit import check_resumable
 
@@ -165,13 +174,11 @@ def fit_field_command(
     changes = {
         "backend": backend,
         "iterations": iters,
+        "scattering_floor": scattering_floor,
         "scattering_warmup_iters": scattering_warmup,
         "confidence_prior_weight": confidence_prior,
         "checkpoint_every": checkpoint_every,
     }
-    if scattering_floor is not None:
-        base = field_preset(preset).field.heads
-        changes["heads"] = replace(base, scattering_floor=scattering_floor)
     config = field_preset(
         preset,
         **{k: v for k, v in changes.items() if v is not None},
@@ -184,6 +191,26 @@ def fit_field_command(
     if not no_resume:  # a checkpoint of another dataset or configuration: error before the bar
         check_resumable(out, config, data.content_hash())
     check_run_resources(data, dataset, mesh=False, field_config=config, max_memory_gib=max_memory)
+    with _fit_progress(config.iterations) as progress:
+        fitted = fit_field(
+            data, config, out, progress=progress, resume=not no_resume, device=device
+        )
+    _print_fitted(fitted, out, device)
+
+
+def _check_holdout(holdout_every: int) -> None:
+    check_count("--holdout-every", holdout_every, 0)
+    if holdout_every == 1:
+        raise argument_error(
+            "--holdout-every", "expected 0 (none) or an integer ≥ 2 (1 holds out every frame)"
+        )
+
+
+@contextmanager
+def _fit_progress(iterations: int) -> Iterator[Callable[[dict], None]]:
+    """fit-field's bar (loss, PSNR, the latest held-out check); yields the fit's callback."""
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
     columns = (
         TextColumn("[bold]fit-field"),
         BarColumn(),
@@ -193,7 +220,7 @@ def fit_field_command(
         TimeElapsedColumn(),
     )
     with Progress(*columns, console=console, transient=False) as bar:
-        task = bar.add_task("fit", total=config.iterations, loss=0.0, psnr=0.0, holdout="—")
+        task = bar.add_task("fit", total=iterations, loss=0.0, psnr=0.0, holdout="—")
 
         def progress(entry: dict) -> None:
             extra = {}
@@ -205,13 +232,15 @@ def fit_field_command(
                 task, completed=entry["step"], loss=entry["loss"], psnr=entry["psnr"], **extra
             )
 
-        fitted = fit_field(
-            data, config, out, progress=progress, resume=not no_resume, device=device
-        )
+        yield progress
+
+
+def _print_fitted(fitted: FittedField, out: Path, device: str) -> None:
+    """The files fit-field wrote and the fitted θ's statistics."""
     stats = fitted.theta_stats
     console.print(
         f"wrote {out}: field.json, checkpoint.pt, theta_stats.json, train_log.jsonl"
-        f" ({config.field.backend}, fitted at {fitted.probe.height_px}×{fitted.probe.width_px} px"
+        f" ({fitted.field_config.backend}, fitted at {fitted.probe.height_px}×{fitted.probe.width_px} px"
         f" on {device})",
         highlight=False,
     )
@@ -264,8 +293,8 @@ def render_command(
 
     from ultron import atomic
     from ultron.data.dataset import SweepDataset
-    from ultron.fields import load_field
-    from ultron.fields.fitted import check_field_dataset
+    from ultron.models import load_field
+    from ultron.models.field_dir import check_field_dataset
 
     if (poses is None) == (dataset is None):
         raise argument_error("--poses/--dataset", "give exactly one of --poses or --dataset")

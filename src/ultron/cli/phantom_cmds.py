@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 
@@ -18,65 +18,26 @@ from ultron.cli.common import (
     user_errors,
 )
 
+if TYPE_CHECKING:
+    from ultron.data.dataset import SweepDataset
 
-@user_errors
-def simulate(
-    out: Annotated[Path, typer.Option("--out", help="Dataset directory to write (created).")],
-    phantom: Annotated[
-        str, typer.Option("--phantom", help="Vertebra phantom: L2, L3, L3b or L4.")
-    ] = "L3",
-    seed: Annotated[int, typer.Option("--seed", help="Random seed (same seed → same files).")] = 0,
-    sweeps: Annotated[
-        str,
-        typer.Option(
-            "--sweeps",
-            help="Comma-separated sweeps: row, column, tilt_p<deg>, tilt_m<deg>.",
-        ),
-    ] = "row,column,tilt_p10,tilt_m10",
-    frames: Annotated[int, typer.Option("--frames", help="Frames per sweep.")] = 60,
-    step_mm: Annotated[
-        float | None,
-        typer.Option(
-            "--step-mm",
-            help="Probe step between frames, mm (default: spread over the bone extent).",
-        ),
-    ] = None,
-    probe_width_mm: Annotated[
-        float, typer.Option("--probe-width-mm", help="Linear probe width (lateral FOV), mm.")
-    ] = 38.0,
-    depth_mm: Annotated[float, typer.Option("--depth-mm", help="Imaging depth, mm.")] = 70.0,
-    height_px: Annotated[int, typer.Option("--height-px", help="Samples per scanline.")] = 128,
-    width_px: Annotated[int, typer.Option("--width-px", help="Scanlines per frame.")] = 96,
-    pose_noise_mm: Annotated[
-        float,
-        typer.Option("--pose-noise-mm", help="Tracking error σ per axis, mm (0: exact poses)."),
-    ] = 0.3,
-    pose_noise_deg: Annotated[
-        float, typer.Option("--pose-noise-deg", help="Tracking error σ per axis, degrees.")
-    ] = 0.2,
-    label_noise_mm: Annotated[
-        float,
-        typer.Option("--label-noise-mm", help="Annotation edge jitter σ, mm (0: exact edges)."),
-    ] = 0.3,
-    label_missing: Annotated[
-        float,
-        typer.Option("--label-missing", help="Fraction of frames left unannotated (255)."),
-    ] = 0.0,
-    label_errors: Annotated[
-        float,
-        typer.Option("--label-errors", help="Fraction of frames annotated with a coarse error."),
-    ] = 0.02,
-    voxel_mm: Annotated[
-        float, typer.Option("--voxel-mm", help="SDF grid / reference mesh voxel, mm.")
-    ] = 0.3,
-    preview: Annotated[
-        bool, typer.Option("--preview", help="Also write OUT/preview.png (frames + labels).")
-    ] = False,
-    threads: ThreadsOption = None,
+
+def _check_numbers(
+    seed: int,
+    frames: int,
+    step_mm: float | None,
+    probe_width_mm: float,
+    depth_mm: float,
+    height_px: int,
+    width_px: int,
+    pose_noise_mm: float,
+    pose_noise_deg: float,
+    label_noise_mm: float,
+    label_missing: float,
+    label_errors: float,
+    voxel_mm: float,
 ) -> None:
-    """Simulate a tracked multi-sweep B-mode dataset of a vertebra phantom, with labels."""
-    apply_threads(threads)
-    from ultron.outputs import check_output_dir
+    """``simulate``'s numeric options, each refused with a one-line error naming it."""
     from ultron.phantom.dataset import MAX_VOXEL_MM
 
     check_seed("--seed", seed)
@@ -98,6 +59,78 @@ def simulate(
     check_range("--label-missing", label_missing, 0.0, 1.0)
     check_range("--label-errors", label_errors, 0.0, 1.0)
     check_range("--voxel-mm", voxel_mm, 0.0, MAX_VOXEL_MM, low_open=True)
+
+
+Out = Annotated[Path, typer.Option("--out", help="Dataset directory to write (created).")]
+PhantomName = Annotated[str, typer.Option("--phantom", help="Vertebra phantom: L2, L3, L3b or L4.")]
+Seed = Annotated[int, typer.Option("--seed", help="Random seed (same seed → same files).")]
+Sweeps = Annotated[
+    str,
+    typer.Option("--sweeps", help="Comma-separated sweeps: row, column, tilt_p<deg>, tilt_m<deg>."),
+]
+Frames = Annotated[int, typer.Option("--frames", help="Frames per sweep.")]
+StepMm = Annotated[
+    float | None,
+    typer.Option(
+        "--step-mm", help="Probe step between frames, mm (default: spread over the bone extent)."
+    ),
+]
+ProbeWidthMm = Annotated[
+    float, typer.Option("--probe-width-mm", help="Linear probe width (lateral FOV), mm.")
+]
+DepthMm = Annotated[float, typer.Option("--depth-mm", help="Imaging depth, mm.")]
+HeightPx = Annotated[int, typer.Option("--height-px", help="Samples per scanline.")]
+WidthPx = Annotated[int, typer.Option("--width-px", help="Scanlines per frame.")]
+PoseNoiseMm = Annotated[
+    float, typer.Option("--pose-noise-mm", help="Tracking error σ per axis, mm (0: exact poses).")
+]
+PoseNoiseDeg = Annotated[
+    float, typer.Option("--pose-noise-deg", help="Tracking error σ per axis, degrees.")
+]
+LabelNoiseMm = Annotated[
+    float, typer.Option("--label-noise-mm", help="Annotation edge jitter σ, mm (0: exact edges).")
+]
+LabelMissing = Annotated[
+    float, typer.Option("--label-missing", help="Fraction of frames left unannotated (255).")
+]
+LabelErrors = Annotated[
+    float, typer.Option("--label-errors", help="Fraction of frames annotated with a coarse error.")
+]
+VoxelMm = Annotated[float, typer.Option("--voxel-mm", help="SDF grid / reference mesh voxel, mm.")]
+Preview = Annotated[
+    bool, typer.Option("--preview", help="Also write OUT/preview.png (frames + labels).")
+]
+
+
+@user_errors
+def simulate(
+    out: Out,
+    phantom: PhantomName = "L3",
+    seed: Seed = 0,
+    sweeps: Sweeps = "row,column,tilt_p10,tilt_m10",
+    frames: Frames = 60,
+    step_mm: StepMm = None,
+    probe_width_mm: ProbeWidthMm = 38.0,
+    depth_mm: DepthMm = 70.0,
+    height_px: HeightPx = 128,
+    width_px: WidthPx = 96,
+    pose_noise_mm: PoseNoiseMm = 0.3,
+    pose_noise_deg: PoseNoiseDeg = 0.2,
+    label_noise_mm: LabelNoiseMm = 0.3,
+    label_missing: LabelMissing = 0.0,
+    label_errors: LabelErrors = 0.02,
+    voxel_mm: VoxelMm = 0.3,
+    preview: Preview = False,
+    threads: ThreadsOption = None,
+) -> None:
+    """Simulate a tracked multi-sweep B-mode dataset of a vertebra phantom, with labels."""
+    apply_threads(threads)
+    _check_numbers(
+        seed, frames, step_mm, probe_width_mm, depth_mm, height_px, width_px, pose_noise_mm,
+        pose_noise_deg, label_noise_mm, label_missing, label_errors, voxel_mm,
+    )  # fmt: skip
+    from ultron.outputs import check_output_dir
+
     check_output_dir(out)
 
     import time
@@ -109,7 +142,6 @@ def simulate(
         TrackingNoise,
         simulate_dataset,
     )
-    from ultron.phantom.preview import write_preview
 
     config = SimulationConfig(
         phantom=phantom,
@@ -129,12 +161,20 @@ def simulate(
     start = time.perf_counter()
     with stage_progress("simulating") as report:
         dataset = simulate_dataset(config, out=out, progress=report)
-    elapsed = time.perf_counter() - start
+    _print_written(dataset, phantom, out, time.perf_counter() - start, preview)
+
+
+def _print_written(
+    dataset: SweepDataset, phantom: str, out: Path, elapsed_s: float, preview: bool
+) -> None:
+    """What ``simulate`` wrote (and OUT/preview.png, written here when asked)."""
+    from ultron.phantom.preview import write_preview
+
     probe = dataset.probe
     console.print(
         f"simulated {phantom}: {len(dataset.sweeps)} sweeps, {dataset.n_frames} frames of"
         f" {probe.height_px}×{probe.width_px} ({probe.width_mm:g} mm × {probe.depth_mm:g} mm)"
-        f" in {elapsed:.1f} s → {out}",
+        f" in {elapsed_s:.1f} s → {out}",
         highlight=False,
         soft_wrap=True,
     )

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Annotated
 
@@ -38,6 +40,107 @@ MaxMemory = Annotated[
     ),
 ]
 
+LabelFraction = Annotated[
+    float, typer.Option("--label-fraction", help="Share of annotated frames used, in (0, 1].")
+]
+RunSeed = Annotated[int, typer.Option("--seed", help="Seed of label selection and training.")]
+Points = Annotated[int, typer.Option("--points", help="Points per surface for metrics.")]
+FieldDir = Annotated[
+    Path | None,
+    typer.Option("--field", help="The dataset's FIELD_DIR (default: fit and cache one)."),
+]
+FieldIters = Annotated[
+    int | None,
+    typer.Option(
+        "--field-iters",
+        help="Field iterations when fitting (default: the preset's: 3000; paper: 75000).",
+    ),
+]
+OccupancyIters = Annotated[
+    int | None,
+    typer.Option(
+        "--occupancy-iters",
+        help="Occupancy iterations of ultron* and on (default: the preset's: 1500; paper: 50000).",
+    ),
+]
+Method = Annotated[
+    str,
+    typer.Option(
+        "--method", help="ultron, ultron-noloss, compounding, on, rocosdf, unsr-row or unsr-col."
+    ),
+]
+Preset = Annotated[
+    str,
+    typer.Option(
+        "--preset",
+        help="Settings of every stage: fast (this project's, minutes on a CPU) or paper (the"
+        " UltrON paper's: 8 × 128 MLP field, 75k + 50k iterations, θ alone, BCE(T·f, y),"
+        " whole surface, RoCoSDF's paper settings; for a GPU). Options given win.",
+    ),
+]
+Visibility = Annotated[
+    str,
+    typer.Option(
+        "--visibility",
+        help="Source of the loss's transmission T (ultron*): field (the fitted acoustic "
+        "field), confidence (the frame's ultrasound confidence map) or labels (the "
+        "annotation's first bone run per scanline).",
+    ),
+]
+OracleTransmission = Annotated[
+    bool,
+    typer.Option(
+        "--oracle-transmission",
+        help="Diagnostic (ultron*): train with the simulator's true T "
+        "(<sweep>/transmission.npy of a simulated dataset).",
+    ),
+]
+Surface = Annotated[
+    str | None,
+    typer.Option(
+        "--surface",
+        help="ultron* and compounding: observed (keep the faces some frame saw facing the"
+        " probe with T ≥ 0.3 above them — compounding: T = 1) or all (the"
+        " closed iso-surface) (default: the preset's: observed; paper: all).",
+    ),
+]
+ThetaContext = Annotated[
+    str | None,
+    typer.Option(
+        "--theta-context",
+        help="ultron*: radii (mm, comma-separated) of the world-axis neighbours whose θ f"
+        " reads besides θ(x); 'none' for θ(x) alone, as in the paper (default: the"
+        " preset's: 1,2; paper: none).",
+    ),
+]
+PositiveWeight = Annotated[
+    str | None,
+    typer.Option(
+        "--positive-weight",
+        help="ultron*: loss weight of the bone labels: 1 (unweighted, the paper's), another"
+        " number > 0, or 'balanced' (n_background / n_bone, at most 20: a fuller but less"
+        " accurate surface, e.g. for very short runs) (default: 1).",
+    ),
+]
+Negatives = Annotated[
+    str | None,
+    typer.Option(
+        "--negatives",
+        help="ultron: background labels in the compensated loss: 'observed' (full weight"
+        " where T ≥ 0.3, none below: only observed free space is evidence) or 'weighted'"
+        " (scaled by T: the paper's BCE(T·f, y)) (default: the preset's: observed; paper:"
+        " weighted).",
+    ),
+]
+AllowOtherField = Annotated[
+    bool,
+    typer.Option(
+        "--allow-other-field",
+        help="Accept a --field fitted on another dataset (its field.json's dataset_sha256"
+        " differs); run.json records field_dataset_match false.",
+    ),
+]
+
 
 def _check_common(
     label_fraction: float,
@@ -54,8 +157,9 @@ def _check_common(
     check_range("--max-memory", max_memory, 0.0, low_open=True)
 
 
-def _field_progress():
-    """A rich progress bar fed by the field fit's per-step dicts; returns (bar, callback).
+@contextmanager
+def _field_progress() -> Iterator[Callable[[dict], None]]:
+    """A rich progress bar fed by the field fit's per-step dicts; yields the callback.
     When the console is not a terminal (a log file, a batch job) the bar stays silent, so a
     plain line is printed every 5 % of the steps instead."""
     from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
@@ -81,70 +185,8 @@ def _field_progress():
             line = f"fitting acoustic field: step {step}/{total} ({100 * step / total:.0f} %), "
             console.print(line + status, highlight=False)
 
-    return bar, update
-
-
-def _request(
-    method: str,
-    label_fraction: float,
-    seed: int,
-    occupancy_iters: int | None,
-    points: int,
-    preset: str = "fast",
-    visibility: str = "field",
-    oracle: bool = False,
-    surface: str | None = None,
-    theta_context: str | None = None,
-    positive_weight: str | None = None,
-    negatives: str | None = None,
-    device: str = "cpu",
-):
-    """The request of ``preset`` (:mod:`ultron.methods.presets`) with the options given (None:
-    the preset's)."""
-    from dataclasses import replace
-
-    from ultron.fields.context import ThetaContextConfig
-    from ultron.methods.presets import pipeline_preset
-    from ultron.methods.run import ReconstructionRequest
-    from ultron.metrics.surface import MetricsConfig
-    from ultron.train.occupancy import parse_positive_weight
-    from ultron.train.visibility import visibility_config
-
-    base = pipeline_preset(preset, seed)
-    occupancy, on = base.ultron.occupancy, base.on
-    changes = {"negatives": negatives, "iters": occupancy_iters}
-    occupancy = replace(occupancy, **{k: v for k, v in changes.items() if v is not None})
-    if positive_weight is not None:  # "balanced" parses to None: n_background / n_bone
-        occupancy = replace(occupancy, positive_weight=parse_positive_weight(positive_weight))
-    if occupancy_iters is not None:
-        on = replace(on, occupancy=replace(on.occupancy, iters=occupancy_iters))
-    ultron = replace(
-        base.ultron, occupancy=occupancy, visibility=visibility_config(visibility, oracle)
-    )
-    if surface is not None:
-        ultron = replace(ultron, observed=replace(ultron.observed, surface=surface))
-    if theta_context is not None:
-        ultron = replace(ultron, context=ThetaContextConfig.parse(theta_context))
-    return ReconstructionRequest(
-        method=method,
-        label_fraction=label_fraction,
-        seed=seed,
-        ultron=ultron,
-        on=on,
-        rocosdf_preset=base.rocosdf_preset,
-        metrics=MetricsConfig(n_points=points),
-        device=device,
-    )
-
-
-def _field_config(field_iters: int | None, seed: int, preset: str = "fast"):
-    """The field fit of ``preset`` (with ``field_iters`` iterations when given)."""
-    from dataclasses import replace
-
-    from ultron.methods.presets import pipeline_preset
-
-    config = pipeline_preset(preset, seed).field
-    return config if field_iters is None else replace(config, iterations=field_iters)
+    with bar:
+        yield update
 
 
 @user_errors
@@ -153,110 +195,21 @@ def reconstruct(
         Path, typer.Argument(help="Dataset directory (ultron-sweeps/1) with labels.")
     ],
     out: Annotated[Path, typer.Option("--out", help="Output directory.")],
-    method: Annotated[
-        str,
-        typer.Option(
-            "--method",
-            help="ultron, ultron-noloss, compounding, on, rocosdf, unsr-row or unsr-col.",
-        ),
-    ] = "ultron",
-    label_fraction: Annotated[
-        float, typer.Option("--label-fraction", help="Share of annotated frames used, in (0, 1].")
-    ] = 0.1,
-    field: Annotated[
-        Path | None,
-        typer.Option("--field", help="A fitted FIELD_DIR (default: fit and cache one)."),
-    ] = None,
-    seed: Annotated[int, typer.Option("--seed", help="Seed of label selection and training.")] = 0,
-    field_iters: Annotated[
-        int | None,
-        typer.Option(
-            "--field-iters",
-            help="Field iterations when fitting (default: the preset's: 3000; paper: 75000).",
-        ),
-    ] = None,
-    occupancy_iters: Annotated[
-        int | None,
-        typer.Option(
-            "--occupancy-iters",
-            help="Occupancy iterations of ultron* and on (default: the preset's: 1500; paper:"
-            " 50000).",
-        ),
-    ] = None,
-    points: Annotated[
-        int, typer.Option("--points", help="Points per surface for metrics.")
-    ] = 100_000,
-    preset: Annotated[
-        str,
-        typer.Option(
-            "--preset",
-            help="Settings of every stage: fast (this project's, minutes on a CPU) or paper (the"
-            " UltrON paper's: 8 × 128 MLP field, 75k + 50k iterations, θ alone, BCE(T·f, y),"
-            " whole surface, RoCoSDF's paper settings; for a GPU). Options given win.",
-        ),
-    ] = "fast",
-    visibility: Annotated[
-        str,
-        typer.Option(
-            "--visibility",
-            help="Source of the loss's transmission T (ultron*): field (the fitted acoustic "
-            "field), confidence (the frame's ultrasound confidence map) or labels (the "
-            "annotation's first bone run per scanline).",
-        ),
-    ] = "field",
-    oracle_transmission: Annotated[
-        bool,
-        typer.Option(
-            "--oracle-transmission",
-            help="Diagnostic (ultron*): train with the simulator's true T "
-            "(<sweep>/transmission.npy of a simulated dataset).",
-        ),
-    ] = False,
-    surface: Annotated[
-        str | None,
-        typer.Option(
-            "--surface",
-            help="ultron* and compounding: observed (keep the faces some frame saw facing the"
-            " probe with T ≥ 0.3 above them — compounding: T = 1) or all (the"
-            " closed iso-surface) (default: the preset's: observed; paper: all).",
-        ),
-    ] = None,
-    theta_context: Annotated[
-        str | None,
-        typer.Option(
-            "--theta-context",
-            help="ultron*: radii (mm, comma-separated) of the world-axis neighbours whose θ f"
-            " reads besides θ(x); 'none' for θ(x) alone, as in the paper (default: the"
-            " preset's: 1,2; paper: none).",
-        ),
-    ] = None,
-    positive_weight: Annotated[
-        str | None,
-        typer.Option(
-            "--positive-weight",
-            help="ultron*: loss weight of the bone labels: 1 (unweighted, the paper's), another"
-            " number > 0, or 'balanced' (n_background / n_bone, at most 20: a fuller but less"
-            " accurate surface, e.g. for very short runs) (default: 1).",
-        ),
-    ] = None,
-    negatives: Annotated[
-        str | None,
-        typer.Option(
-            "--negatives",
-            help="ultron: background labels in the compensated loss: 'observed' (full weight"
-            " where T ≥ 0.3, none below: only observed free space is evidence) or 'weighted'"
-            " (scaled by T: the paper's BCE(T·f, y)) (default: the preset's: observed; paper:"
-            " weighted).",
-        ),
-    ] = None,
-    allow_other_field: Annotated[
-        bool,
-        typer.Option(
-            "--allow-other-field",
-            help="Accept a --field fitted on another dataset (its field.json's dataset_sha256"
-            " differs); run.json records field_dataset_match false.",
-        ),
-    ] = False,
+    method: Method = "ultron",
+    label_fraction: LabelFraction = 0.1,
+    field: FieldDir = None,
+    seed: RunSeed = 0,
+    field_iters: FieldIters = None,
+    occupancy_iters: OccupancyIters = None,
+    points: Points = 100_000,
+    preset: Preset = "fast",
+    visibility: Visibility = "field",
+    oracle_transmission: OracleTransmission = False,
+    surface: Surface = None,
+    theta_context: ThetaContext = None,
+    positive_weight: PositiveWeight = None,
+    negatives: Negatives = None,
+    allow_other_field: AllowOtherField = False,
     max_memory: MaxMemory = None,
     mesh_coordinates: MeshCoordinates = "lps",
     device: DeviceOption = "auto",
@@ -272,27 +225,25 @@ def reconstruct(
     check_choice("--mesh-coordinates", mesh_coordinates, MESH_COORDINATES)
     device = check_device(device)
 
-    from dataclasses import replace
-
-    from ultron.methods.presets import PIPELINE_PRESETS
     from ultron.methods.registry import METHODS
-    from ultron.methods.run import reconstruct as run
+    from ultron.pipeline.presets import PIPELINE_PRESETS, preset_field_config, preset_request
+    from ultron.pipeline.run import reconstruct as run
 
     check_choice("--method", method, tuple(METHODS))
     check_choice("--preset", preset, PIPELINE_PRESETS)
-    request = _request(
-        method, label_fraction, seed, occupancy_iters, points, preset, visibility,
-        oracle_transmission, surface, theta_context, positive_weight, negatives, device,
+    request = preset_request(
+        preset, method, label_fraction, seed, points=points, occupancy_iters=occupancy_iters,
+        visibility=visibility, oracle=oracle_transmission, surface=surface,
+        theta_context=theta_context, positive_weight=positive_weight, negatives=negatives,
+        mesh_coordinates=mesh_coordinates, device=device,
     )  # fmt: skip
-    request = replace(request, mesh_coordinates=mesh_coordinates)
-    bar, update = _field_progress()
-    with bar:
+    with _field_progress() as update:
         summary = run(
             dataset,
             request,
             out,
             field,
-            _field_config(field_iters, seed, preset),
+            preset_field_config(preset, seed, field_iters),
             progress=update,
             allow_other_field=allow_other_field,
             max_memory_gib=max_memory,
@@ -332,38 +283,14 @@ def demo(
     check_seed("--seed", seed)
     device = check_device(device)
 
-    from ultron.data.dataset import SweepDataset
-    from ultron.methods.run import reconstruct as run
-    from ultron.methods.rundir import check_run_dir
-    from ultron.outputs import check_output_dir
+    from ultron.pipeline.demo import DEMO_METHODS, run_demo
 
-    labels = {"ultron": "UltrON (10%)", "ultron-noloss": "UltrON w/o loss (10%)"}
-    check_output_dir(out)
-    for method in labels:
-        check_run_dir(out / method, "reconstruct")
-    from ultron.phantom import SimulationConfig, simulate_dataset
-    from ultron.train.field_fit import fit_field
+    def log(line: str) -> None:
+        console.print(line, highlight=False)
 
-    dataset_dir = out / "dataset"
-    if (dataset_dir / "dataset.json").is_file():
-        console.print(f"using the simulated dataset in {dataset_dir}")
-    else:
-        with console.status("simulating the L3 phantom"):
-            simulate_dataset(SimulationConfig(phantom="L3", seed=seed), out=dataset_dir)
-        console.print(f"simulated L3 → {dataset_dir}")
-    dataset = SweepDataset.load(dataset_dir)
-    field_dir = out / "field"
-    bar, update = _field_progress()
-    with bar:
-        fit_field(dataset, _field_config(None, seed), field_dir, update, resume=True, device=device)
-    console.print(f"acoustic field → {field_dir} (fitted on {device})")
-    summaries = {}
-    for method, label in labels.items():
-        with console.status(f"{label}: occupancy, mesh, metrics"):
-            request = _request(method, 0.1, seed, None, 100_000, device=device)
-            summaries[label] = run(dataset_dir, request, out / method, field_dir)
+    summaries = run_demo(out, seed, device, _field_progress, console.status, log)
     _print_summary(summaries)
-    for method in labels:
+    for method in DEMO_METHODS:
         console.print(
             f"{method}: {out / method / 'mesh.ply'}, {out / method / 'occupancy.nii.gz'}, "
             f"{out / method / 'metrics.json'}, {out / method / 'report.html'}"
@@ -377,26 +304,19 @@ def finetune(
     ],
     dataset: Annotated[Path, typer.Argument(help="The new shape's dataset directory.")],
     out: Annotated[Path, typer.Option("--out", help="Output directory.")],
-    label_fraction: Annotated[
-        float, typer.Option("--label-fraction", help="Share of annotated frames used, in (0, 1].")
-    ] = 0.01,
+    label_fraction: LabelFraction = 0.01,
     iters: Annotated[
         int, typer.Option("--iters", help="Fine-tuning iterations; 0 applies the model as is.")
     ] = 100,
-    field: Annotated[
-        Path | None,
-        typer.Option("--field", help="The new dataset's FIELD_DIR (default: fit and cache one)."),
-    ] = None,
-    seed: Annotated[int, typer.Option("--seed", help="Seed of label selection and training.")] = 0,
+    field: FieldDir = None,
+    seed: RunSeed = 0,
     field_iters: Annotated[
         int | None,
         typer.Option(
             "--field-iters", help="Field iterations when fitting (default: the fast preset's 3000)."
         ),
     ] = None,
-    points: Annotated[
-        int, typer.Option("--points", help="Points per surface for metrics.")
-    ] = 100_000,
+    points: Points = 100_000,
     visibility: Annotated[
         str | None,
         typer.Option(
@@ -404,14 +324,7 @@ def finetune(
             help="Source of the loss's T: field, confidence or labels (default: the model's).",
         ),
     ] = None,
-    allow_other_field: Annotated[
-        bool,
-        typer.Option(
-            "--allow-other-field",
-            help="Accept a --field fitted on another dataset than DATASET (its field.json's"
-            " dataset_sha256 differs); run.json records field_dataset_match false.",
-        ),
-    ] = False,
+    allow_other_field: AllowOtherField = False,
     max_memory: MaxMemory = None,
     mesh_coordinates: MeshCoordinates = "lps",
     device: DeviceOption = "auto",
@@ -429,8 +342,9 @@ def finetune(
     device = check_device(device)
 
     from ultron.methods.finetune import FinetuneConfig
-    from ultron.methods.finetune import finetune as run
     from ultron.metrics.surface import MetricsConfig
+    from ultron.pipeline.finetune import finetune as run
+    from ultron.pipeline.presets import preset_field_config
     from ultron.train.visibility import visibility_config
 
     config = FinetuneConfig(
@@ -442,15 +356,14 @@ def finetune(
         mesh_coordinates=mesh_coordinates,
         device=device,
     )
-    bar, update = _field_progress()
-    with bar:
+    with _field_progress() as update:
         summary = run(
             model_dir,
             dataset,
             config,
             out,
             field,
-            _field_config(field_iters, seed),
+            preset_field_config("fast", seed, field_iters),
             update,
             allow_other_field=allow_other_field,
             max_memory_gib=max_memory,

@@ -92,7 +92,7 @@ def compound(
         select_sweeps,
     )
     from ultron.mesh.splat import INTERPOLATIONS, REDUCTIONS, SplatConfig
-    from ultron.methods.resources import memory_limit
+    from ultron.pipeline.resources import memory_limit
 
     check_range("--spacing", spacing, 0.0, low_open=True)
     check_range("--fill-holes", fill_holes, 0)

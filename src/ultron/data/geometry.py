@@ -70,6 +70,16 @@ def probe_points_mm(rows: torch.Tensor, cols: torch.Tensor, probe: ProbeGeometry
     return torch.stack([x, y, torch.zeros_like(x)], dim=-1)
 
 
+def probe_mm_to_pixel(
+    x_mm: np.ndarray, y_mm: np.ndarray, probe: ProbeGeometry
+) -> tuple[np.ndarray, np.ndarray]:
+    """Fractional (rows, cols) of probe-frame points (x, y) in mm, the inverse of
+    :func:`probe_points_mm`: r = y·H/D_mm, c = x·W/W_mm + W/2 (NumPy, broadcast)."""
+    rows = np.asarray(y_mm) / probe.axial_spacing_mm
+    cols = np.asarray(x_mm) / probe.lateral_spacing_mm + probe.width_px / 2
+    return rows, cols
+
+
 def apply_pose(probe_to_world: torch.Tensor, points_probe: torch.Tensor) -> torch.Tensor:
     """Map probe-frame points to world, one set per pose: x_world[n] = R[n]·p[n] + t[n].
 

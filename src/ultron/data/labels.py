@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ultron.data.dataset import SweepDataset
+from ultron.data.geometry import apply_pose, probe_points_mm
 from ultron.data.validation import LABEL_UNANNOTATED
 from ultron.errors import UltronInputError, argument_error
 
@@ -114,8 +115,6 @@ class LabelledPixels:
         """World positions (M, 3) float64 mm of these pixels (or of ``subset`` indices), each
         through its own frame's ``probe_to_world``."""
         import torch
-
-        from ultron.data.geometry import apply_pose, probe_points_mm
 
         index = np.arange(len(self)) if subset is None else np.asarray(subset, dtype=np.int64)
         out = np.zeros((index.size, 3))

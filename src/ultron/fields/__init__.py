@@ -1,4 +1,5 @@
-"""Acoustic neural fields (stage 1, Ultra-NeRF): named properties, backends, fitted fields."""
+"""Acoustic neural fields (stage 1, Ultra-NeRF): named properties and backends (the fitted
+field with its renderer is :mod:`ultron.models`)."""
 
 from ultron.fields.base import AcousticField
 from ultron.fields.factory import BACKENDS, FieldConfig, build_field
@@ -28,16 +29,3 @@ __all__ = [
     "build_field",
     "properties_from_raw",
 ]
-
-# The fitted-field API depends on ultron.render, which itself uses ultron.fields.base and
-# ultron.fields.properties: load it lazily to keep the import graph acyclic.
-_FITTED = ("FieldMaps", "FittedField", "ThetaStatistics", "load_field")
-__all__ += list(_FITTED)
-
-
-def __getattr__(name: str) -> object:
-    if name in _FITTED:
-        from ultron.fields import fitted
-
-        return getattr(fitted, name)
-    raise AttributeError(f"module 'ultron.fields' has no attribute {name!r}")

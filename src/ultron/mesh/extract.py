@@ -21,7 +21,9 @@ import numpy as np
 
 from ultron.errors import UltronError, argument_error
 from ultron.mesh.grid import GridSpec
+from ultron.mesh.marching import marching_cubes
 from ultron.mesh.smoothing import smooth_constrained
+from ultron.mesh.tiled_extract import extract_tiles
 from ultron.mesh.tiles import DEFAULT_TILE, BinaryTiles
 
 
@@ -75,8 +77,6 @@ def extract_surface_tiles(
     """:func:`extract_surface` of a volume held binarised in tiles
     (:class:`~ultron.mesh.tiles.BinaryTiles`, at ``config.threshold``): the same mesh as the
     single-array path, in memory that grows with the surface (:mod:`ultron.mesh.tiled_extract`)."""
-    from ultron.mesh.tiled_extract import extract_tiles
-
     config = config or ExtractionConfig()
     if tiles.layout.shape != grid.shape:
         raise argument_error(
@@ -93,8 +93,6 @@ def extract_surface_single_grid(
     """The reference extraction on one dense array (module docstring): PyMCubes' smoothing
     band and marching cubes over the whole crop. Same mesh as :func:`extract_surface`, in
     memory that grows with the crop (≈ 60 bytes per voxel)."""
-    import mcubes
-
     config = config or ExtractionConfig()
     volume = np.asarray(occupancy)
     if volume.shape != grid.shape:
@@ -114,7 +112,7 @@ def extract_surface_single_grid(
     crop = binary[lo[0] : hi[0], lo[1] : hi[1], lo[2] : hi[2]]
     padded = np.pad(crop, margin, constant_values=False)
     embedding = smooth_constrained(padded) if config.smooth else padded.astype(np.float64) - 0.5
-    vertices, faces = mcubes.marching_cubes(embedding, 0.0)
+    vertices, faces = marching_cubes(embedding)
     return mesh_on_grid(vertices - margin + lo, faces, grid, config.min_component_fraction)
 
 
@@ -144,7 +142,8 @@ def mesh_on_grid(
     # process=False: PyMCubes can emit distinct vertices at identical positions; merging them
     # (or dropping the zero-area faces between them) would break the mesh's watertightness.
     mesh = trimesh.Trimesh(vertices=vertices_mm, faces=faces, process=False)
-    mesh = keep_large_components(mesh, min_component_fraction)
+    if min_component_fraction > 0:
+        mesh = keep_large_components(mesh, min_component_fraction)
     if mesh.volume < 0:
         mesh.invert()
     return mesh

@@ -1,9 +1,9 @@
 """Marching cubes on a block of a larger array, giving exactly PyMCubes' output on the whole.
 
-PyMCubes (``mcubes.marching_cubes``, the one every ultron surface goes through) visits the
-cubes of an array in C order; cube (i, j, k) has corners v0 … v7 = (i, j, k), (i+1, j, k),
-(i+1, j+1, k), (i, j+1, k), then the same at k+1, and bit m of its case index is set when
-v_m ≤ level. It creates the vertex of a crossed edge when it visits the cube of which that edge
+PyMCubes (``mcubes.marching_cubes``, called only by :func:`marching_cubes` below, the one
+every ultron surface goes through) visits the cubes of an array in C order; cube (i, j, k)
+has corners v0 … v7 = (i, j, k), (i+1, j, k), (i+1, j+1, k), (i, j+1, k), then the same at
+k+1, and bit m of its case index is set when v_m ≤ level. It creates the vertex of a crossed edge when it visits the cube of which that edge
 is the "upper" edge 6 (x, from v6 to v7), 5 (y, from v5 to v6) or 10 (z, from v2 to v6), in
 that order, at
 
@@ -45,12 +45,29 @@ EDGES = np.array(
 CREATOR_OFFSET = np.array([(0, -1, -1), (-1, 0, -1), (-1, -1, 0)])
 
 
+def marching_cubes(inside_positive: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """PyMCubes' marching cubes of the level 0 of a 3-D array that is positive inside: the one
+    call of it in ultron (the blockwise path below is proven equal to it).
+
+    Returns (vertices (V, 3) float64 in the array's fractional indices, faces (F, 3)); map
+    the vertices with :func:`mesh_on_grid`.
+    """
+    import mcubes
+
+    volume = np.asarray(inside_positive)
+    if volume.ndim != 3 or min(volume.shape) < 2:
+        raise argument_error(
+            "inside_positive", f"expected a 3-D array of ≥ 2 per axis, got shape {volume.shape}"
+        )
+    if not np.isfinite(volume).all():
+        raise argument_error("inside_positive", "contains NaN or inf")
+    return mcubes.marching_cubes(volume, 0.0)
+
+
 @functools.cache
 def triangle_table() -> np.ndarray:
     """(256, 16) int: per case index, the edges of its triangles (three per triangle, −1
     after the last), as the installed PyMCubes triangulates them."""
-    import mcubes
-
     midpoints = {tuple(2 * e[1:] + np.eye(3, dtype=int)[e[0]]): n for n, e in enumerate(EDGES)}
     table = np.full((256, 16), -1, dtype=np.int64)
     for case in range(256):
@@ -58,7 +75,7 @@ def triangle_table() -> np.ndarray:
         for m, corner in enumerate(CORNERS):
             if case >> m & 1:
                 cube[tuple(corner)] = -1.0
-        vertices, faces = mcubes.marching_cubes(cube, 0.0)
+        vertices, faces = marching_cubes(cube)
         edges = [midpoints[tuple(np.rint(2 * v).astype(int))] for v in vertices]
         flat = [edges[int(i)] for i in np.asarray(faces).reshape(-1)]
         table[case, : len(flat)] = flat

@@ -30,7 +30,7 @@ import numpy as np
 import torch
 
 from ultron.data.dataset import ProbeGeometry
-from ultron.data.geometry import as_pose_tensor
+from ultron.data.geometry import as_pose_tensor, probe_mm_to_pixel
 from ultron.errors import argument_error
 
 _FRAMES_PER_CHUNK = 8
@@ -139,9 +139,9 @@ def _observed_vertices(
         ok = (np.abs(x) <= probe.width_mm / 2) & (y >= 0) & (y <= probe.depth_mm)
         ok &= facing >= cos_min
         vi, fi, x, y = vi[ok], fi[ok], x[ok], y[ok]
-        row = np.clip(np.floor(y / probe.axial_spacing_mm), 0, probe.height_px - 1).astype(int)
-        col = np.clip(np.rint(x / probe.lateral_spacing_mm + probe.width_px / 2), 0, None)
-        col = np.minimum(col, probe.width_px - 1).astype(int)
+        rows, cols = probe_mm_to_pixel(x, y, probe)
+        row = np.clip(np.floor(rows), 0, probe.height_px - 1).astype(int)
+        col = np.minimum(np.clip(np.rint(cols), 0, None), probe.width_px - 1).astype(int)
         lit = t_maps[start + fi, row, col].astype(np.float64) >= min_transmission
         visible[vi[lit]] = True
     return visible

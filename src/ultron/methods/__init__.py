@@ -1,1 +1,1 @@
-"""Reconstruction methods (UltrON, its ablation, baselines) and the shared run outputs."""
+"""Reconstruction methods (UltrON, its ablation, baselines) behind one registry."""

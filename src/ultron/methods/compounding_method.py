@@ -15,8 +15,8 @@ from ultron.mesh.compounding import CompoundingConfig, compound_labels
 from ultron.mesh.extract import ExtractionConfig, extract_surface
 from ultron.mesh.observed import ObservedSurfaceConfig
 from ultron.methods.evidence import faced_observation
-from ultron.methods.runinfo import StageTimer
 from ultron.methods.ultron_method import Reconstruction
+from ultron.timing import StageTimer
 
 
 def reconstruct_compounding(

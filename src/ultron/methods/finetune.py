@@ -26,24 +26,21 @@ the fine-tuned ``network.pt`` (itself a valid MODEL_DIR).
 from __future__ import annotations
 
 import copy
-from collections.abc import Callable
 from dataclasses import dataclass, field, replace
-from pathlib import Path
 from typing import Any
 
 from torch import nn
 
 from ultron.data.dataset import SweepDataset
 from ultron.data.labels import select_label_frames
-from ultron.device import describe_device, module_device, resolve_device
+from ultron.device import module_device, resolve_device
 from ultron.errors import UltronInputError, argument_error
 from ultron.fields.occupancy import OccupancyNetwork
 from ultron.mesh.export import check_mesh_coordinates
-from ultron.methods.model_io import NETWORK_FILE, load_network
-from ultron.methods.runinfo import StageTimer
 from ultron.methods.ultron_method import (
     Reconstruction,
     ThetaModel,
+    TrainedModel,
     UltronConfig,
     keep_observed_surface,
     mesh_occupancy,
@@ -51,13 +48,16 @@ from ultron.methods.ultron_method import (
     occupancy_training_data,
 )
 from ultron.metrics.surface import MetricsConfig
+from ultron.timing import StageTimer
+from ultron.train.loop import Progress
 from ultron.train.occupancy import OccupancyTrainConfig, fit_occupancy
-from ultron.train.visibility import VisibilityConfig, load_oracle_truth, transmission_summary
+from ultron.train.visibility import VisibilityConfig, transmission_summary
 
 
 @dataclass(frozen=True)
 class FinetuneConfig:
-    """Settings of :func:`finetune` (the paper's: 1 % of frames, 100 iterations, 2 frozen).
+    """Settings of :func:`ultron.pipeline.finetune.finetune` (the paper's: 1 % of frames,
+    100 iterations, 2 frozen).
 
     The paper does not give the fine-tuning learning rate. ``lr`` 1e-3 (decaying to 1e-4) was
     chosen on seed-1 data, never on the benchmark's seed 0: a model trained on L3 (seed 1)
@@ -152,7 +152,7 @@ def finetune_ultron(
     spec: ThetaModel,
     config: FinetuneConfig,
     timer: StageTimer | None = None,
-    progress: Callable[[int, float], None] | None = None,
+    progress: Progress | None = None,
     visibility: VisibilityConfig | None = None,
     truth: dict[str, Any] | None = None,
 ) -> Reconstruction:
@@ -207,66 +207,8 @@ def finetune_ultron(
         mesh=observation.kept,
         volume=volume,
         grid=grid,
-        info=info | {"network": model, "model": meta},
+        info=info,
+        model=TrainedModel(model, meta),
         observation=observation,
         selection=selection,
     )
-
-
-def finetune(
-    model_dir: str | Path,
-    dataset_dir: str | Path,
-    config: FinetuneConfig,
-    out_dir: str | Path,
-    field_dir: str | Path | None = None,
-    field_config=None,
-    progress: Callable[[dict[str, Any]], None] | None = None,
-    report: bool = True,
-    allow_other_field: bool = False,
-    max_memory_gib: float | None = None,
-) -> dict[str, Any]:
-    """Check everything cheap as ``reconstruct`` does (:func:`ultron.methods.run.prepare_run`;
-    DIR must be new, empty or an earlier ``finetune`` run), load MODEL_DIR's network and the
-    new dataset's field, fine-tune, write DIR as ``reconstruct`` does; returns the same summary
-    (``out``, ``metrics``, ``timings_s``).
-
-    A given ``field_dir`` must have been fitted on the new dataset unless
-    ``allow_other_field`` (see :func:`ultron.methods.run.load_or_fit_field`)."""
-    from ultron.methods.run import load_or_fit_field, prepare_run, write_outputs
-    from ultron.train.field_fit import FieldTrainConfig
-
-    timer = StageTimer()
-    where = str(Path(model_dir) / NETWORK_FILE)
-    to_fit = (field_config or FieldTrainConfig()) if field_dir is None else None
-    with timer.stage("load"):
-        dataset, references = prepare_run(
-            out_dir, "finetune", dataset_dir, (model_dir, field_dir), config.meshing.voxel_mm,
-            True, to_fit, max_memory_gib,
-        )  # fmt: skip
-        network, meta = load_network(model_dir)
-        # the source the model was trained with (``field`` if not recorded)
-        visibility = config.visibility or VisibilityConfig.from_dict(meta, where)
-        truth = load_oracle_truth(visibility, dataset_dir, dataset) if config.iters > 0 else None
-    device = resolve_device(config.device, "device")
-    with timer.stage("field"):
-        fitted, extra = load_or_fit_field(
-            dataset_dir, dataset, field_dir, field_config, progress, allow_other_field, device
-        )
-    extra = {"device": describe_device(device), **extra}
-    spec = check_theta_model(network, meta, fitted, where)
-    result = finetune_ultron(
-        dataset, fitted, network, spec, config, timer, visibility=visibility, truth=truth
-    )
-    identity = {
-        "command": "finetune",
-        "method": "ultron-finetune",
-        "label_fraction": config.label_fraction if config.iters > 0 else 0.0,
-        "seed": config.seed,
-        "dataset_dir": str(Path(dataset_dir).resolve()),
-        "model_dir": str(Path(model_dir).resolve()),
-        "model_method": meta.get("method"),
-    }
-    return write_outputs(
-        out_dir, dataset, identity, result, timer, config.metrics, extra, report, references,
-        config.mesh_coordinates,
-    )  # fmt: skip

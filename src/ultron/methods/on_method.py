@@ -26,8 +26,8 @@ from ultron.data.labels import gather_labelled_pixels, select_label_frames
 from ultron.device import module_device
 from ultron.errors import argument_error
 from ultron.fields.occupancy import OccupancyNetworkConfig
-from ultron.methods.runinfo import StageTimer
-from ultron.methods.ultron_method import Reconstruction, UltronConfig, mesh_occupancy
+from ultron.methods.ultron_method import Reconstruction, TrainedModel, UltronConfig, mesh_occupancy
+from ultron.timing import StageTimer
 from ultron.train.occupancy import OccupancyTrainConfig, OccupancyTrainingData, fit_occupancy
 
 
@@ -103,6 +103,7 @@ def reconstruct_on(
         mesh=mesh,
         volume=volume,
         grid=grid,
-        info=info | {"network": network, "model": model},
+        info=info,
+        model=TrainedModel(network, model),
         selection=selection,
     )

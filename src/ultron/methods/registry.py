@@ -2,7 +2,7 @@
 
 ``METHODS`` maps a method's name (``reconstruct --method``) to a :class:`Method`: whether it
 needs a fitted acoustic field, the class of its settings (held by the
-:class:`~ultron.methods.run.ReconstructionRequest`), and ``fit(dataset, inputs)`` →
+:class:`~ultron.pipeline.run.ReconstructionRequest`), and ``fit(dataset, inputs)`` →
 :class:`~ultron.methods.ultron_method.Reconstruction`. The CLI, the benchmark and the reports
 read it instead of keeping their own lists:
 
@@ -36,11 +36,11 @@ from ultron.mesh.compounding import CompoundingConfig
 from ultron.methods.compounding_method import reconstruct_compounding
 from ultron.methods.on_method import ONConfig, reconstruct_on
 from ultron.methods.rocosdf import RoCoSDFConfig, reconstruct_rocosdf
-from ultron.methods.runinfo import StageTimer
 from ultron.methods.ultron_method import Reconstruction, UltronConfig, reconstruct_ultron
+from ultron.timing import StageTimer
 
 if TYPE_CHECKING:
-    from ultron.methods.run import ReconstructionRequest
+    from ultron.pipeline.run import ReconstructionRequest
 
 
 @dataclass(frozen=True)

@@ -26,7 +26,8 @@ near-surface sampling then accepts 40–55 of 200,000 candidates per round (≈ 
 60-frame L3 at 10 % labels; 0 with one frame per sweep): it would run all 200 rounds (≈ 3.6 s
 each on one busy core: ≈ 12 min) after stage 1's usual minutes, measured on one-frame L3.
 
-Normalisation (:class:`Normalisation`): ONE transform for all views, u = (x − c)/s with c the
+Normalisation (:func:`cloud_normalisation`, a :class:`~ultron.data.geometry.UnitCube`): ONE
+transform for all views, u = (x − c)/s with c the
 centre of the union's bounding box and s its largest extent (mm), so the data lies in
 [−0.5, 0.5]³; every output is mapped back to mm. UNSR on a single view uses the same
 transform (and meshing box) as RoCoSDF whenever the other view has bone points too — its
@@ -66,7 +67,7 @@ from __future__ import annotations
 
 import contextlib
 import zlib
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from types import MappingProxyType
 from typing import Any
@@ -75,14 +76,16 @@ import numpy as np
 import torch
 
 from ultron.data.dataset import SweepDataset
+from ultron.data.geometry import UnitCube
 from ultron.data.labels import FrameSelection, gather_labelled_pixels
 from ultron.device import module_device
 from ultron.errors import UltronInputError, argument_error
 from ultron.fields.sdf import SDFNetwork, SDFNetworkConfig
 from ultron.mesh.extract import NoSurfaceError, mesh_on_grid
 from ultron.mesh.grid import GridSpec, evaluate_on_grid
-from ultron.methods.runinfo import StageTimer
-from ultron.methods.ultron_method import Reconstruction
+from ultron.mesh.marching import marching_cubes
+from ultron.methods.ultron_method import Reconstruction, TrainedModel
+from ultron.timing import StageTimer
 from ultron.train.neural_pull import (
     Progress,
     RefineConfig,
@@ -189,48 +192,27 @@ PRESETS: MappingProxyType[str, RoCoSDFConfig] = MappingProxyType(
 
 
 # ------------------------------------------------------------------------------ point clouds
-@dataclass(frozen=True)
-class Normalisation:
-    """World mm ↔ normalised coordinates: u = (x − center_mm)/scale_mm, x = u·scale_mm + center_mm.
+def cloud_normalisation(clouds: Iterable[np.ndarray]) -> UnitCube:
+    """The normalisation of the union of ``clouds`` (each (N, 3) mm, not all empty), as
+    RoCoSDF's code sets it: centred on the union's bounding box, ``half_extent_mm`` = its
+    *largest extent* (not half of it), so the clouds lie in [−0.5, 0.5]³ (module doc)."""
+    stacked = [np.asarray(c, dtype=np.float64).reshape(-1, 3) for c in clouds]
+    points = np.concatenate(stacked) if stacked else np.zeros((0, 3))
+    if len(points) == 0 or not np.isfinite(points).all():
+        raise argument_error("clouds", "expected finite points, got none or non-finite ones")
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    extent = float((hi - lo).max())
+    return UnitCube(tuple(float(c) for c in (lo + hi) / 2), max(extent, 1e-6))
 
-    ``center_mm`` is the centre of the clouds' union bounding box and ``scale_mm`` its largest
-    extent, so the clouds lie in [−0.5, 0.5]³. Computed in float64.
-    """
 
-    center_mm: tuple[float, float, float]
-    scale_mm: float
+def _to_unit(normalisation: UnitCube, points_mm: np.ndarray) -> np.ndarray:
+    """mm (..., 3) → normalised (..., 3), float64 NumPy."""
+    return normalisation.to_unit(torch.as_tensor(points_mm), torch.float64).numpy()
 
-    def __post_init__(self) -> None:
-        if len(self.center_mm) != 3 or not np.isfinite(self.center_mm).all():
-            raise argument_error("center_mm", f"expected 3 finite numbers, got {self.center_mm}")
-        if not (np.isfinite(self.scale_mm) and self.scale_mm > 0):
-            raise argument_error("scale_mm", f"expected > 0, got {self.scale_mm}")
 
-    @classmethod
-    def from_points(cls, clouds: Iterable[np.ndarray]) -> Normalisation:
-        """The normalisation of the union of ``clouds`` (each (N, 3) mm, not all empty)."""
-        stacked = [np.asarray(c, dtype=np.float64).reshape(-1, 3) for c in clouds]
-        points = np.concatenate(stacked) if stacked else np.zeros((0, 3))
-        if len(points) == 0 or not np.isfinite(points).all():
-            raise argument_error("clouds", "expected finite points, got none or non-finite ones")
-        lo, hi = points.min(axis=0), points.max(axis=0)
-        extent = float((hi - lo).max())
-        return cls(tuple(float(c) for c in (lo + hi) / 2), max(extent, 1e-6))
-
-    def to_unit(self, points_mm: np.ndarray) -> np.ndarray:
-        """mm (..., 3) → normalised (..., 3), float64."""
-        return (
-            np.asarray(points_mm, dtype=np.float64) - np.asarray(self.center_mm)
-        ) / self.scale_mm
-
-    def to_mm(self, points_unit: np.ndarray) -> np.ndarray:
-        """normalised (..., 3) → mm (..., 3), float64."""
-        return np.asarray(points_unit, dtype=np.float64) * self.scale_mm + np.asarray(
-            self.center_mm
-        )
-
-    def to_dict(self) -> dict[str, Any]:
-        return {"center_mm": list(self.center_mm), "scale_mm": self.scale_mm}
+def _to_mm(normalisation: UnitCube, points_unit: np.ndarray) -> np.ndarray:
+    """Normalised (..., 3) → mm (..., 3), float64 NumPy."""
+    return normalisation.to_world(torch.as_tensor(points_unit), torch.float64).numpy()
 
 
 def _check_views(views: Sequence[str]) -> tuple[str, ...]:
@@ -350,43 +332,40 @@ def data_box_unit(clouds_unit: Iterable[np.ndarray], margin: float) -> np.ndarra
 
 
 def mesh_grid(
-    clouds_unit: Iterable[np.ndarray], normalisation: Normalisation, config: RoCoSDFConfig
+    clouds_unit: Iterable[np.ndarray], normalisation: UnitCube, config: RoCoSDFConfig
 ) -> GridSpec:
     """The meshing grid in world mm (see module doc: ``data`` box or normalised ``cube``)."""
-    scale = normalisation.scale_mm
+    scale = normalisation.half_extent_mm
     if config.mesh_box == "cube":
         bounds_unit = np.array([[-1.0] * 3, [1.0] * 3])
         voxel_mm = 2.0 * scale / (config.mesh_resolution - 1)
-        return GridSpec.from_bounds(normalisation.to_mm(bounds_unit), voxel_mm, pad_voxels=0)
+        return GridSpec.from_bounds(_to_mm(normalisation, bounds_unit), voxel_mm, pad_voxels=0)
     bounds_unit = data_box_unit(clouds_unit, config.mesh_margin)
-    bounds_mm = normalisation.to_mm(bounds_unit)
+    bounds_mm = _to_mm(normalisation, bounds_unit)
     voxel_mm = float((bounds_mm[1] - bounds_mm[0]).max()) / (config.mesh_resolution - 1)
     return GridSpec.from_bounds(bounds_mm, voxel_mm, pad_voxels=0)
 
 
 def mesh_sdf(
-    network: SDFNetwork, normalisation: Normalisation, grid: GridSpec, config: RoCoSDFConfig
+    network: SDFNetwork, normalisation: UnitCube, grid: GridSpec, config: RoCoSDFConfig
 ) -> tuple[Any, np.ndarray]:
     """Marching cubes of −f at 0 on ``grid``; returns (mesh in world mm, inside volume).
 
     Raises :class:`NoSurfaceError` when f does not change sign on the grid.
     """
-    import mcubes
-
-    center = torch.tensor(normalisation.center_mm, dtype=torch.float64)
 
     def fn(points_mm: torch.Tensor) -> torch.Tensor:
-        unit = (points_mm.to(torch.float64) - center) / normalisation.scale_mm
-        return network(unit.float().to(module_device(network))).cpu()
+        unit = normalisation.to_unit(points_mm, torch.float32)
+        return network(unit.to(module_device(network))).cpu()
 
     sdf = evaluate_on_grid(fn, grid, config.chunk_points)
     n_inside = int((sdf < 0).sum())
     if n_inside == 0 or n_inside == sdf.size:
         where = "no voxel" if n_inside == 0 else "every voxel"
         raise NoSurfaceError(f"no surface: the SDF is negative at {where} of the meshing grid")
-    vertices, faces = mcubes.marching_cubes(-sdf.astype(np.float64), 0.0)
+    vertices, faces = marching_cubes(-sdf.astype(np.float64))
     mesh = mesh_on_grid(vertices, faces, grid, config.min_component_fraction)
-    voxel_unit = grid.voxel_mm / normalisation.scale_mm
+    voxel_unit = grid.voxel_mm / normalisation.half_extent_mm
     volume = (1.0 / (1.0 + np.exp(np.clip(sdf / voxel_unit, -60, 60)))).astype(np.float32)
     return mesh, volume
 
@@ -410,6 +389,54 @@ def _input_clouds(
             with contextlib.suppress(UltronInputError):
                 frame_clouds |= view_point_clouds(dataset, selection, config.voxel_mm, (other,))
     return clouds_mm, frame_clouds
+
+
+def _fit_views(
+    clouds_unit: dict[str, np.ndarray],
+    views: tuple[str, ...],
+    config: RoCoSDFConfig,
+    seed: int,
+    progress: Progress | None,
+    device: torch.device | str,
+) -> tuple[dict[str, SDFNetwork], dict[str, Any]]:
+    """Stage 1: each view's SDF network and its fit's log, by view."""
+    fits, logs = {}, {}
+    for view in views:
+        fit = fit_view_sdf(
+            clouds_unit[view], config.view_fit, _stage_generator(seed, f"stage1_{view}"), progress,
+            name=view, device=device,
+        )  # fmt: skip
+        fits[view], logs[view] = fit.network, fit.log
+    return fits, logs
+
+
+def _fuse_and_refine(
+    fits: list[SDFNetwork],
+    frame_unit: list[np.ndarray],
+    config: RoCoSDFConfig,
+    seed: int,
+    progress: Progress | None,
+    stage: Callable[[str], contextlib.AbstractContextManager[Any]],
+    info: dict[str, Any],
+    device: torch.device | str,
+) -> SDFNetwork:
+    """Stages 2 and 3: the views' SDFs fused (CSG intersection) and resampled, then one
+    network regressing the fused SDF; their accounts go into ``info``."""
+    with stage("rocosdf_stage2"):
+        samples = fuse_and_resample(
+            fits,
+            config.resample,
+            _stage_generator(seed, "stage2"),
+            candidate_bounds=data_box_unit(frame_unit, config.mesh_margin),
+            device=device,
+        )
+    info["stage2"] = {k: getattr(samples, k) for k in ("n_grid", "n_surface", "rounds")}
+    with stage("rocosdf_stage3"):
+        refined = fit_refined_sdf(
+            samples, config.refine, _stage_generator(seed, "stage3"), progress, device
+        )
+    info["stage3"] = refined.log
+    return refined.network
 
 
 def reconstruct_rocosdf(
@@ -443,18 +470,11 @@ def reconstruct_rocosdf(
 
     with stage("rocosdf_points"):
         clouds_mm, frame_clouds = _input_clouds(dataset, selection, config, views, dataset_name)
-        normalisation = Normalisation.from_points(frame_clouds.values())
-        clouds_unit = {v: normalisation.to_unit(p) for v, p in clouds_mm.items()}
-        frame_unit = [normalisation.to_unit(p) for p in frame_clouds.values()]
-    fits, stage1 = {}, {}
+        normalisation = cloud_normalisation(frame_clouds.values())
+        clouds_unit = {v: _to_unit(normalisation, p) for v, p in clouds_mm.items()}
+        frame_unit = [_to_unit(normalisation, p) for p in frame_clouds.values()]
     with stage("rocosdf_stage1"):
-        for view in views:
-            fit = fit_view_sdf(
-                clouds_unit[view], config.view_fit, _stage_generator(seed, f"stage1_{view}"),
-                progress, name=view, device=device,
-            )  # fmt: skip
-            fits[view] = fit.network
-            stage1[view] = fit.log
+        fits, stage1 = _fit_views(clouds_unit, views, config, seed, progress, device)
     info: dict[str, Any] = {
         "variant": METHOD_NAMES[views],
         "preset": config.preset_name,
@@ -470,21 +490,8 @@ def reconstruct_rocosdf(
     if len(views) == 1:
         network = fits[views[0]]
     else:
-        with stage("rocosdf_stage2"):
-            samples = fuse_and_resample(
-                [fits[v] for v in views],
-                config.resample,
-                _stage_generator(seed, "stage2"),
-                candidate_bounds=data_box_unit(frame_unit, config.mesh_margin),
-                device=device,
-            )
-        info["stage2"] = {k: getattr(samples, k) for k in ("n_grid", "n_surface", "rounds")}
-        with stage("rocosdf_stage3"):
-            refined = fit_refined_sdf(
-                samples, config.refine, _stage_generator(seed, "stage3"), progress, device
-            )
-        info["stage3"] = refined.log
-        network = refined.network
+        fused = [fits[v] for v in views]
+        network = _fuse_and_refine(fused, frame_unit, config, seed, progress, stage, info, device)
     with stage("mesh"):
         grid = mesh_grid(frame_unit, normalisation, config)
         mesh, volume = mesh_sdf(network, normalisation, grid, config)
@@ -495,6 +502,7 @@ def reconstruct_rocosdf(
         mesh=mesh,
         volume=volume,
         grid=grid,
-        info=info | {"network": network, "model": model},
+        info=info,
+        model=TrainedModel(network, model),
         selection=selection,
     )

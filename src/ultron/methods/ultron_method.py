@@ -46,7 +46,7 @@ from ultron.mesh.extract import ExtractionConfig, extract_surface_tiles
 from ultron.mesh.grid import GridSpec, meshing_voxel_mm
 from ultron.mesh.observed import ObservedSurfaceConfig, SurfaceObservation, observe_surface
 from ultron.mesh.tiles import evaluate_tiles, field_of_view_tiles, tile_for_factor
-from ultron.methods.runinfo import StageTimer
+from ultron.timing import StageTimer
 from ultron.train.occupancy import OccupancyTrainConfig, OccupancyTrainingData, fit_occupancy
 from ultron.train.visibility import (
     VisibilityConfig,
@@ -123,14 +123,26 @@ class ThetaModel:
         )
 
 
+@dataclass(frozen=True)
+class TrainedModel:
+    """A method's trained network and what reusing it needs (its input, loss, sources …),
+    saved as the run's ``network.pt`` (:mod:`ultron.pipeline.model_io`)."""
+
+    network: torch.nn.Module
+    meta: dict[str, Any]
+
+
 @dataclass
 class Reconstruction:
-    """What a method produced: the mesh (world mm), its occupancy volume and bookkeeping."""
+    """What a method produced: the mesh (world mm), its occupancy volume and run.json's account
+    of it (``info``: JSON-able)."""
 
     mesh: Any
     volume: np.ndarray
     grid: GridSpec
     info: dict[str, Any]
+    #: The trained network, for methods that train one (None: compounding).
+    model: TrainedModel | None = None
     #: The extracted surface split into observed / inferred (``mesh`` is its ``kept`` part);
     #: None when the method did not compute it (the pipeline then does, with T ≡ 1).
     observation: SurfaceObservation | None = None
@@ -318,7 +330,8 @@ def reconstruct_ultron(
         mesh=observation.kept,
         volume=volume,
         grid=grid,
-        info=info | {"network": network, "model": model},
+        info=info,
+        model=TrainedModel(network, model),
         observation=observation,
         selection=selection,
     )

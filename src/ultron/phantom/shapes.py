@@ -29,7 +29,7 @@ import math
 from collections.abc import Mapping
 from dataclasses import dataclass, fields
 from types import MappingProxyType
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 import torch
@@ -49,6 +49,19 @@ DEFAULT_VOXEL_MM = 0.3
 DEFAULT_MARGIN_MM = 3.0
 
 # ---------------------------------------------------------------------------- vertebra
+
+
+class _Landmarks(NamedTuple):
+    """Derived positions of a vertebra's neural arch (mm, radians), shared by its primitives."""
+
+    wall_y: float
+    ped_x: float
+    ped_back_y: float
+    lam_mid_y: float
+    lam_z: float
+    lam_up: tuple[float, float, float]
+    sweep: float
+    tp_y: float
 
 
 @dataclass(frozen=True)
@@ -94,20 +107,12 @@ class VertebraShape:
     def primitives(self) -> tuple[Primitive, ...]:
         """The primitives of this vertebra in the world frame (origin at the body centre)."""
         s = self
-        wall_y = -s.body_depth_mm / 2
-        ped_x = s.canal_width_mm / 2 + s.pedicle_width_mm / 2
-        ped_back_y = wall_y - s.pedicle_length_mm
-        lam_mid_y = wall_y - s.canal_depth_mm - s.lamina_thickness_mm / 2
-        lam_z = s.pedicle_z_mm - 4.0
-        incline = math.radians(s.lamina_incline_deg)
-        lam_up = (0.0, math.sin(incline), math.cos(incline))
+        at = s._landmarks()
         droop = math.radians(s.spinous_droop_deg)
         sp_dir = np.array([0.0, -math.cos(droop), -math.sin(droop)])
-        sp_start = np.array([0.0, lam_mid_y + 1.0, lam_z])
+        sp_start = np.array([0.0, at.lam_mid_y + 1.0, at.lam_z])
         sp_end = sp_start + s.spinous_length_mm * sp_dir
         tip_center = sp_end - 0.45 * s.spinous_tip_mm * sp_dir
-        sweep = math.radians(s.transverse_sweep_deg)
-        tp_y = ped_back_y + 2.0
         parts: list[Primitive] = [
             VertebralBody(
                 s.body_width_mm,
@@ -130,61 +135,89 @@ class VertebraShape:
             ),
         ]
         for side in (-1.0, 1.0):
-            parts += [
-                SegmentBox(  # pedicle
-                    (side * ped_x, wall_y + 5.0, s.pedicle_z_mm),
-                    (side * ped_x, ped_back_y, s.pedicle_z_mm),
-                    (0.0, 0.0, 1.0),
-                    s.pedicle_height_mm / 2,
-                    s.pedicle_width_mm / 2,
-                    3.0,
-                ),
-                SegmentBox(  # lamina
-                    (side * (ped_x + 1.0), ped_back_y + 1.0, lam_z),
-                    (0.0, lam_mid_y, lam_z),
-                    lam_up,
-                    s.lamina_height_mm / 2,
-                    s.lamina_thickness_mm / 2,
-                    min(2.5, s.lamina_thickness_mm / 2 - 0.1),
-                ),
-                SegmentBox(  # transverse process
-                    (side * ped_x, tp_y, s.pedicle_z_mm),
-                    (
-                        side * (ped_x + s.transverse_length_mm),
-                        tp_y - s.transverse_length_mm * math.sin(sweep),
-                        s.pedicle_z_mm + 1.0,
-                    ),
-                    (0.0, 0.0, 1.0),
-                    s.transverse_height_mm / 2,
-                    s.transverse_thickness_mm / 2,
-                    min(2.0, s.transverse_thickness_mm / 2 - 0.1),
-                ),
-                SegmentBox(  # superior articular process (facet faces posteromedially)
-                    (side * (ped_x + 1.0), ped_back_y - 1.0, s.pedicle_z_mm + 2.0),
-                    (
-                        side * (ped_x + 2.5),
-                        ped_back_y - 4.0,
-                        s.pedicle_z_mm + 2.0 + s.articular_height_mm,
-                    ),
-                    (1.0, -0.4 * side, 0.0),
-                    s.articular_thickness_mm / 2,
-                    s.articular_width_mm / 2,
-                    min(2.0, s.articular_thickness_mm / 2 - 0.1),
-                ),
-                SegmentBox(  # inferior articular process (facet faces anterolaterally)
-                    (side * (ped_x - 5.0), lam_mid_y + 1.0, lam_z - s.lamina_height_mm / 2 + 3),
-                    (
-                        side * (ped_x - 3.5),
-                        lam_mid_y,
-                        lam_z - s.lamina_height_mm / 2 + 3 - s.articular_height_mm,
-                    ),
-                    (1.0, 0.4 * side, 0.0),
-                    s.articular_thickness_mm / 2,
-                    s.articular_width_mm / 2,
-                    min(2.0, s.articular_thickness_mm / 2 - 0.1),
-                ),
-            ]
+            parts += s._arch_side(side, at)
         return tuple(parts)
+
+    def _landmarks(self) -> _Landmarks:
+        s = self
+        wall_y = -s.body_depth_mm / 2
+        ped_back_y = wall_y - s.pedicle_length_mm
+        incline = math.radians(s.lamina_incline_deg)
+        return _Landmarks(
+            wall_y=wall_y,
+            ped_x=s.canal_width_mm / 2 + s.pedicle_width_mm / 2,
+            ped_back_y=ped_back_y,
+            lam_mid_y=wall_y - s.canal_depth_mm - s.lamina_thickness_mm / 2,
+            lam_z=s.pedicle_z_mm - 4.0,
+            lam_up=(0.0, math.sin(incline), math.cos(incline)),
+            sweep=math.radians(s.transverse_sweep_deg),
+            tp_y=ped_back_y + 2.0,
+        )
+
+    def _arch_side(self, side: float, at: _Landmarks) -> list[Primitive]:
+        """One side (x sign ``side``) of the neural arch: pedicle, lamina, transverse process,
+        superior and inferior articular processes."""
+        s, ped_x, ped_back_y, lam_mid_y, lam_z = (
+            self,
+            at.ped_x,
+            at.ped_back_y,
+            at.lam_mid_y,
+            at.lam_z,
+        )
+        return [
+            SegmentBox(  # pedicle
+                (side * ped_x, at.wall_y + 5.0, s.pedicle_z_mm),
+                (side * ped_x, ped_back_y, s.pedicle_z_mm),
+                (0.0, 0.0, 1.0),
+                s.pedicle_height_mm / 2,
+                s.pedicle_width_mm / 2,
+                3.0,
+            ),
+            SegmentBox(  # lamina
+                (side * (ped_x + 1.0), ped_back_y + 1.0, lam_z),
+                (0.0, lam_mid_y, lam_z),
+                at.lam_up,
+                s.lamina_height_mm / 2,
+                s.lamina_thickness_mm / 2,
+                min(2.5, s.lamina_thickness_mm / 2 - 0.1),
+            ),
+            SegmentBox(  # transverse process
+                (side * ped_x, at.tp_y, s.pedicle_z_mm),
+                (
+                    side * (ped_x + s.transverse_length_mm),
+                    at.tp_y - s.transverse_length_mm * math.sin(at.sweep),
+                    s.pedicle_z_mm + 1.0,
+                ),
+                (0.0, 0.0, 1.0),
+                s.transverse_height_mm / 2,
+                s.transverse_thickness_mm / 2,
+                min(2.0, s.transverse_thickness_mm / 2 - 0.1),
+            ),
+            SegmentBox(  # superior articular process (facet faces posteromedially)
+                (side * (ped_x + 1.0), ped_back_y - 1.0, s.pedicle_z_mm + 2.0),
+                (
+                    side * (ped_x + 2.5),
+                    ped_back_y - 4.0,
+                    s.pedicle_z_mm + 2.0 + s.articular_height_mm,
+                ),
+                (1.0, -0.4 * side, 0.0),
+                s.articular_thickness_mm / 2,
+                s.articular_width_mm / 2,
+                min(2.0, s.articular_thickness_mm / 2 - 0.1),
+            ),
+            SegmentBox(  # inferior articular process (facet faces anterolaterally)
+                (side * (ped_x - 5.0), lam_mid_y + 1.0, lam_z - s.lamina_height_mm / 2 + 3),
+                (
+                    side * (ped_x - 3.5),
+                    lam_mid_y,
+                    lam_z - s.lamina_height_mm / 2 + 3 - s.articular_height_mm,
+                ),
+                (1.0, 0.4 * side, 0.0),
+                s.articular_thickness_mm / 2,
+                s.articular_width_mm / 2,
+                min(2.0, s.articular_thickness_mm / 2 - 0.1),
+            ),
+        ]
 
 
 # ---------------------------------------------------------------------------- phantoms

@@ -54,6 +54,7 @@ from ultron.data.dataset import ProbeGeometry
 from ultron.data.geometry import as_pose_tensor, frame_pixels_world
 from ultron.errors import argument_error
 from ultron.phantom.scanline import (
+    Crossings,
     deposit_echoes,
     echo_amplitudes,
     interface_crossings,
@@ -257,6 +258,54 @@ class _FrameConstants:
         )
 
 
+def _incidence_cosines(
+    crossings: Crossings, points: torch.Tensor, poses: torch.Tensor, volume: SdfVolume
+) -> torch.Tensor:
+    """|cos| of the incidence angle between the beam and the SDF normal at each interface
+    crossing (computed only there; 0 elsewhere), shaped like ``crossings.fraction``."""
+    cos_incidence = torch.zeros_like(crossings.fraction)
+    index = crossings.any.nonzero(as_tuple=True)
+    if index[0].numel():
+        f = crossings.fraction[index][:, None]
+        p0 = points[index[0], index[1], index[2], index[3]]
+        p1 = points[index[0], index[1], index[2] + 1, index[3]]
+        normals = volume.normals(p0 + f * (p1 - p0))
+        beam = poses[index[0], :3, 1]
+        cos_incidence[index] = (normals * beam).sum(-1).abs().to(torch.float32)
+    return cos_incidence
+
+
+def _centre_plane_interfaces(
+    crossings: Crossings,
+    echo: torch.Tensor,
+    config: BModeConfig,
+    step: float,
+    gel_db: float,
+    centre_plane: int,
+) -> BoneInterfaces:
+    """The bone interfaces of the centre elevation plane, per pixel: entering / exiting, depth
+    (mm) and the echo (dB re. the reflection, with the TGC at its depth)."""
+    n, rows_minus_one, width = crossings.entering[:, centre_plane].shape
+    reflection = config.reflection
+    pad = torch.zeros((n, 1, width), dtype=torch.bool)
+    enter_c = torch.cat([pad, crossings.entering[:, centre_plane]], 1)
+    exit_c = torch.cat([pad, crossings.exiting[:, centre_plane]], 1)
+    rows = torch.arange(1, rows_minus_one + 1, dtype=torch.float32)[None, :, None]
+    depth_c = (rows - 1.0 + crossings.fraction[:, centre_plane]) * step
+    depth_c = torch.cat([pad.to(torch.float32), depth_c], 1)
+    tgc_cross = amplitude_from_db(-config.tgc_compensation * 2.0 * gel_db * depth_c)
+    echo_c = torch.cat([pad.to(torch.float32), echo[:, centre_plane]], 1) * tgc_cross
+    has = enter_c | exit_c
+    return BoneInterfaces(
+        entering=enter_c,
+        exiting=exit_c,
+        depth_mm=torch.where(has, depth_c, float("nan")),
+        echo_db=torch.where(
+            has, 20.0 * torch.log10(echo_c.clamp(min=1e-30) / math.sqrt(reflection)), -math.inf
+        ),
+    )
+
+
 def _simulate_chunk(
     poses: torch.Tensor,
     probe: ProbeGeometry,
@@ -266,7 +315,6 @@ def _simulate_chunk(
     constants: _FrameConstants,
     generator: torch.Generator,
 ) -> tuple[torch.Tensor, BoneInterfaces, torch.Tensor]:
-    n, height, width = poses.shape[0], probe.height_px, probe.width_px
     step = probe.axial_spacing_mm
     offsets = config.elevation_offsets_mm()
     centre = frame_pixels_world(poses, probe)  # (n, H, W, 3)
@@ -282,16 +330,7 @@ def _simulate_chunk(
     attenuation_db = round_trip_attenuation_db(occupancy, step, gel_db, bone_db)
     crossings = interface_crossings(sdf)
 
-    # Incidence angle from the SDF normal at each interface (computed only there).
-    cos_incidence = torch.zeros_like(crossings.fraction)
-    index = crossings.any.nonzero(as_tuple=True)
-    if index[0].numel():
-        f = crossings.fraction[index][:, None]
-        p0 = points[index[0], index[1], index[2], index[3]]
-        p1 = points[index[0], index[1], index[2] + 1, index[3]]
-        normals = volume.normals(p0 + f * (p1 - p0))
-        beam = poses[index[0], :3, 1]
-        cos_incidence[index] = (normals * beam).sum(-1).abs().to(torch.float32)
+    cos_incidence = _incidence_cosines(crossings, points, poses, volume)
     reflection = config.reflection
     echo = echo_amplitudes(
         crossings,
@@ -320,21 +359,5 @@ def _simulate_chunk(
 
     centre_plane = config.elevation_planes // 2
     true_transmission = (transmission[:, centre_plane] * constants.tgc[None, :, None]).clamp(0, 1)
-    pad = torch.zeros((n, 1, width), dtype=torch.bool)
-    enter_c = torch.cat([pad, crossings.entering[:, centre_plane]], 1)
-    exit_c = torch.cat([pad, crossings.exiting[:, centre_plane]], 1)
-    rows = torch.arange(1, height, dtype=torch.float32)[None, :, None]
-    depth_c = (rows - 1.0 + crossings.fraction[:, centre_plane]) * step
-    depth_c = torch.cat([pad.to(torch.float32), depth_c], 1)
-    tgc_cross = amplitude_from_db(-config.tgc_compensation * 2.0 * gel_db * depth_c)
-    echo_c = torch.cat([pad.to(torch.float32), echo[:, centre_plane]], 1) * tgc_cross
-    has = enter_c | exit_c
-    interfaces = BoneInterfaces(
-        entering=enter_c,
-        exiting=exit_c,
-        depth_mm=torch.where(has, depth_c, float("nan")),
-        echo_db=torch.where(
-            has, 20.0 * torch.log10(echo_c.clamp(min=1e-30) / math.sqrt(reflection)), -math.inf
-        ),
-    )
+    interfaces = _centre_plane_interfaces(crossings, echo, config, step, gel_db, centre_plane)
     return images, interfaces, true_transmission

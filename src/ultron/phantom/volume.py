@@ -16,6 +16,9 @@ import torch
 import torch.nn.functional as F
 
 from ultron.errors import argument_error
+from ultron.mesh.extract import mesh_on_grid
+from ultron.mesh.grid import GridSpec
+from ultron.mesh.marching import marching_cubes
 
 if TYPE_CHECKING:
     import trimesh
@@ -109,21 +112,14 @@ class SdfVolume:
         return grad / grad.norm(dim=-1, keepdim=True).clamp(min=1e-9)
 
     def mesh(self) -> trimesh.Trimesh:
-        """Marching cubes of the zero level set (PyMCubes), world mm, outward-facing, watertight."""
-        import mcubes
-        import trimesh
-
+        """Marching cubes of the zero level set, world mm, outward-facing, watertight."""
         inside_positive = -self.values.numpy().astype(np.float64)
         # A node exactly on the level set makes zero-area triangles; count it as outside.
         inside_positive[inside_positive == 0.0] = -1e-6
-        verts_zyx, faces = mcubes.marching_cubes(inside_positive, 0.0)
-        verts = np.asarray(self.origin_mm) + verts_zyx[:, ::-1] * self.voxel_mm
-        # PyMCubes shares vertices between faces already: no merging (which could fuse the
-        # vertices of nearly degenerate triangles into non-manifold edges).
-        mesh = trimesh.Trimesh(vertices=verts, faces=faces.astype(np.int64), process=False)
-        if mesh.volume < 0:
-            mesh.invert()
-        return mesh
+        vertices_zyx, faces = marching_cubes(inside_positive)
+        grid = GridSpec(self.origin_mm, self.voxel_mm, self.shape_xyz)
+        # every component kept: a phantom may have several bones
+        return mesh_on_grid(vertices_zyx[:, ::-1], faces, grid, min_component_fraction=0.0)
 
 
 def _evaluate_grid(

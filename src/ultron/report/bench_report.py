@@ -22,6 +22,8 @@ from typing import Any
 
 from ultron.data.dataset import SweepDataset
 from ultron.errors import UltronError, UltronInputError
+from ultron.models.fitted import load_field
+from ultron.pipeline.record import RunRecord
 from ultron.report.html import (
     Section,
     build_html,
@@ -94,17 +96,17 @@ class _Loader:
     """Caches run.json files, datasets and fields shared by many cells."""
 
     def __init__(self) -> None:
-        self.runs: dict[Path, dict[str, Any]] = {}
+        self.runs: dict[Path, RunRecord] = {}
         self.datasets: dict[Path, SweepDataset] = {}
         self.fields: dict[Path, Any] = {}
 
-    def run(self, cell: Cell) -> dict[str, Any]:
+    def run(self, cell: Cell) -> RunRecord:
         if cell.run_dir not in self.runs:
-            self.runs[cell.run_dir] = read_json_file(cell.run_dir / "run.json")
+            self.runs[cell.run_dir] = RunRecord.read(cell.run_dir)
         return self.runs[cell.run_dir]
 
     def dataset(self, cell: Cell) -> SweepDataset:
-        path = resolve_dir(self.run(cell).get("dataset_dir"), cell.run_dir)
+        path = resolve_dir(self.run(cell).dataset_dir, cell.run_dir)
         if path is None:
             raise UltronInputError(cell.run_dir / "run.json", "dataset_dir", "is missing")
         if path not in self.datasets:
@@ -112,11 +114,10 @@ class _Loader:
         return self.datasets[path]
 
     def field_dir(self, cell: Cell) -> Path | None:
-        path = resolve_dir(self.run(cell).get("field_dir"), cell.run_dir)
+        path = resolve_dir(self.run(cell).field_dir, cell.run_dir)
         return path if path is not None and path.is_dir() else None
 
     def fitted(self, field_dir: Path):
-        from ultron.fields.fitted import load_field
 
         if field_dir not in self.fields:
             self.fields[field_dir] = load_field(field_dir)
@@ -209,16 +210,16 @@ def _frames_html(ok: list[Cell], loader: _Loader) -> tuple[str, Path | None]:
 
 def _masks_html(ok: list[Cell], loader: _Loader) -> str:
     def is_ultron(cell: Cell) -> bool:
-        return loader.run(cell).get("method") == "ultron"
+        return loader.run(cell).method == "ultron"
 
-    with_selection = [c for c in ok if isinstance(loader.run(c).get("selection"), dict)]
+    with_selection = [c for c in ok if isinstance(loader.run(c).details.get("selection"), dict)]
     cell = next((c for c in with_selection if is_ultron(c)), None)
     cell = cell or next((c for c in with_selection if "ultron" in c.row.lower()), None)
     if cell is None:
         return note("No successful UltrON cell with a recorded label selection.")
     attrs = {"data-method": cell.row, "data-cell": cell.id}
     return guarded(
-        lambda: masks_html(loader.dataset(cell), loader.run(cell).get("selection"), attrs),
+        lambda: masks_html(loader.dataset(cell), loader.run(cell).details["selection"], attrs),
         f"label masks of cell {cell.id}",
     )
 
@@ -230,7 +231,7 @@ def _losses_html(rows: list[str], ok: list[Cell], loader: _Loader, field_dir: Pa
         cell = next((c for c in ok if c.row == row), None)
         if cell is None:
             continue
-        run = loader.run(cell)
+        run = loader.run(cell).to_dict()
         curves.update(run_loss_curves(run, None, prefix=f"{row}: "))
         finals.extend(final_loss_rows(run, prefix=f"{row}: "))
     curves = dict(list(curves.items())[: MAX_CURVES - 1 if field_dir else MAX_CURVES])

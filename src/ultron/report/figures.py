@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 
 from ultron.errors import argument_error
+from ultron.metrics.surface import point_to_surface_distances, sample_surface
 from ultron.report.frame_figures import frames_figure, label_masks_figure
 from ultron.report.plotting import figure_png, new_figure
 
@@ -72,6 +73,52 @@ def _style_axes(ax, limits: tuple[tuple, tuple], h: int, v: int, title: str) -> 
     ax.set_title(title, fontsize=8)
 
 
+def _check_distance_figure_args(
+    mesh, reference, title: str, n_points: int, seed: int, clip_mm: float | None
+) -> None:
+    """:func:`mesh_distance_figure`'s arguments, each refused with an error naming it."""
+    _check_mesh(mesh, "mesh")
+    if reference is not None:
+        _check_mesh(reference, "reference")
+    if not isinstance(title, str):
+        raise argument_error("title", "expected a string")
+    if isinstance(n_points, bool) or not isinstance(n_points, int) or not 1 <= n_points <= 10**6:
+        raise argument_error("n_points", f"expected an integer in [1, 1e6], got {n_points!r}")
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+        raise argument_error("seed", f"expected a non-negative integer, got {seed!r}")
+    if clip_mm is not None and not (isinstance(clip_mm, int | float) and clip_mm > 0):
+        raise argument_error("clip_mm", f"expected a positive number or None, got {clip_mm!r}")
+
+
+def _distance_heading_and_bar(
+    fig, title: str, distances, scatter, grid_of_views: bool, clip_mm: float | None, vmax
+) -> None:
+    """The figure's heading (with the distance summary) and, with distances, the colour bar."""
+    heading = title if title else "reconstruction"
+    if distances is None:
+        heading += " (no reference)"
+    else:
+        heading += (
+            f"  —  sampled distance to reference: mean {distances.mean():.2f} mm, "
+            f"95th pct {np.percentile(distances, 95):.2f} mm, max {distances.max():.2f} mm"
+        )
+    fig.suptitle(heading, fontsize=9)
+    if grid_of_views:
+        fig.tight_layout(rect=(0, 0, 0.86 if scatter is not None else 1.0, 0.97))
+    else:
+        fig.subplots_adjust(left=0.07, right=0.97, bottom=0.15, top=0.84, wspace=0.25)
+    if scatter is not None:
+        which = (
+            f"clipped at {clip_mm:g} mm"
+            if clip_mm is not None
+            else (f"clipped at the 95th percentile, {vmax:.2f} mm")
+        )
+        cax = fig.add_axes((0.89, 0.12, 0.022, 0.76))
+        bar = fig.colorbar(scatter, cax=cax, extend="max")
+        bar.set_label(f"distance to reference (mm), {which}", fontsize=8)
+        bar.ax.tick_params(labelsize=7)
+
+
 def mesh_distance_figure(
     mesh,
     reference,
@@ -85,20 +132,7 @@ def mesh_distance_figure(
     point-to-surface distance to the reference in mm. The colour range ends at ``clip_mm``
     (``None``: at the 95th percentile of the distances); the colour bar says which.
     With ``reference=None`` the mesh is shown alone, shaded grey, marked "no reference"."""
-    from ultron.metrics.surface import point_to_surface_distances, sample_surface
-
-    _check_mesh(mesh, "mesh")
-    if reference is not None:
-        _check_mesh(reference, "reference")
-    if not isinstance(title, str):
-        raise argument_error("title", "expected a string")
-    if isinstance(n_points, bool) or not isinstance(n_points, int) or not 1 <= n_points <= 10**6:
-        raise argument_error("n_points", f"expected an integer in [1, 1e6], got {n_points!r}")
-    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
-        raise argument_error("seed", f"expected a non-negative integer, got {seed!r}")
-    if clip_mm is not None and not (isinstance(clip_mm, int | float) and clip_mm > 0):
-        raise argument_error("clip_mm", f"expected a positive number or None, got {clip_mm!r}")
-
+    _check_distance_figure_args(mesh, reference, title, n_points, seed, clip_mm)
     points, faces = sample_surface(mesh, n_points, seed=2 * seed)
     normals = np.asarray(mesh.face_normals)[faces]
     columns: list[tuple[str, np.ndarray, np.ndarray]] = []
@@ -140,29 +174,7 @@ def mesh_distance_figure(
                 rgb = np.clip(_shade(nrm, direction)[:, None] * tint[None, :], 0.0, 1.0)
                 _draw_points(ax, pts, direction, h, v, c=rgb)
             _style_axes(ax, limits[row], h, v, f"{name}: {view_title}")
-    heading = title if title else "reconstruction"
-    if distances is None:
-        heading += " (no reference)"
-    else:
-        heading += (
-            f"  —  sampled distance to reference: mean {distances.mean():.2f} mm, "
-            f"95th pct {np.percentile(distances, 95):.2f} mm, max {distances.max():.2f} mm"
-        )
-    fig.suptitle(heading, fontsize=9)
-    if n_cols > 1:
-        fig.tight_layout(rect=(0, 0, 0.86 if scatter is not None else 1.0, 0.97))
-    else:
-        fig.subplots_adjust(left=0.07, right=0.97, bottom=0.15, top=0.84, wspace=0.25)
-    if scatter is not None:
-        which = (
-            f"clipped at {clip_mm:g} mm"
-            if clip_mm is not None
-            else (f"clipped at the 95th percentile, {vmax:.2f} mm")
-        )
-        cax = fig.add_axes((0.89, 0.12, 0.022, 0.76))
-        bar = fig.colorbar(scatter, cax=cax, extend="max")
-        bar.set_label(f"distance to reference (mm), {which}", fontsize=8)
-        bar.ax.tick_params(labelsize=7)
+    _distance_heading_and_bar(fig, title, distances, scatter, n_cols > 1, clip_mm, vmax)
     return figure_png(fig)
 
 

@@ -53,7 +53,7 @@ def frames_figure(
 ) -> bytes:
     """One row per frame of ``sweep_name``: the recorded B-mode, the field's rendered B-mode,
     each θ channel (named) and the transmission T, each with a colour bar, in mm (lateral ×
-    depth). ``fitted`` (a :class:`ultron.fields.fitted.FittedField`) may be ``None``: then only
+    depth). ``fitted`` (a :class:`ultron.models.fitted.FittedField`) may be ``None``: then only
     the recorded frames are shown. θ colour limits are shared down each column (1st–99th pct)."""
     check_dataset(dataset)
     sweep = _sweep(dataset, sweep_name)

@@ -15,6 +15,8 @@ from pathlib import Path
 
 from ultron.data.dataset import SweepDataset
 from ultron.errors import UltronInputError, argument_error
+from ultron.models.fitted import load_field
+from ultron.pipeline.record import RunRecord
 from ultron.report.html import Section, build_html, write_html
 from ultron.report.sections import (
     FIELD_METHODS,
@@ -37,9 +39,9 @@ from ultron.report.sections import (
 REPORT_NAME = "report.html"
 
 
-def _load_dataset(run: dict, root: Path) -> tuple[SweepDataset | None, str]:
+def _load_dataset(run: RunRecord, root: Path) -> tuple[SweepDataset | None, str]:
     """The run's dataset from run.json ``dataset_dir`` and, when absent, why."""
-    dataset_dir = resolve_dir(run.get("dataset_dir"), root)
+    dataset_dir = resolve_dir(run.dataset_dir, root)
     if dataset_dir is None:
         return None, "run.json records no dataset_dir and no dataset was given"
     try:
@@ -48,19 +50,21 @@ def _load_dataset(run: dict, root: Path) -> tuple[SweepDataset | None, str]:
         return None, f"the dataset could not be loaded: {exc}"
 
 
-def _load_fitted(run: dict, root: Path):
+def _load_fitted(run: RunRecord, root: Path):
     """The acoustic field named by run.json ``field_dir`` (or ``None``) and a remark."""
-    from ultron.fields.fitted import load_field
-
-    field_dir = resolve_dir(run.get("field_dir"), root)
+    field_dir = resolve_dir(run.field_dir, root)
     if field_dir is None:
-        if run.get("method") in FIELD_METHODS:
+        if run.method in FIELD_METHODS:
             return None, "run.json records no field_dir: the field's maps are not shown"
         return None, ""
     try:
         return load_field(field_dir), ""
     except (UltronInputError, OSError) as exc:
         return None, f"the acoustic field could not be loaded: {exc}"
+
+
+def _or_unknown(value: object) -> str:
+    return "?" if value is None else str(value)
 
 
 def build_run_report(run_dir: str | Path, dataset: SweepDataset | None = None, fitted=None) -> str:
@@ -71,15 +75,15 @@ def build_run_report(run_dir: str | Path, dataset: SweepDataset | None = None, f
     if fitted is not None and not hasattr(fitted, "render_maps"):
         raise argument_error("fitted", f"expected a FittedField, got {type(fitted).__name__}")
     start = time.perf_counter()
-    run = read_json_file(root / "run.json")
-    method = str(run.get("method", "unknown method"))
+    record = RunRecord.read(root)
+    run, method = record.to_dict(), record.method
     dataset_note = ""
     if dataset is None:
-        dataset, dataset_note = _load_dataset(run, root)
+        dataset, dataset_note = _load_dataset(record, root)
     field_note = ""
     if fitted is None:
-        fitted, field_note = _load_fitted(run, root)
-    field_dir = resolve_dir(run.get("field_dir"), root)
+        fitted, field_note = _load_fitted(record, root)
+    field_dir = resolve_dir(record.field_dir, root)
 
     sections = [Section("Summary", summary_html(run, root))]
 
@@ -127,7 +131,7 @@ def build_run_report(run_dir: str | Path, dataset: SweepDataset | None = None, f
     sections.append(Section("Loss curves", guarded(losses, "Loss curves")))
     subtitle = (
         f"Run directory {root.name}: method {method}, label fraction "
-        f"{run.get('label_fraction', '?')}, seed {run.get('seed', '?')}. Report built in "
+        f"{_or_unknown(record.label_fraction)}, seed {_or_unknown(record.seed)}. Report built in "
         f"{time.perf_counter() - start:.1f} s."
     )
     return build_html(f"ultron run report: {method}", sections, subtitle)

@@ -12,10 +12,20 @@ from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
+from ultron.data.auto_label_dataset import auto_label_records
 from ultron.data.dataset import SweepDataset
 from ultron.errors import UltronError, UltronInputError, argument_error
+from ultron.mesh.export import load_mesh, load_vertex_properties
 from ultron.methods.registry import FIELD_METHODS as REGISTERED_FIELD_METHODS
+from ultron.report.evidence_figure import surface_evidence_figure
+from ultron.report.figures import (
+    frames_figure,
+    label_masks_figure,
+    loss_curves_figure,
+    mesh_distance_figure,
+)
 from ultron.report.html import image_html, paragraph_html, table_html
+from ultron.report.tables import LABELS, NOT_AVAILABLE, format_mean_std
 
 #: Run methods whose run reads an acoustic field: the registry's, and fine-tuning's.
 FIELD_METHODS = (*REGISTERED_FIELD_METHODS, "ultron-finetune")
@@ -134,8 +144,6 @@ def summary_html(run: Mapping[str, Any], run_dir: Path) -> str:
 def metrics_html(metrics: Mapping[str, Any]) -> str:
     """The metrics.json table: metric, mean ± std over the sampling repeats ("n/a": not
     measured, e.g. the visible-reference figures without a visible reference)."""
-    from ultron.report.tables import LABELS, NOT_AVAILABLE, format_mean_std
-
     mean, std = metrics.get("mean"), metrics.get("std", {})
     if not isinstance(mean, dict) or not mean:
         raise UltronInputError("metrics.json", "mean", "missing or empty")
@@ -169,9 +177,6 @@ def mesh_figure_html(
     mesh_path: Path, reference: Path | None, title: str, attrs: Mapping[str, Any] | None = None
 ) -> str:
     """The mesh-vs-reference figure of ``mesh_path`` (``reference`` may be ``None``)."""
-    from ultron.mesh.export import load_mesh
-    from ultron.report.figures import mesh_distance_figure
-
     mesh = load_mesh(mesh_path)
     ref = load_mesh(reference) if reference is not None else None
     png = mesh_distance_figure(mesh, ref, title)
@@ -189,9 +194,6 @@ def evidence_html(run_dir: Path, title: str) -> str:
     """The observed-vs-inferred figure of the run's whole extracted surface
     (``surface_extracted.ply`` when the observed crop dropped faces, else ``mesh.ply``), from
     the evidence in its PLY vertex properties; a note for a mesh written without them."""
-    from ultron.mesh.export import load_mesh, load_vertex_properties
-    from ultron.report.evidence_figure import surface_evidence_figure
-
     extracted = run_dir / "surface_extracted.ply"
     path = extracted if extracted.is_file() else run_dir / "mesh.ply"
     if not path.is_file():
@@ -230,8 +232,6 @@ def example_frames(dataset: SweepDataset, count: int = 2) -> tuple[str, list[int
 
 def frames_html(dataset: SweepDataset, fitted, attrs: Mapping[str, Any] | None = None) -> str:
     """Example frames of the first sweep (with rendered B-mode, θ and T when ``fitted``)."""
-    from ultron.report.figures import frames_figure
-
     sweep_name, picks = example_frames(dataset)
     png = frames_figure(dataset, fitted, sweep_name, picks)
     if fitted is None:
@@ -248,8 +248,6 @@ def masks_html(
     dataset: SweepDataset, selection: Any, attrs: Mapping[str, Any] | None = None
 ) -> str:
     """The labelled frames used (run.json ``selection``), masks overlaid."""
-    from ultron.report.figures import label_masks_figure
-
     if not isinstance(selection, dict) or not isinstance(selection.get("frames"), dict):
         raise UltronInputError("run.json", "selection", "missing (no label selection recorded)")
     png = label_masks_figure(dataset, selection["frames"])
@@ -264,8 +262,6 @@ def masks_html(
 
 def _auto_label_note(dataset: SweepDataset) -> str:
     """`` Labels of sweep(s) …: automatic (ultron label --auto, …).`` or ``""``."""
-    from ultron.data.auto_label_dataset import auto_label_records
-
     records = auto_label_records(dataset)
     if not records:
         return ""
@@ -323,8 +319,6 @@ def final_loss_rows(run: Mapping[str, Any], prefix: str = "") -> list[tuple[str,
 
 def losses_html(curves: dict[str, list[dict]], final_rows: list[tuple[str, str, str]]) -> str:
     """The loss-curve figure and a table of final stage losses (either may be empty)."""
-    from ultron.report.figures import loss_curves_figure
-
     parts = []
     if curves:
         png = loss_curves_figure(curves)

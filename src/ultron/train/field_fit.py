@@ -28,11 +28,8 @@ Where we differ from Ultra-NeRF (and why):
 
 from __future__ import annotations
 
-import io
-import json
 import math
-import time
-from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -42,22 +39,23 @@ import torch
 from ultron import atomic
 from ultron.data.dataset import ProbeGeometry, SweepDataset
 from ultron.data.geometry import UnitCube, field_of_view_bounds_mm
-from ultron.device import cpu_state, describe_device, resolve_device
+from ultron.device import describe_device, resolve_device
 from ultron.errors import UltronInputError, argument_error
 from ultron.fields.base import AcousticField
 from ultron.fields.factory import FieldConfig, build_field
-from ultron.fields.fitted import (
+from ultron.models.field_dir import (
     CHECKPOINT,
     FIELD_FORMAT,
     FIELD_JSON,
     THETA_STATS,
-    TRAIN_LOG,
-    FittedField,
-    ThetaStatistics,
-    probe_to_dict,
+    clear_field_dir,
     read_checkpoint,
     read_field_json,
+    read_train_log,
+    save_checkpoint,
+    write_train_log,
 )
+from ultron.models.fitted import FittedField, ThetaStatistics, probe_to_dict
 from ultron.render.renderer import RenderConfig, render_field
 from ultron.train.field_config import (
     DEFAULT_LR,
@@ -73,6 +71,7 @@ from ultron.train.field_config import (
     learning_rate_at,
 )
 from ultron.train.frames import FrameSet, resampled_probe
+from ultron.train.loop import Progress, run_training
 from ultron.train.losses import (
     METRIC_SSIM_K2,
     confidence_transmission_prior,
@@ -81,13 +80,6 @@ from ultron.train.losses import (
     ultranerf_loss,
     weighted_scattering_tv,
 )
-
-Progress = Callable[[dict[str, Any]], None]
-
-
-def _set_learning_rate(optimizer: torch.optim.Optimizer, lr: float) -> None:
-    for group in optimizer.param_groups:
-        group["lr"] = lr
 
 
 def sample_patches(
@@ -160,39 +152,6 @@ def make_optimizer(module: AcousticField, lr: float) -> torch.optim.Optimizer:
         return torch.optim.Adam(module.parameters(), lr=lr, fused=True)
     except (RuntimeError, TypeError):
         return torch.optim.Adam(module.parameters(), lr=lr)
-
-
-def _save_checkpoint(
-    out_dir: Path,
-    module: AcousticField,
-    optimizer: torch.optim.Optimizer,
-    generator: torch.Generator,
-    step: int,
-    iterations: int,
-) -> None:
-    state = {  # CPU copies, so that the checkpoint loads on any device
-        "model": cpu_state(module.state_dict()),
-        "optimizer": cpu_state(optimizer.state_dict()),
-        "generator": generator.get_state(),
-        "step": step,
-        "iterations": iterations,
-    }
-    buffer = io.BytesIO()
-    torch.save(state, buffer)
-    atomic.write_bytes(out_dir / CHECKPOINT, buffer.getvalue())
-
-
-def _step_entry(
-    config: FieldTrainConfig, step: int, loss: torch.Tensor, mse: torch.Tensor, started: float
-) -> dict[str, Any]:
-    """The progress / log record of ``step`` (``lr``: the rate of the next update)."""
-    return {
-        "step": step,
-        "loss": float(loss),
-        "psnr": 10 * math.log10(1 / max(float(mse), 1e-12)),
-        "lr": learning_rate_at(config, step),
-        "elapsed_s": time.perf_counter() - started,
-    }
 
 
 def _field_meta(
@@ -314,28 +273,6 @@ def check_resumable(out_dir: str | Path, config: FieldTrainConfig, dataset_sha25
     return True
 
 
-def _read_log(out: Path, step: int) -> list[dict[str, Any]]:
-    """FIELD_DIR ``out``'s training log up to ``step``: the log is saved before the checkpoint
-    (:func:`fit_field`), so after a kill between the two it may hold entries beyond the
-    checkpoint, which the resumed run computes again."""
-    path = out / TRAIN_LOG
-    if not path.is_file():
-        return []
-    entries = []
-    for number, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1):
-        if not line.strip():
-            continue
-        try:
-            entry = json.loads(line)
-        except json.JSONDecodeError as exc:
-            raise UltronInputError(path, f"line {number}", f"not valid JSON ({exc})") from None
-        if not isinstance(entry, dict) or not isinstance(entry.get("step"), int):
-            raise UltronInputError(path, f"line {number}", "expected an object with a step")
-        if entry["step"] <= step:
-            entries.append(entry)
-    return entries
-
-
 def _resume(
     out: Path,
     module: AcousticField,
@@ -351,14 +288,7 @@ def _resume(
     module.load_state_dict(state["model"])
     optimizer.load_state_dict(state["optimizer"])
     generator.set_state(state["generator"])
-    return step, _read_log(out, step)
-
-
-def _clear_field_dir(out: Path) -> None:
-    """Remove a previous fit's files from ``out`` (only FIELD_DIR's own file names), so that
-    an interrupted fresh run never leaves a mix of two runs (or an old checkpoint to resume)."""
-    for name in (CHECKPOINT, FIELD_JSON, THETA_STATS, TRAIN_LOG):
-        (out / name).unlink(missing_ok=True)
+    return step, read_train_log(out, step)
 
 
 def _prepare(
@@ -375,20 +305,77 @@ def _prepare(
     return frames, cube, module.train(), resolved
 
 
-def _check_and_log(
-    fitted: FittedField,
-    frames: FrameSet,
-    config: FieldTrainConfig,
-    entry: dict[str, Any],
-    log: list[dict[str, Any]],
-) -> None:
-    """Add the held-out check to ``entry`` at its steps, and ``entry`` to ``log`` at its."""
-    step, last = entry["step"], entry["step"] == config.iterations
-    if step % config.check_every == 0 or last:
-        metrics = evaluate_frames(fitted, frames, frames.holdout_index, config.max_check_frames)
-        entry.update({f"holdout_{k}": v for k, v in metrics.items()})
-    if step % config.log_every == 0 or last or "holdout_psnr" in entry:
-        log.append(entry)
+def _check_fit_inputs(dataset: SweepDataset, config: FieldTrainConfig, out_dir: str | Path) -> Path:
+    """``dataset`` is a dataset whose frames the loss can take, ``out_dir`` not a file."""
+    if not isinstance(dataset, SweepDataset):
+        raise argument_error("dataset", "expected a SweepDataset")
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise UltronInputError(out, "out", "exists and is not a directory")
+    check_fit_frames(dataset.probe, config)
+    return out
+
+
+@dataclass
+class _FieldRun:
+    """One fit's state and the steps :func:`fit_field` hands to the training loop."""
+
+    out: Path
+    config: FieldTrainConfig
+    frames: FrameSet
+    cube: UnitCube
+    module: AcousticField
+    resolved: FieldConfig
+    optimizer: torch.optim.Optimizer
+    generator: torch.Generator
+    render_config: RenderConfig
+    dataset_sha256: str
+    device: torch.device
+    log: list[dict[str, Any]]
+
+    @property
+    def fitted(self) -> FittedField:
+        return FittedField(
+            self.module, self.resolved, self.cube, self.frames.probe, self.render_config
+        )
+
+    def update(self, k: int) -> dict[str, float | torch.Tensor]:
+        """Update k (0-based); ``lr`` is the rate of the next one."""
+        self.module.train()
+        hold = k < self.config.effective_scattering_warmup
+        loss, mse = training_step(
+            self.module, self.optimizer, self.frames, self.cube, self.render_config,
+            self.config, self.generator, hold,
+        )  # fmt: skip
+        mse_value = max(float(mse), 1e-12)
+        return {"loss": loss, "psnr": 10 * math.log10(1 / mse_value),
+                "lr": learning_rate_at(self.config, k + 1)}  # fmt: skip
+
+    def held_out_check(self, entry: dict[str, Any]) -> bool:
+        """Add the held-out PSNR / SSIM at the check's updates; True there (always logged)."""
+        done = entry["step"]
+        if done % self.config.check_every == 0 or done == self.config.iterations:
+            limit = self.config.max_check_frames
+            metrics = evaluate_frames(self.fitted, self.frames, self.frames.holdout_index, limit)
+            entry.update({f"holdout_{k}": v for k, v in metrics.items()})
+        return "holdout_psnr" in entry
+
+    def checkpoint(self, done: int) -> None:
+        if done % self.config.checkpoint_every == 0 or done == self.config.iterations:
+            self.save(done)
+
+    def save(self, at_step: int) -> None:
+        """The log first (it may run ahead of the checkpoint, never fall behind), then
+        checkpoint.pt, then field.json."""
+        write_train_log(self.out, self.log)
+        save_checkpoint(
+            self.out, self.module, self.optimizer, self.generator, at_step, self.config.iterations
+        )
+        meta = _field_meta(
+            self.config, self.resolved, self.render_config, self.frames, self.cube, at_step,
+            self.dataset_sha256, self.device,
+        )  # fmt: skip
+        atomic.write_json(self.out / FIELD_JSON, meta)
 
 
 def fit_field(
@@ -399,7 +386,7 @@ def fit_field(
     resume: bool = True,
     device: torch.device | str = "cpu",
 ) -> FittedField:
-    """Fit a field to ``dataset`` and write FIELD_DIR ``out_dir`` (see ultron.fields.fitted).
+    """Fit a field to ``dataset`` and write FIELD_DIR ``out_dir`` (:mod:`ultron.models.field_dir`).
 
     ``device`` (:func:`ultron.device.resolve_device`'s spellings) holds the field, the frames
     and the rendering; the batches and scatterer draws come from one seeded CPU generator, so
@@ -414,25 +401,17 @@ def fit_field(
     a checkpoint, the run starts afresh and first removes a previous fit's files from
     ``out_dir``. A save (every ``checkpoint_every`` steps and at the last) writes
     train_log.jsonl, then checkpoint.pt, then field.json; a resumed run keeps the log's
-    entries up to the checkpoint's step, so its log holds every logged step once.
+    entries up to the checkpoint's step, so its log holds every logged step once. Update k
+    (0-based) uses :func:`learning_rate_at` ``(config, k)``, a function of k alone (a resumed
+    run with a raised ``iterations`` follows the new total's schedule); Adam's moments and the
+    batch generator continue from the checkpoint.
 
-    Learning rate: update k (0-based) uses :func:`learning_rate_at` ``(config, k)`` =
-    lr · 0.1^(k / decay_steps), recomputed from k at every step. A run resumed at step k₀ with
-    a raised ``iterations`` (the grid backend's ``decay_steps`` unless ``lr_decay_steps`` is set)
-    therefore follows the schedule of the new total: its rate jumps at k₀ from the old
-    schedule's lr · 0.1^(k₀ / old) to the new one's lr · 0.1^(k₀ / new), and every later
-    rate, down to lr · 0.1 at the end, equals that of a fresh run of the new total. Adam's
-    moments and the batch generator continue from the checkpoint.
-
-    ``progress`` receives a dict per step (``step``, ``iterations``, ``loss``, ``psnr``, ``lr``
-    (the rate of the next update) and, when checked, ``holdout_psnr``).
+    The updates run in :func:`ultron.train.loop.run_training`; ``progress`` receives a dict
+    per update (``step``, ``iterations``, ``loss``, ``psnr``, ``lr`` (the rate of the next
+    update), ``seconds`` and, when checked, ``holdout_psnr`` / ``holdout_ssim``); the log
+    keeps the first update, every ``log_every``-th, every checked one and the last.
     """
-    if not isinstance(dataset, SweepDataset):
-        raise argument_error("dataset", "expected a SweepDataset")
-    out = Path(out_dir)
-    if out.exists() and not out.is_dir():
-        raise UltronInputError(out, "out", "exists and is not a directory")
-    check_fit_frames(dataset.probe, config)
+    out = _check_fit_inputs(dataset, config, out_dir)
     device = resolve_device(device, "device")
     dataset_sha256 = dataset.content_hash()
     resuming = resume and check_resumable(out, config, dataset_sha256)
@@ -444,40 +423,23 @@ def fit_field(
         _resume(out, module, optimizer, generator, config.iterations) if resuming else (0, [])
     )
     if not resuming:
-        _clear_field_dir(out)
+        clear_field_dir(out)
     out.mkdir(parents=True, exist_ok=True)
     render_config = config.render.rescaled(dataset.probe, frames.probe)
-    fitted = FittedField(module, resolved, cube, frames.probe, render_config)
-
-    def save(at_step: int) -> None:  # the log first: it may run ahead, never fall behind
-        atomic.write_text(out / TRAIN_LOG, "".join(json.dumps(e) + "\n" for e in log))
-        _save_checkpoint(out, module, optimizer, generator, at_step, config.iterations)
-        meta = _field_meta(
-            config, resolved, render_config, frames, cube, at_step, dataset_sha256, device
-        )
-        atomic.write_json(out / FIELD_JSON, meta)
-
-    started = time.perf_counter()
-    while step < config.iterations:
-        module.train()
-        _set_learning_rate(optimizer, learning_rate_at(config, step))
-        hold = step < config.effective_scattering_warmup
-        loss, mse = training_step(
-            module, optimizer, frames, cube, render_config, config, generator, hold
-        )
-        step += 1
-        entry = _step_entry(config, step, loss, mse, started)
-        _check_and_log(fitted, frames, config, entry, log)
-        if progress is not None:
-            progress({"iterations": config.iterations, **entry})
-        if step % config.checkpoint_every == 0 or step == config.iterations:
-            save(step)
+    run = _FieldRun(out, config, frames, cube, module, resolved, optimizer, generator,
+                    render_config, dataset_sha256, device, log)  # fmt: skip
+    run_training(
+        run.update, config.iterations, name="field", log_every=config.log_every, start=step,
+        learning_rate=lambda k: learning_rate_at(config, k), optimizers=[optimizer],
+        progress=progress, every_update=True, on_entry=run.held_out_check,
+        after_update=run.checkpoint, log=log,
+    )  # fmt: skip
     if not (out / CHECKPOINT).is_file():
-        save(step)
+        run.save(step)
     module.eval()
-    stats = theta_statistics(fitted, frames)
+    stats = theta_statistics(run.fitted, frames)
     atomic.write_json(out / THETA_STATS, stats.to_dict())
-    return replace_stats(fitted, stats)
+    return replace_stats(run.fitted, stats)
 
 
 def replace_stats(fitted: FittedField, stats: ThetaStatistics) -> FittedField:

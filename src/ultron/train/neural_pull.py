@@ -76,6 +76,7 @@ import torch.nn.functional as F
 from ultron.device import map_chunks, resolve_device
 from ultron.errors import argument_error
 from ultron.fields.sdf import SDFDiscriminator, SDFNetwork, SDFNetworkConfig
+from ultron.train.loop import Progress, run_training
 from ultron.train.sdf_queries import (  # noqa: F401  (re-exported: the stage-1 data API)
     QuerySet,
     _as_points,
@@ -88,7 +89,8 @@ from ultron.train.sdf_queries import (  # noqa: F401  (re-exported: the stage-1 
 )
 
 RESAMPLE_CANDIDATES = ("grids", "box")
-Progress = Callable[[dict[str, Any]], None]
+#: Updates between the logged entries (and progress reports) of the SDF fits.
+LOG_EVERY = 100
 SDFFunction = Callable[[torch.Tensor], torch.Tensor]
 
 
@@ -282,9 +284,10 @@ def fit_view_sdf(
 ) -> SDFFit:
     """Stage 1: fit one view's SDF to its point cloud (normalised coordinates) by Neural-Pull
     with the sign-consistency and adversarial terms (module doc). ``progress`` receives a dict
-    (stage, step, iterations, losses) every 100 steps and at the last. The networks are built
-    on the CPU from ``generator`` (the CPU generator that also draws the batches) and trained
-    on ``device``, where the returned network stays."""
+    (stage, step, iterations, losses, seconds) at the first update, every 100th and the last
+    (:func:`ultron.train.loop.run_training`). The networks are built on the CPU from
+    ``generator`` (the CPU generator that also draws the batches) and trained on ``device``,
+    where the returned network stays."""
     start = time.perf_counter()
     device = resolve_device(device, "device")
     data = make_queries(points_unit, config, _numpy_rng(generator))
@@ -296,11 +299,8 @@ def fit_view_sdf(
     n_queries = data.queries.shape[0]
     batch = min(config.batch_size, n_queries)
     real = torch.zeros(1, device=device)
-    losses: dict[str, float] = {}
-    network.train()
-    for step in range(config.iterations):
-        for group in optimiser.param_groups:
-            group["lr"] = warmup_cosine_lr(step, config.iterations, config.warmup, config.lr)
+
+    def update(step: int) -> dict[str, torch.Tensor]:
         index = torch.randint(0, n_queries, (batch,), generator=generator).to(device)
         queries, targets = queries_all[index], targets_all[index]
         sdf, grad = network.sdf_and_gradient(queries, create_graph=True)
@@ -323,21 +323,43 @@ def fit_view_sdf(
         optimiser.zero_grad(set_to_none=True)
         loss.backward()
         optimiser.step()
-        if step % 100 == 0 or step == config.iterations - 1:
-            losses = {
-                "loss": float(loss.detach()), "pull": float(l_pull.detach()), "scc": float(l_scc.detach()),
-                "generator": float(g_loss.detach()), "discriminator": float(d_loss.detach()),
-            }  # fmt: skip
-            if not math.isfinite(losses["loss"]):
-                raise FloatingPointError(f"{name} SDF loss became {losses['loss']} at step {step}")
-            if progress is not None:
-                progress({"stage": f"stage1_{name}", "step": step + 1,
-                          "iterations": config.iterations, **losses})  # fmt: skip
+        scalars = {"loss": loss, "pull": l_pull, "scc": l_scc, "generator": g_loss,
+                   "discriminator": d_loss}  # fmt: skip
+        return {k: v.detach() for k, v in scalars.items()}
+
+    network.train()
+    entries = _train(update, config, optimiser, progress, f"stage1_{name}", f"{name} SDF")
     network.eval()
     log = {"iterations": config.iterations, "n_points_used": int(data.points.shape[0]),
-           "n_queries": int(n_queries), "final_losses": losses,
+           "n_queries": int(n_queries), "final_losses": _final_losses(entries),
            "seconds": time.perf_counter() - start}  # fmt: skip
     return SDFFit(network, log)
+
+
+def _train(
+    update: Callable[[int], dict[str, torch.Tensor]],
+    config: ViewFitConfig | RefineConfig,
+    optimiser: torch.optim.Optimizer,
+    progress: Progress | None,
+    stage: str,
+    name: str,
+) -> list[dict[str, Any]]:
+    """:func:`~ultron.train.loop.run_training` with the warm-up + cosine learning rate of
+    ``config`` and an entry every :data:`LOG_EVERY` updates."""
+
+    def learning_rate(step: int) -> float:
+        return warmup_cosine_lr(step, config.iterations, config.warmup, config.lr)
+
+    return run_training(
+        update, config.iterations, name=name, log_every=LOG_EVERY, progress=progress,
+        learning_rate=learning_rate, optimizers=[optimiser], stage={"stage": stage},
+    )  # fmt: skip
+
+
+def _final_losses(entries: list[dict[str, Any]]) -> dict[str, float]:
+    """The last logged entry's losses ({} without updates)."""
+    last = entries[-1] if entries else {}
+    return {k: v for k, v in last.items() if k not in ("step", "seconds")}
 
 
 # ---------------------------------------------------------------------------------- stage 2
@@ -435,26 +457,20 @@ def fit_refined_sdf(
     network = SDFNetwork(config.network, generator).to(device)
     optimiser = torch.optim.Adam(network.parameters(), lr=config.lr)
     batch = min(config.batch_size, n)
-    losses: dict[str, float] = {}
-    network.train()
-    for step in range(config.iterations):
-        for group in optimiser.param_groups:
-            group["lr"] = warmup_cosine_lr(step, config.iterations, config.warmup, config.lr)
+
+    def update(step: int) -> dict[str, torch.Tensor]:
         index = torch.randint(0, n, (batch,), generator=generator).to(device)
         pred = network(points[index])
         loss = refine_loss(pred, targets[index], config.zero_weight)
         optimiser.zero_grad(set_to_none=True)
         loss.backward()
         optimiser.step()
-        if step % 100 == 0 or step == config.iterations - 1:
-            losses = {"loss": float(loss.detach())}
-            if not math.isfinite(losses["loss"]):
-                raise FloatingPointError(f"refined SDF loss became {losses['loss']} at step {step}")
-            if progress is not None:
-                progress(
-                    {"stage": "stage3", "step": step + 1, "iterations": config.iterations, **losses}
-                )
+        return {"loss": loss.detach()}
+
+    network.train()
+    entries = _train(update, config, optimiser, progress, "stage3", "refined SDF")
     network.eval()
-    log = {"iterations": config.iterations, "n_samples": int(n), "final_losses": losses,
+    log = {"iterations": config.iterations, "n_samples": int(n),
+           "final_losses": _final_losses(entries),
            "seconds": time.perf_counter() - start}  # fmt: skip
     return SDFFit(network, log)

@@ -33,8 +33,7 @@ initial rate at the last iteration, shuffled minibatches drawn with a seeded gen
 from __future__ import annotations
 
 import math
-import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
@@ -43,6 +42,7 @@ import torch
 from ultron.device import resolve_device
 from ultron.errors import argument_error
 from ultron.fields.occupancy import OccupancyNetwork, OccupancyNetworkConfig
+from ultron.train.loop import Progress, run_training
 
 LOSSES = ("ultron", "bce")
 #: How the compensated loss treats background labels: scaled by T (``weighted``, the paper's
@@ -60,6 +60,10 @@ NEGATIVES = ("weighted", "observed")
 #: and the simulated annotator's threshold (:mod:`ultron.mesh.observed`), not tuned.
 OBSERVED_TRANSMISSION = 0.3
 EPSILON = 1e-6
+
+
+#: Updates between the entries of the loss log.
+LOG_EVERY = 50
 
 
 def attenuation_compensated_bce(
@@ -226,29 +230,22 @@ def fit_occupancy(
     config: OccupancyTrainConfig,
     network: OccupancyNetwork | None = None,
     trainable: Callable[[OccupancyNetwork], list[torch.nn.Parameter]] | None = None,
-    progress: Callable[[int, float], None] | None = None,
+    progress: Progress | None = None,
     device: torch.device | str = "cpu",
 ) -> tuple[OccupancyNetwork, list[dict[str, float]]]:
-    """Train (a copy-free, in-place) ``network`` on ``data``; returns it and a loss log.
+    """Train (a copy-free, in-place) ``network`` on ``data``; returns it and a loss log (every
+    :data:`LOG_EVERY` updates, :func:`ultron.train.loop.run_training`).
 
     ``trainable`` selects the parameters to optimise (default: all), e.g. for fine-tuning with
-    frozen layers. ``progress(step, loss)`` is called every step. The network (built on the
-    CPU, so its initial weights do not depend on the device) and the data are moved to
-    ``device`` and the network is returned there; the minibatch order comes from a CPU
-    generator seeded by ``config.seed``, the same on every device.
+    frozen layers. ``progress`` receives the logged entries (``step``, ``iterations``,
+    ``loss``, ``seconds``). The network (built on the CPU, so its initial weights do not
+    depend on the device) and the data are moved to ``device`` and the network is returned
+    there; the minibatch order comes from a CPU generator seeded by ``config.seed``, the same
+    on every device.
     """
     device = resolve_device(device, "device")
     generator = torch.Generator().manual_seed(config.seed)
-    if network is None:
-        network_config = config.network
-        if network_config.in_dim != data.inputs.shape[1]:
-            network_config = OccupancyNetworkConfig(
-                **{**asdict(network_config), "in_dim": data.inputs.shape[1]}
-            )
-        with torch.random.fork_rng(devices=[]):  # seeded init, torch's global RNG untouched
-            torch.manual_seed(config.seed)
-            network = OccupancyNetwork(network_config)
-    network.to(device)
+    network = (network or _initial_network(config, data.inputs.shape[1])).to(device)
     inputs, transmission = data.inputs.to(device), data.transmission.to(device)
     parameters = trainable(network) if trainable else list(network.parameters())
     optimiser = torch.optim.Adam(parameters, lr=config.lr)
@@ -256,39 +253,62 @@ def fit_occupancy(
     scheduler = torch.optim.lr_scheduler.ExponentialLR(optimiser, gamma)
     labels = data.labels.to(device, torch.float32)
     pos_weight = positive_class_weight(labels, config)
-    n = labels.shape[0]
-    log: list[dict[str, float]] = []
-    order = torch.randperm(n, generator=generator)
-    cursor = 0
-    start = time.perf_counter()
-    network.train()
-    for step in range(config.iters):
-        if cursor + config.batch_size > n:
-            order = torch.randperm(n, generator=generator)
-            cursor = 0
-        batch = order[cursor : cursor + min(config.batch_size, n)].to(device)
-        cursor += config.batch_size
+    batches = _minibatches(labels.shape[0], config.batch_size, generator)
+
+    def update(step: int) -> dict[str, torch.Tensor]:
+        batch = next(batches).to(device)
         y = labels[batch]
         weight = torch.where(y > 0.5, pos_weight, 1.0)
         f = network.occupancy(inputs[batch])
-        if config.loss == "ultron" and config.negatives == "observed":
-            loss = observed_negatives_bce(
-                f, transmission[batch], y, config.observed_transmission, weight
-            )
-        elif config.loss == "ultron":
-            loss = attenuation_compensated_bce(f, transmission[batch], y, weight)
-        else:
-            loss = binary_cross_entropy(f, y, weight)
+        loss = _loss(f, transmission[batch], y, weight, config)
         optimiser.zero_grad(set_to_none=True)
         loss.backward()
         optimiser.step()
         scheduler.step()
-        value = float(loss.detach())
-        if not math.isfinite(value):
-            raise FloatingPointError(f"occupancy loss became {value} at step {step}")
-        if step % 50 == 0 or step == config.iters - 1:
-            log.append({"step": step, "loss": value, "seconds": time.perf_counter() - start})
-        if progress is not None:
-            progress(step, value)
+        return {"loss": loss.detach()}
+
+    network.train()
+    log = run_training(
+        update, config.iters, name="occupancy", log_every=LOG_EVERY, progress=progress
+    )
     network.eval()
     return network, log
+
+
+def _initial_network(config: OccupancyTrainConfig, in_dim: int) -> OccupancyNetwork:
+    """A fresh network for ``in_dim`` inputs, initialised from ``config.seed`` (torch's global
+    RNG untouched)."""
+    network_config = config.network
+    if network_config.in_dim != in_dim:
+        network_config = OccupancyNetworkConfig(**{**asdict(network_config), "in_dim": in_dim})
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(config.seed)
+        return OccupancyNetwork(network_config)
+
+
+def _minibatches(n: int, batch_size: int, generator: torch.Generator) -> Iterator[torch.Tensor]:
+    """Index batches of ``batch_size`` (at most n) from random permutations of n; a new
+    permutation when the current one has fewer than ``batch_size`` left."""
+    order = torch.randperm(n, generator=generator)
+    cursor = 0
+    while True:
+        if cursor + batch_size > n:
+            order = torch.randperm(n, generator=generator)
+            cursor = 0
+        yield order[cursor : cursor + min(batch_size, n)]
+        cursor += batch_size
+
+
+def _loss(
+    f: torch.Tensor,
+    transmission: torch.Tensor,
+    y: torch.Tensor,
+    weight: torch.Tensor,
+    config: OccupancyTrainConfig,
+) -> torch.Tensor:
+    """The configured loss of a batch (module doc)."""
+    if config.loss == "ultron" and config.negatives == "observed":
+        return observed_negatives_bce(f, transmission, y, config.observed_transmission, weight)
+    if config.loss == "ultron":
+        return attenuation_compensated_bce(f, transmission, y, weight)
+    return binary_cross_entropy(f, y, weight)

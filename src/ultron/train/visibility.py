@@ -178,7 +178,7 @@ def field_theta_transmission(
 
     T(r) = Π_{k<r} (1 − β_k)·exp(−α_k Δ) (β reflection, α attenuation per mm, Δ the step):
     exclusive, along the pixel's own scanline, without gradient
-    (:meth:`~ultron.fields.fitted.FittedField.pixel_theta_transmission` on the dataset's pixel
+    (:meth:`~ultron.models.fitted.FittedField.pixel_theta_transmission` on the dataset's pixel
     grid, which is the field's unless the field was fitted at a reduced ``fit_shape``).
     """
     fitted.check_probe(dataset.probe)

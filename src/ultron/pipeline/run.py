@@ -5,16 +5,15 @@ labelled bone), ``mesh.stl``, ``mesh.obj``, ``surface_extracted.ply`` (the whole
 when the observed crop dropped faces), ``occupancy.nii.gz`` (aligned with the mesh in 3D Slicer,
 see :mod:`ultron.mesh.export`), ``metrics.json`` when the dataset has a reference surface, and ``run.json`` (the command, configuration, label selection, versions, timings per
 stage, peak memory), written into a staging directory that replaces DIR as a whole at the end
-(:mod:`ultron.methods.rundir`); ``report.html`` follows in DIR.
+(:mod:`ultron.pipeline.rundir`); ``report.html`` follows in DIR.
 
-Everything cheap is checked before any work: DIR (:func:`~ultron.methods.rundir.check_run_dir`),
+Everything cheap is checked before any work: DIR (:func:`~ultron.pipeline.rundir.check_run_dir`),
 the dataset, the reference meshes (read then, used only for metrics after the mesh exists), the
-oracle's files, outlier poses and the grids' memory (:mod:`ultron.methods.resources`).
+oracle's files, outlier poses and the grids' memory (:mod:`ultron.pipeline.resources`).
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -26,14 +25,21 @@ from ultron.errors import argument_error
 from ultron.mesh.compounding import CompoundingConfig
 from ultron.mesh.export import check_mesh_coordinates, load_mesh, save_mesh, save_volume_nifti
 from ultron.methods.evidence import evidence_summary, reconstruction_evidence, with_observation
-from ultron.methods.model_io import save_network
 from ultron.methods.on_method import ONConfig
 from ultron.methods.registry import FIELD_METHODS, MethodInputs, get_method
-from ultron.methods.resources import check_run_resources
-from ultron.methods.rundir import check_run_dir, staged_run_dir
-from ultron.methods.runinfo import StageTimer, write_run_json
 from ultron.methods.ultron_method import Reconstruction, UltronConfig
 from ultron.metrics.surface import MetricsConfig, evaluate_meshes
+from ultron.models.field_dir import check_field_dataset
+from ultron.models.fitted import load_field
+from ultron.pipeline.field_cache import get_or_fit_field
+from ultron.pipeline.model_io import save_network
+from ultron.pipeline.record import write_run_json
+from ultron.pipeline.resources import check_run_resources
+from ultron.pipeline.rundir import check_run_dir, staged_run_dir
+from ultron.report.run_report import write_run_report
+from ultron.timing import StageTimer
+from ultron.train.field_fit import FieldTrainConfig
+from ultron.train.loop import Progress
 from ultron.train.visibility import load_oracle_truth
 
 #: The whole iso-surface with its evidence, written when the observed crop dropped faces.
@@ -129,9 +135,9 @@ def write_outputs(
     mesh_coordinates: str = "lps",
 ) -> dict[str, Any]:
     """Write the mesh, volume, the trained network (``network.pt`` when the method has one, see
-    :mod:`ultron.methods.model_io`), metrics (with a reference) and, last, run.json into a
+    :mod:`ultron.pipeline.model_io`), metrics (with a reference) and, last, run.json into a
     staging directory that then replaces ``out_dir`` as a whole
-    (:func:`~ultron.methods.rundir.staged_run_dir`; ``out_dir`` must be new, empty or a run of
+    (:func:`~ultron.pipeline.rundir.staged_run_dir`; ``out_dir`` must be new, empty or a run of
     ``identity["command"]``); return the summary. run.json therefore marks a finished run.
 
     Mesh files are written in ``mesh_coordinates`` (:mod:`ultron.mesh.export`); mesh.ply
@@ -157,9 +163,9 @@ def write_outputs(
                 save_mesh(result.observation.extracted, staging / EXTRACTED_MESH,
                           mesh_coordinates, evidence["extracted"].vertex_attributes())  # fmt: skip
             save_volume_nifti(result.volume, result.grid, staging / "occupancy.nii.gz")
-            if "network" in result.info:
-                meta = {"method": identity["method"], **result.info.get("model", {})}
-                save_network(staging, result.info["network"], meta)
+            if result.model is not None:
+                meta = {"method": identity["method"], **result.model.meta}
+                save_network(staging, result.model.network, meta)
         metrics = None
         if reference is not None:
             with timer.stage("metrics"):
@@ -169,19 +175,16 @@ def write_outputs(
             metrics["method"] = identity["method"]
             metrics["label_fraction"] = identity.get("label_fraction")
             atomic.write_json(staging / "metrics.json", metrics)
-        info = {k: v for k, v in result.info.items() if k not in ("network", "model")}
         payload = {
             **identity,
             "mesh": {"vertices": len(result.mesh.vertices), "faces": len(result.mesh.faces),
                      "area_mm2": float(result.mesh.area), "coordinates": mesh_coordinates},
             "surface_evidence": evidence_summary(evidence),
-            **info,
+            **result.info,
             **(extra or {}),
         }  # fmt: skip
         write_run_json(staging, payload, timer)
     if report:
-        from ultron.report.run_report import write_run_report
-
         with timer.stage("report"):
             write_run_report(out, dataset=dataset)
     return {"out": str(out), "metrics": metrics, "timings_s": dict(timer.seconds)}
@@ -198,9 +201,9 @@ def prepare_run(
     max_memory_gib: float | None = None,
 ) -> tuple[SweepDataset, References]:
     """The checks every run makes before any work, cheapest first: ``out_dir`` may hold this
-    ``kind`` of run (:func:`~ultron.methods.rundir.check_run_dir`; ``inputs`` may not lie in
+    ``kind`` of run (:func:`~ultron.pipeline.rundir.check_run_dir`; ``inputs`` may not lie in
     it), the dataset loads, its reference meshes are readable, no pose is an outlier and the
-    grids fit the memory (:func:`~ultron.methods.resources.check_run_resources`). Returns the
+    grids fit the memory (:func:`~ultron.pipeline.resources.check_run_resources`). Returns the
     dataset and its references."""
     check_run_dir(out_dir, kind, (dataset_dir, *inputs))
     dataset = SweepDataset.load(dataset_dir)
@@ -224,7 +227,7 @@ def reconstruct(
     out_dir: str | Path,
     field_dir: str | Path | None = None,
     field_config=None,
-    progress: Callable[[dict[str, Any]], None] | None = None,
+    progress: Progress | None = None,
     report: bool = True,
     allow_other_field: bool = False,
     max_memory_gib: float | None = None,
@@ -235,8 +238,6 @@ def reconstruct(
     A given ``field_dir`` must have been fitted on this dataset (see
     :func:`load_or_fit_field`) unless ``allow_other_field``; ``max_memory_gib`` caps the
     grids' estimated memory (default: this machine's)."""
-    from ultron.train.field_fit import FieldTrainConfig
-
     timer = StageTimer()
     to_fit = None  # the field that may be fitted, whose grid is checked too
     if request.method in FIELD_METHODS and field_dir is None:
@@ -279,7 +280,7 @@ def load_or_fit_field(
     dataset: SweepDataset,
     field_dir: str | Path | None,
     field_config: Any = None,
-    progress: Callable[[dict[str, Any]], None] | None = None,
+    progress: Progress | None = None,
     allow_other_field: bool = False,
     device: Any = "cpu",
 ) -> tuple[Any, dict[str, Any]]:
@@ -287,15 +288,11 @@ def load_or_fit_field(
     (``field_dir``, ``field_cached`` and, for a given field, ``field_dataset_match``).
 
     A given FIELD_DIR must match the dataset's probe geometry and, where its field.json records
-    one, the dataset's content hash (:func:`ultron.fields.fitted.check_field_dataset`; a
+    one, the dataset's content hash (:func:`ultron.models.field_dir.check_field_dataset`; a
     mismatch is an error unless ``allow_other_field``, then ``field_dataset_match`` is false;
     it is null for a field without the record). Otherwise the cached fit is used, keyed by the
-    dataset directory's content (:mod:`ultron.methods.field_cache`).
+    dataset directory's content (:mod:`ultron.pipeline.field_cache`).
     """
-    from ultron.fields.fitted import check_field_dataset, load_field
-    from ultron.methods.field_cache import get_or_fit_field
-    from ultron.train.field_fit import FieldTrainConfig
-
     if field_dir is not None:
         fitted = load_field(field_dir, device)
         fitted.check_probe(dataset.probe, where=str(dataset_dir))

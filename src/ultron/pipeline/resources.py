@@ -35,8 +35,15 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from ultron.data.dataset import ProbeGeometry, SweepDataset
+from ultron.data.geometry import UnitCube, field_of_view_bounds_mm
 from ultron.data.outliers import check_pose_outliers
 from ultron.errors import UltronInputError
+from ultron.mesh.grid import grid_shape, meshing_voxel_mm
+from ultron.mesh.tiles import MAX_VOLUME_VOXELS, reached_tiles, tile_for_factor, volume_factor
+from ultron.methods.ultron_method import UltronConfig, elevation_half_thickness_mm, scan_grid
+from ultron.models.fitted import RENDER_CHUNK_FRAMES
+from ultron.train.field_fit import check_fit_frames
+from ultron.train.frames import resampled_probe
 
 if TYPE_CHECKING:
     from ultron.train.field_config import FieldTrainConfig
@@ -113,9 +120,6 @@ def meshing_grid_shape(
 ) -> tuple[tuple[int, int, int], float, tuple[float, float, float]]:
     """The shape ``scan_grid(dataset, voxel_mm)`` will have, computed with Python integers
     (no overflow, nothing allocated), its voxel and the scanned extent in mm."""
-    from ultron.data.geometry import field_of_view_bounds_mm
-    from ultron.mesh.grid import grid_shape, meshing_voxel_mm
-
     voxel = meshing_voxel_mm(dataset.probe, voxel_mm)
     bounds = field_of_view_bounds_mm(dataset.all_poses(), dataset.probe).numpy()
     extent = tuple(float(e) for e in bounds[1] - bounds[0])
@@ -159,13 +163,6 @@ def meshing_memory(dataset: SweepDataset, voxel_mm: float | None) -> MeshingMemo
     """The memory of meshing ``dataset`` at ``voxel_mm`` (module doc, 2), before anything is
     allocated. The field of view's tiles are counted when the grid could be allocated at all
     (the grid's voxel count otherwise, Python integers)."""
-    from ultron.mesh.tiles import MAX_VOLUME_VOXELS, reached_tiles, tile_for_factor, volume_factor
-    from ultron.methods.ultron_method import (
-        UltronConfig,
-        elevation_half_thickness_mm,
-        scan_grid,
-    )
-
     sides, voxel, extent = meshing_grid_shape(dataset, voxel_mm)
     n_voxels = float(math.prod(sides))
     fov, volume = n_voxels, n_voxels
@@ -230,10 +227,6 @@ def field_fit_memory(dataset: SweepDataset, config: FieldTrainConfig) -> FieldFi
     """The memory a fit of ``config`` to ``dataset`` will take (module doc 3), from the
     dataset's shapes and the options alone. Raises the grid's :class:`UltronInputError` when
     its finest plane would exceed ``MAX_RESOLUTION`` nodes per side."""
-    from ultron.data.geometry import UnitCube, field_of_view_bounds_mm
-    from ultron.fields.fitted import RENDER_CHUNK_FRAMES
-    from ultron.train.frames import resampled_probe
-
     backend = config.field.backend
     probe = resampled_probe(dataset.probe, config.fit_shape)
     resolutions: tuple[int, ...] = ()
@@ -268,8 +261,6 @@ def check_field_grid(
 ) -> None:
     """Refuse a field fit of ``config`` whose grid planes (module doc, 3) exceed the backend's
     largest side, or whose estimated memory (:func:`field_fit_memory`) exceeds the limit."""
-    from ultron.train.frames import resampled_probe
-
     probe = resampled_probe(dataset.probe, config.fit_shape)
     where = Path(root) / "dataset.json"
     cause = (
@@ -308,8 +299,6 @@ def check_run_resources(
     RoCoSDF/UNSR, whose grid has a fixed resolution) and a field to fit (``field_config``,
     when one may be fitted) within the memory limit, the latter's frames no smaller than the
     loss's SSIM window. ``root`` is the dataset directory, named in the errors."""
-    from ultron.train.field_fit import check_fit_frames
-
     check_pose_outliers(dataset, root)
     if mesh:
         check_meshing_grid(dataset, root, voxel_mm, max_memory_gib)

@@ -1,11 +1,10 @@
 """A run directory (``reconstruct``, ``finetune``) is owned by one run and replaced as a whole.
 
 Before any work, :func:`check_run_dir` accepts as ``--out`` a new or empty directory, or one
-holding an earlier run of the same kind (its ``run.json``'s ``"command"``; run.json files
-written before the command was recorded count as ``finetune`` for method ``ultron-finetune``
-and as ``reconstruct`` otherwise). Anything else — a file, a non-empty directory without
-run.json, another kind's run, a directory holding one of the run's inputs — is a one-line
-error naming the directory.
+holding an earlier run of the same kind (its ``run.json``'s ``command``,
+:func:`~ultron.pipeline.record.run_kind`). Anything else — a file, a non-empty directory
+without a readable run.json, another kind's run, a directory holding one of the run's inputs —
+is a one-line error naming the directory.
 
 :func:`staged_run_dir` then collects the new run's files in a hidden sibling
 ``.<name>.XXXXXXXX.new`` and swaps it in at the end: the previous run (if any) is renamed to
@@ -26,36 +25,25 @@ import re
 import shutil
 import tempfile
 import time
-from collections.abc import Iterable, Iterator, Mapping
+from collections.abc import Iterable, Iterator
 from pathlib import Path
-from typing import Any
 
 from ultron import atomic
 from ultron.errors import UltronInputError
 from ultron.outputs import check_output_dir, is_inside
+from ultron.pipeline.record import RUN_JSON, RUN_KINDS, run_kind
 
 try:  # advisory locks mark a live run's staging directory (POSIX only)
     import fcntl
 except ImportError:  # pragma: no cover - Windows: orphans are removed by age only
     fcntl = None  # type: ignore[assignment]
 
-RUN_JSON = "run.json"
-RUN_KINDS = ("reconstruct", "finetune")
 _STAGING, _BACKUP, _LOCK = ".new", ".old", ".lock"
 
 
-def run_kind(run: Mapping[str, Any]) -> str | None:
-    """The command that wrote a run.json's content (see the module doc), None if unknown."""
-    command = run.get("command")
-    if isinstance(command, str):
-        return command
-    method = run.get("method")  # written before "command" was recorded
-    if not isinstance(method, str):
-        return None
-    return "finetune" if method == "ultron-finetune" else "reconstruct"
-
-
 def _previous_kind(out: Path) -> str | None:
+    """The command of the run in ``out`` (:func:`~ultron.pipeline.record.run_kind`; only it is
+    read, so a run.json of any release counts), None without a readable run.json."""
     try:
         run = json.loads((out / RUN_JSON).read_text(encoding="utf-8"))
     except (OSError, ValueError):

@@ -1,4 +1,5 @@
-"""A fitted acoustic field on disk (FIELD_DIR) and its Python API.
+"""A fitted acoustic field (FIELD_DIR, read and written by :mod:`ultron.models.field_dir`)
+joined to the renderer: :class:`FittedField` and :func:`load_field`.
 
 FIELD_DIR layout (written by :func:`ultron.train.fit_field`, every file atomically)::
 
@@ -20,7 +21,6 @@ is the commit point, and its ``step`` is the authority on the progress (:class:`
 
 from __future__ import annotations
 
-import io
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -36,13 +36,15 @@ from ultron.errors import UltronInputError, argument_error
 from ultron.fields.base import AcousticField
 from ultron.fields.factory import FieldConfig, build_field
 from ultron.fields.properties import CHANNELS, CHANNELS_WITH_DENSITY, AcousticProperties
+from ultron.models.field_dir import (
+    CHECKPOINT,
+    FIELD_JSON,
+    THETA_STATS,
+    read_checkpoint,
+    read_field_json,
+)
 from ultron.render.renderer import RenderConfig, RenderedFrames, render_field
 
-FIELD_FORMAT = "ultron-field/1"
-FIELD_JSON = "field.json"
-CHECKPOINT = "checkpoint.pt"
-THETA_STATS = "theta_stats.json"
-TRAIN_LOG = "train_log.jsonl"
 #: Frames rendered at once by :meth:`FittedField.render` / :meth:`FittedField.render_maps`.
 RENDER_CHUNK_FRAMES = 8
 
@@ -303,55 +305,6 @@ class FittedField:
             theta[sel] = rendered.properties.stack()[f, r, c].cpu()
             transmission[sel] = rendered.transmission[f, r, c].cpu()
         return theta, transmission
-
-
-def read_field_json(field_dir: Path) -> dict[str, Any]:
-    path = field_dir / FIELD_JSON
-    if not path.is_file():
-        raise UltronInputError(path, FIELD_JSON, "file is missing (not a fitted field directory)")
-    try:
-        meta = json.loads(path.read_text(encoding="utf-8"))
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise UltronInputError(path, FIELD_JSON, f"not valid JSON ({exc})") from None
-    if not isinstance(meta, dict) or meta.get("format") != FIELD_FORMAT:
-        raise UltronInputError(path, "format", f"expected {FIELD_FORMAT!r}")
-    return meta
-
-
-def check_field_dataset(
-    field_dir: str | Path, dataset_sha256: str, where: str = "dataset", allow_other: bool = False
-) -> bool | None:
-    """Whether FIELD_DIR was fitted on the dataset whose content hash is ``dataset_sha256``
-    (:meth:`SweepDataset.content_hash`, recorded as field.json's ``dataset_sha256``).
-
-    Returns True on a match and None for a field.json without the record (fitted before it
-    was kept). A mismatch raises a one-line :class:`UltronInputError` naming field.json and
-    ``dataset_sha256`` (``where`` names the dataset) unless ``allow_other``, then returns False.
-    """
-    root = Path(field_dir)
-    recorded = read_field_json(root).get("dataset_sha256")
-    if recorded is None:
-        return None
-    if recorded == dataset_sha256:
-        return True
-    if allow_other:
-        return False
-    raise UltronInputError(
-        root / FIELD_JSON,
-        "dataset_sha256",
-        f"the field was fitted on another dataset than {where} (recorded {str(recorded)[:12]}…,"
-        f" {where} has {dataset_sha256[:12]}…); pass --allow-other-field to use it anyway",
-    )
-
-
-def read_checkpoint(field_dir: Path) -> dict[str, Any]:
-    path = field_dir / CHECKPOINT
-    if not path.is_file():
-        raise UltronInputError(path, CHECKPOINT, "checkpoint file is missing")
-    try:
-        return torch.load(io.BytesIO(path.read_bytes()), map_location="cpu", weights_only=True)
-    except Exception as exc:  # corrupt or foreign file
-        raise UltronInputError(path, CHECKPOINT, f"cannot be read ({type(exc).__name__})") from None
 
 
 def load_field(field_dir: str | Path, device: torch.device | str = "cpu") -> FittedField:

@@ -11,9 +11,15 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
+
+from ultron.device import resolve_device
+from ultron.errors import UltronInputError
+from ultron.models.field_dir import CHECKPOINT, FIELD_JSON
+from ultron.models.fitted import load_field
+from ultron.train.field_fit import fit_field
+from ultron.train.loop import Progress
 
 CHUNK = 1 << 20
 
@@ -54,7 +60,7 @@ def get_or_fit_field(
     dataset_dir: str | Path,
     dataset,
     config,
-    progress: Callable[[dict[str, Any]], None] | None = None,
+    progress: Progress | None = None,
     device: Any = "cpu",
 ):
     """Load the cached field for this dataset and configuration onto ``device``, fitting it
@@ -63,11 +69,6 @@ def get_or_fit_field(
     An interrupted fit resumes, unless its field.json records another dataset content hash
     (:meth:`SweepDataset.content_hash`, which covers the labels too, while the cache key does
     not): then the fit starts afresh, so that field.json names the dataset it is used with."""
-    from ultron.device import resolve_device
-    from ultron.errors import UltronInputError
-    from ultron.fields.fitted import CHECKPOINT, FIELD_JSON, load_field
-    from ultron.train.field_fit import fit_field
-
     device = resolve_device(device, "device")
     field_dir = cached_field_dir(dataset_dir, config.to_dict(), device.type)
     done = field_dir / "done"

@@ -23,14 +23,14 @@ from torch import nn
 
 from ultron import atomic
 from ultron.errors import UltronInputError
+from ultron.fields.occupancy import OccupancyNetwork, OccupancyNetworkConfig
+from ultron.fields.sdf import SDFNetwork, SDFNetworkConfig
 
 NETWORK_FILE = "network.pt"
 NETWORK_FORMAT = "ultron-network/1"
 
 
 def _network_classes() -> dict[str, tuple[type, type]]:
-    from ultron.fields.occupancy import OccupancyNetwork, OccupancyNetworkConfig
-    from ultron.fields.sdf import SDFNetwork, SDFNetworkConfig
 
     return {
         "OccupancyNetwork": (OccupancyNetwork, OccupancyNetworkConfig),

@@ -24,8 +24,11 @@ from ultron.fields.context import ThetaContextConfig
 from ultron.mesh.observed import ObservedSurfaceConfig
 from ultron.methods.on_method import ONConfig
 from ultron.methods.ultron_method import UltronConfig
+from ultron.metrics.surface import MetricsConfig
+from ultron.pipeline.run import ReconstructionRequest
 from ultron.train.field_config import FieldTrainConfig, field_preset
-from ultron.train.occupancy import OccupancyTrainConfig
+from ultron.train.occupancy import OccupancyTrainConfig, parse_positive_weight
+from ultron.train.visibility import visibility_config
 
 PIPELINE_PRESETS = ("fast", "paper")
 #: "we optimize UltrON for 50k iterations" (the paper, §3).
@@ -71,4 +74,69 @@ def pipeline_preset(name: str = "fast", seed: int = 0) -> PipelinePreset:
     return PipelinePreset(name, field, ultron, on, "paper")
 
 
-__all__ = ["PAPER_OCCUPANCY_ITERS", "PIPELINE_PRESETS", "PipelinePreset", "pipeline_preset"]
+def preset_field_config(
+    preset: str = "fast", seed: int = 0, iterations: int | None = None
+) -> FieldTrainConfig:
+    """The field fit of ``preset``, seeded by ``seed``, with ``iterations`` when given."""
+    config = pipeline_preset(preset, seed).field
+    return config if iterations is None else replace(config, iterations=iterations)
+
+
+def preset_request(
+    preset: str = "fast",
+    method: str = "ultron",
+    label_fraction: float = 0.1,
+    seed: int = 0,
+    *,
+    points: int = 100_000,
+    occupancy_iters: int | None = None,
+    visibility: str = "field",
+    oracle: bool = False,
+    surface: str | None = None,
+    theta_context: str | None = None,
+    positive_weight: str | None = None,
+    negatives: str | None = None,
+    mesh_coordinates: str = "lps",
+    device: str = "cpu",
+) -> ReconstructionRequest:
+    """The reconstruction request of ``preset`` for ``method``, with the options given (None:
+    the preset's): ``occupancy_iters`` for UltrON and ON, ``visibility`` / ``oracle`` the
+    source of T (:func:`~ultron.train.visibility.visibility_config`), ``surface``,
+    ``theta_context`` (radii in mm, comma-separated, or ``none``), ``positive_weight`` (a
+    number or ``balanced``), ``negatives``; metrics on ``points`` points per surface."""
+    base = pipeline_preset(preset, seed)
+    occupancy, on = base.ultron.occupancy, base.on
+    changes = {"negatives": negatives, "iters": occupancy_iters}
+    occupancy = replace(occupancy, **{k: v for k, v in changes.items() if v is not None})
+    if positive_weight is not None:  # "balanced" parses to None: n_background / n_bone
+        occupancy = replace(occupancy, positive_weight=parse_positive_weight(positive_weight))
+    if occupancy_iters is not None:
+        on = replace(on, occupancy=replace(on.occupancy, iters=occupancy_iters))
+    ultron = replace(
+        base.ultron, occupancy=occupancy, visibility=visibility_config(visibility, oracle)
+    )
+    if surface is not None:
+        ultron = replace(ultron, observed=replace(ultron.observed, surface=surface))
+    if theta_context is not None:
+        ultron = replace(ultron, context=ThetaContextConfig.parse(theta_context))
+    return ReconstructionRequest(
+        method=method,
+        label_fraction=label_fraction,
+        seed=seed,
+        ultron=ultron,
+        on=on,
+        rocosdf_preset=base.rocosdf_preset,
+        metrics=MetricsConfig(n_points=points),
+        mesh_coordinates=mesh_coordinates,
+        device=device,
+    )
+
+
+__all__ = [
+    "PAPER_OCCUPANCY_ITERS",
+    "PIPELINE_PRESETS",
+    "PipelinePreset",
+    "pipeline_preset",
+    "preset_field_config",
+    "preset_request",
+]
