@@ -8,8 +8,9 @@ its presence marks a finished run. Its first entry names the schema, ``"schema":
 vertices, faces, area_mm2, coordinates), the acoustic field used (``field_dir``,
 ``field_cached``, ``field_dataset_match``; absent for methods without a field), the method's
 own account (label selection, configurations, training logs, the grid, … — ``details``,
-written at the top level of the file, one entry per key), where it computed (``device``), ``timings_s`` per stage with their ``total``, ``peak_rss_mb`` and the
-``versions`` of the libraries that shape the numbers.
+written at the top level of the file, one entry per key), where it computed (``device``),
+``timings_s`` per stage with their ``total``, ``peak_rss_mb`` and the ``versions`` of the
+libraries that shape the numbers.
 
 Files written before the schema was recorded (no ``"schema"`` entry: schema version 0) are read
 too: their ``command`` is inferred (:func:`run_kind`) and the entries they lack are None. A

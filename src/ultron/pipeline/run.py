@@ -3,9 +3,10 @@
 Outputs: ``mesh.ply`` (with each vertex's evidence: observed or inferred, distance to the
 labelled bone), ``mesh.stl``, ``mesh.obj``, ``surface_extracted.ply`` (the whole iso-surface,
 when the observed crop dropped faces), ``occupancy.nii.gz`` (aligned with the mesh in 3D Slicer,
-see :mod:`ultron.mesh.export`), ``metrics.json`` when the dataset has a reference surface, and ``run.json`` (the command, configuration, label selection, versions, timings per
-stage, peak memory), written into a staging directory that replaces DIR as a whole at the end
-(:mod:`ultron.pipeline.rundir`); ``report.html`` follows in DIR.
+see :mod:`ultron.mesh.export`), ``metrics.json`` when the dataset has a reference surface,
+and ``run.json`` (:mod:`ultron.pipeline.record`: the command, configuration, label selection,
+versions, timings per stage, peak memory), written into a staging directory that replaces DIR
+as a whole at the end (:mod:`ultron.pipeline.rundir`); ``report.html`` follows in DIR.
 
 Everything cheap is checked before any work: DIR (:func:`~ultron.pipeline.rundir.check_run_dir`),
 the dataset, the reference meshes (read then, used only for metrics after the mesh exists), the

@@ -332,12 +332,8 @@ class _FieldRun:
     dataset_sha256: str
     device: torch.device
     log: list[dict[str, Any]]
-
-    @property
-    def fitted(self) -> FittedField:
-        return FittedField(
-            self.module, self.resolved, self.cube, self.frames.probe, self.render_config
-        )
+    #: The field being fitted, joined to the renderer (for the held-out checks).
+    fitted: FittedField
 
     def update(self, k: int) -> dict[str, float | torch.Tensor]:
         """Update k (0-based); ``lr`` is the rate of the next one."""
@@ -386,7 +382,8 @@ def fit_field(
     resume: bool = True,
     device: torch.device | str = "cpu",
 ) -> FittedField:
-    """Fit a field to ``dataset`` and write FIELD_DIR ``out_dir`` (:mod:`ultron.models.field_dir`).
+    """Fit a field to ``dataset`` and write FIELD_DIR ``out_dir``
+    (:mod:`ultron.models.field_dir`).
 
     ``device`` (:func:`ultron.device.resolve_device`'s spellings) holds the field, the frames
     and the rendering; the batches and scatterer draws come from one seeded CPU generator, so
@@ -426,8 +423,9 @@ def fit_field(
         clear_field_dir(out)
     out.mkdir(parents=True, exist_ok=True)
     render_config = config.render.rescaled(dataset.probe, frames.probe)
+    fitted = FittedField(module, resolved, cube, frames.probe, render_config)
     run = _FieldRun(out, config, frames, cube, module, resolved, optimizer, generator,
-                    render_config, dataset_sha256, device, log)  # fmt: skip
+                    render_config, dataset_sha256, device, log, fitted)  # fmt: skip
     run_training(
         run.update, config.iterations, name="field", log_every=config.log_every, start=step,
         learning_rate=lambda k: learning_rate_at(config, k), optimizers=[optimizer],
@@ -437,9 +435,9 @@ def fit_field(
     if not (out / CHECKPOINT).is_file():
         run.save(step)
     module.eval()
-    stats = theta_statistics(run.fitted, frames)
+    stats = theta_statistics(fitted, frames)
     atomic.write_json(out / THETA_STATS, stats.to_dict())
-    return replace_stats(run.fitted, stats)
+    return replace_stats(fitted, stats)
 
 
 def replace_stats(fitted: FittedField, stats: ThetaStatistics) -> FittedField:
