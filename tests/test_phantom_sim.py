@@ -427,3 +427,18 @@ def test_config_round_trips_through_phantom_json(small):
     assert stored["derived"]["reflection_gel_bone"] == pytest.approx(config.bmode.reflection)
     with pytest.raises(UltronInputError, match=r"config\.scan.*unknown"):
         SimulationConfig.from_dict({"scan": {"frames": 3}})
+
+
+def test_preview_draws_pixels_where_the_geometry_puts_them(tiny_dataset: SweepDataset) -> None:
+    """Hand-worked: 6 × 8 pixels of 2 mm; pixel (r, c) is at ((c − 3)·2, 2r) mm, so the image's
+    edges lie half a pixel (1 mm) outside the first and last centres."""
+    from ultron.phantom.preview import frame_extent_mm, pixel_centres_mm, preview_png
+
+    x_mm, depth_mm = pixel_centres_mm(tiny_dataset.probe)
+    np.testing.assert_array_equal(x_mm, [-6.0, -4.0, -2.0, 0.0, 2.0, 4.0])
+    np.testing.assert_array_equal(depth_mm, 2.0 * np.arange(8))
+    assert frame_extent_mm(tiny_dataset.probe) == (-7.0, 5.0, 15.0, -1.0)
+    png = preview_png(tiny_dataset, frames_per_sweep=2)
+    assert png.startswith(b"\x89PNG\r\n\x1a\n")
+    with pytest.raises(UltronInputError, match="frames_per_sweep"):
+        preview_png(tiny_dataset, frames_per_sweep=0)
