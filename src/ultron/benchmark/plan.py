@@ -72,6 +72,7 @@ TABLE1_ROWS = (
     Row("UltrON w/o loss (10%)", "ultron-noloss-10", "ultron-noloss", 0.1),
     Row("UltrON (10%)", "ultron-10", "ultron", 0.1),
     Row("UltrON (5%)", "ultron-5", "ultron", 0.05),
+    Row("UltrON (1%)", "ultron-1", "ultron", 0.01),
     Row("compounding (10%)", "compounding-10", "compounding", 0.1),
     Row("compounding (100%)", "compounding-100", "compounding", 1.0),
     Row("UltrON (auto labels, 100%)", "ultron-auto-100", "ultron", 1.0, labels="auto"),
