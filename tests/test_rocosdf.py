@@ -16,13 +16,11 @@ from ultron.data.geometry import UnitCube
 from ultron.data.labels import select_label_frames
 from ultron.errors import UltronInputError
 from ultron.fields.sdf import SDFNetwork, SDFNetworkConfig
-from ultron.methods.rocosdf import (
-    PRESETS,
-    RoCoSDFConfig,
+from ultron.methods.rocosdf import PRESETS, RoCoSDFConfig, reconstruct_rocosdf
+from ultron.methods.rocosdf_input import (
     check_views_fusable,
     cloud_normalisation,
     cloud_thickness_mm,
-    reconstruct_rocosdf,
     view_point_clouds,
 )
 from ultron.timing import StageTimer
