@@ -25,10 +25,10 @@ each on one busy core: ≈ 12 min) after stage 1's usual minutes, measured on on
 
 Normalisation (:func:`cloud_normalisation`, a :class:`~ultron.data.geometry.UnitCube`): ONE
 transform for all views, u = (x − c)/s with c the centre of the union's bounding box and s its
-largest extent (mm), so the data lies in [−0.5, 0.5]³; every output is mapped back to mm. UNSR on a single view uses the same
-transform (and meshing box) as RoCoSDF whenever the other view has bone points too — its
-field is then exactly RoCoSDF's stage-1 field of that view, as in the paper's figures — and
-otherwise the view's own.
+largest extent (mm), so the data lies in [−0.5, 0.5]³; every output is mapped back to mm. UNSR
+on a single view uses the same transform (and meshing box) as RoCoSDF whenever the other view
+has bone points too — its field is then exactly RoCoSDF's stage-1 field of that view, as in the
+paper's figures — and otherwise the view's own.
 """
 
 from __future__ import annotations

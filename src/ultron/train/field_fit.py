@@ -29,7 +29,7 @@ Where we differ from Ultra-NeRF (and why):
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -332,8 +332,13 @@ class _FieldRun:
     dataset_sha256: str
     device: torch.device
     log: list[dict[str, Any]]
-    #: The field being fitted, joined to the renderer (for the held-out checks).
-    fitted: FittedField
+    #: The field being fitted, joined to the renderer (for the held-out checks), built once.
+    fitted: FittedField = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.fitted = FittedField(
+            self.module, self.resolved, self.cube, self.frames.probe, self.render_config
+        )
 
     def update(self, k: int) -> dict[str, float | torch.Tensor]:
         """Update k (0-based); ``lr`` is the rate of the next one."""
@@ -352,6 +357,7 @@ class _FieldRun:
         done = entry["step"]
         if done % self.config.check_every == 0 or done == self.config.iterations:
             limit = self.config.max_check_frames
+            self.module.eval()  # the next update sets train mode again
             metrics = evaluate_frames(self.fitted, self.frames, self.frames.holdout_index, limit)
             entry.update({f"holdout_{k}": v for k, v in metrics.items()})
         return "holdout_psnr" in entry
@@ -423,9 +429,8 @@ def fit_field(
         clear_field_dir(out)
     out.mkdir(parents=True, exist_ok=True)
     render_config = config.render.rescaled(dataset.probe, frames.probe)
-    fitted = FittedField(module, resolved, cube, frames.probe, render_config)
     run = _FieldRun(out, config, frames, cube, module, resolved, optimizer, generator,
-                    render_config, dataset_sha256, device, log, fitted)  # fmt: skip
+                    render_config, dataset_sha256, device, log)  # fmt: skip
     run_training(
         run.update, config.iterations, name="field", log_every=config.log_every, start=step,
         learning_rate=lambda k: learning_rate_at(config, k), optimizers=[optimizer],
@@ -435,9 +440,9 @@ def fit_field(
     if not (out / CHECKPOINT).is_file():
         run.save(step)
     module.eval()
-    stats = theta_statistics(fitted, frames)
+    stats = theta_statistics(run.fitted, frames)
     atomic.write_json(out / THETA_STATS, stats.to_dict())
-    return replace_stats(fitted, stats)
+    return replace_stats(run.fitted, stats)
 
 
 def replace_stats(fitted: FittedField, stats: ThetaStatistics) -> FittedField:

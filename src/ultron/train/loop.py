@@ -14,10 +14,9 @@ Reported updates: every one when ``every_update`` (a progress bar that moves eac
 else the first, every ``log_every``-th and the last. The log keeps the first, every
 ``log_every``-th and the last entry, and any entry that ``on_entry`` (the fit's hook, e.g.
 a held-out check) marks by returning True; ``after_update`` runs after every update (e.g. a
-checkpoint). ``progress``, the one progress
-signature of every fit, receives ``{"iterations": N, **stage, **entry}`` for each reported
-update. Random draws belong to the fit: its ``update`` draws from its own seeded
-generators, never from torch's global state.
+checkpoint). ``progress``, the one progress signature of every fit, receives
+``{"iterations": N, **stage, **entry}`` for each reported update. Random draws belong to the
+fit: its ``update`` draws from its own seeded generators, never from torch's global state.
 """
 
 from __future__ import annotations
