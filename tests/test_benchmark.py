@@ -149,6 +149,30 @@ def _check_auto_label_rows(out: Path, payload: dict, table1: dict) -> list[str]:
     return [cell["id"]]
 
 
+def _check_stage1(out: Path, payload: dict) -> None:
+    """Each simulated dataset's field left its T check; the table lists them (L3 and L2, the
+    default condition, both averaged) and the two stage-1 targets are judged on their mean."""
+    from ultron.models.field_dir import read_transmission_check
+
+    stage1 = payload["stage1"]
+    assert [f["dataset"] for f in stage1["fields"]] == ["L3-s0", "L2-s0"]
+    assert stage1["n"] == 2 and all(f["default"] for f in stage1["fields"])
+    for entry in stage1["fields"]:
+        check = read_transmission_check(out / "data" / entry["dataset"] / "field")
+        assert entry["median_abs_error"] == check["median_abs_error"]
+        assert 0 <= check["median_abs_error"] <= 1 and 0 <= check["roc_auc"] <= 1
+        assert (
+            f"| {entry['dataset']} | {check['median_abs_error']:.3f} |"
+            in (payload["markdown"]["stage1"])
+        )
+    mean = np.mean([f["roc_auc"] for f in stage1["fields"]])
+    assert stage1["mean"]["roc_auc"] == pytest.approx(mean)
+    judged = [t for t in payload["targets"] if t["name"].startswith("stage 1:")]
+    assert len(judged) == 2
+    auc = next(t for t in judged if "ROC AUC" in t["name"])
+    assert auc["met"] == (mean >= 0.9) and auc["detail"] == f"{mean:.3f}"
+
+
 @pytest.fixture(scope="module")
 def bench_dir(tmp_path_factory) -> Path:
     """Where the tiny end-to-end benchmark runs (shared with the Ray executor's test)."""
@@ -164,8 +188,10 @@ def test_end_to_end_resume_and_failed_cells(bench_dir: Path, monkeypatch, tiny_r
     assert any("L2, not in --phantoms" in line for line in lines)
 
     payload = json.loads((out / BENCHMARK_JSON).read_text())
-    assert set(payload) == {"config", "markdown", "tables", "targets", "cells"}
-    assert set(payload["markdown"]) == set(payload["tables"]) == {"table1", "table2"}
+    assert set(payload) == {"config", "markdown", "tables", "targets", "cells", "stage1"}
+    assert set(payload["tables"]) == {"table1", "table2"}
+    assert set(payload["markdown"]) == {"table1", "table2", "stage1"}
+    _check_stage1(out, payload)
     markdown = (out / "tables.md").read_text()
     # The visible-reference figures lead the tables (the tiny phantom has a visible reference).
     header = next(line for line in markdown.splitlines() if line.startswith("| row |"))

@@ -26,6 +26,7 @@ from ultron.fields import (
     build_field,
 )
 from ultron.models import load_field
+from ultron.models.field_dir import TRANSMISSION_CHECK
 from ultron.render import RenderConfig, pixel_points_mm, render_properties
 from ultron.train import FieldTrainConfig, field_preset, fit_field, resample_frames
 
@@ -148,6 +149,7 @@ def test_grid_field_overfits_a_tiny_volume(tmp_path: Path) -> None:
     stats = json.loads((tmp_path / "f" / "theta_stats.json").read_text())
     assert stats["channels"] == list(CHANNELS) and all(s > 0 for s in stats["std"])
     assert fitted.theta_stats is not None
+    assert not (tmp_path / "f" / TRANSMISSION_CHECK).exists()  # no true T: no check written
     # the fitted reflector lies where the volume's does: β's deepest-peak row per scanline
     # (below the first 3 rows) against the truth's, within one pixel (0.375 mm) on the median
     # and on ≥ 70 % of the scanlines (measured: median 1 / 1 / 0 rows, 76 / 77 / 99 % at

@@ -188,7 +188,23 @@ def _labelled_transmission(tmp_path, fit) -> tuple[np.ndarray, np.ndarray]:
         labelled = sweep.labels != 255
         field_t.append(maps.transmission[labelled])
         true_t.append(truth[labelled])
-    return np.concatenate(field_t), np.concatenate(true_t)
+    field_t, true_t = np.concatenate(field_t), np.concatenate(true_t)
+    _check_written_diagnostics(tmp_path / "field", field_t, true_t)
+    return field_t, true_t
+
+
+def _check_written_diagnostics(field_dir, field_t: np.ndarray, true_t: np.ndarray) -> None:
+    """The fit's transmission_check.json (pixel-by-pixel ray casting of the dataset's grid)
+    holds the figures computed here from whole rendered frames."""
+    from ultron.metrics.transmission import transmission_diagnostics
+    from ultron.models.field_dir import read_transmission_check
+
+    check = read_transmission_check(field_dir)
+    expected = transmission_diagnostics(field_t, true_t)
+    assert check["source"] == "field" and check["n_pixels"] == expected.n_pixels == field_t.size
+    for key in ("median_abs_error", "deep_shadow_share", "roc_auc", "lit_median"):
+        assert check[key] == pytest.approx(getattr(expected, key), abs=1e-4), key
+    assert check["met"] == expected.meets_targets()
 
 
 @pytest.mark.slow

@@ -9,7 +9,9 @@ and targets) and ``DIR/report.html`` (:mod:`ultron.report.bench_report`)::
                             "paper": {metric: float} | null}], ...},
      "targets": [{"name": str, "met": bool | null, "detail": str}],
      "cells": [{"id", "table", "row", "phantom", "seed", "run_dir" (relative to DIR),
-                "status": "ok" | "failed", "error": str | null, "runtime_s": float}]}
+                "status": "ok" | "failed", "error": str | null, "runtime_s": float}],
+     "stage1": {"n", "mean": {figure: float}, "std": {...},           # each field's T vs
+                "fields": [{"dataset", "default", figure: float}]}}   # the true T (stage1.py)
 
 Non-finite figures (an empty reconstruction's CD, a row without cells) are written as null. A
 run reused by another table (Table 2's "full training", the robustness "default" rows) appears
@@ -27,6 +29,7 @@ from pathlib import Path
 from typing import Any
 
 from ultron import atomic
+from ultron.benchmark import stage1
 from ultron.benchmark.plan import BenchmarkConfig, Plan, Task, plan_benchmark
 from ultron.benchmark.ray_executor import check_executor
 from ultron.benchmark.runner import Outcome, default_threads, run_tasks
@@ -162,6 +165,10 @@ def build_payload(
     tables = {name: aggregate(name, plan.cells, status, out) for name in plan.tables}
     targets = [t for name in plan.tables for t in TARGETS[name](tables[name])]
     markdown = {name: markdown_table(name, rows) for name, rows in tables.items()}
+    stage1_summary = stage1.summarise(stage1.field_checks(plan, status))
+    if stage1_summary["fields"]:  # simulated datasets carry the true T
+        markdown[stage1.STAGE1] = stage1.markdown(stage1_summary)
+        targets += stage1.targets(stage1_summary)
     cells = []
     for cell in plan.cells:
         outcome = outcomes[cell.task_id]
@@ -196,7 +203,7 @@ def build_payload(
     }
     return json_safe(
         {"config": settings, "markdown": markdown, "tables": tables, "targets": targets,
-         "cells": cells}
+         "cells": cells, "stage1": stage1_summary}
     )  # fmt: skip
 
 

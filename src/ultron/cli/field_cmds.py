@@ -250,6 +250,31 @@ def _print_fitted(fitted: FittedField, out: Path, device: str) -> None:
             for c, m, s in zip(stats.channels, stats.mean, stats.std, strict=True)
         )
         console.print(f"θ statistics: {summary}", highlight=False)
+    _print_transmission_check(out)
+
+
+def _print_transmission_check(out: Path) -> None:
+    """On a simulated dataset: the fitted T against the simulator's (transmission_check.json)."""
+    from ultron.models.field_dir import TRANSMISSION_CHECK, read_transmission_check
+
+    check = read_transmission_check(out)
+    if check is None:
+        return
+    verdict = {True: "met", False: "missed", None: "n/a"}
+    met = check.get("met", {})
+
+    def figure(name: str, spec: str) -> str:
+        value = check.get(name)
+        return "n/a" if value is None else format(value, spec)
+
+    console.print(
+        f"T against the simulator's truth ({out / TRANSMISSION_CHECK}): median |T − T_true|"
+        f" {figure('median_abs_error', '.3f')} ({verdict[met.get('median_abs_error')]}: ≤ 0.15),"
+        f" shadowed-vs-lit ROC AUC {figure('roc_auc', '.3f')}"
+        f" ({verdict[met.get('roc_auc')]}: ≥ 0.9), deep shadow (true T < 0.1) with T < 0.3:"
+        f" {figure('deep_shadow_share', '.0%')}, lit T median {figure('lit_median', '.2f')}",
+        highlight=False,
+    )
 
 
 @user_errors

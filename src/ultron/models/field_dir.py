@@ -5,7 +5,8 @@ configurations, the probe geometry it was fitted at, the world ↔ unit-cube tra
 held-out frames, the step reached, the dataset's content hash and where it was fitted),
 ``checkpoint.pt`` (model, optimiser and batch-generator state, step and iterations; CPU
 tensors, so it loads on any device), ``train_log.jsonl`` (one JSON object per logged update)
-and ``theta_stats.json`` (θ's per-channel statistics, written when the fit ends). Every write
+and ``theta_stats.json`` (θ's per-channel statistics, written when the fit ends), and on a
+simulated dataset ``transmission_check.json`` (the fitted T against the true one). Every write
 is atomic; the log is written before the checkpoint and field.json, so it may run ahead of a
 checkpoint after a kill, never behind (:func:`read_train_log` drops what runs ahead).
 """
@@ -28,6 +29,10 @@ FIELD_JSON = "field.json"
 CHECKPOINT = "checkpoint.pt"
 THETA_STATS = "theta_stats.json"
 TRAIN_LOG = "train_log.jsonl"
+#: Written at the end of a fit on a dataset with the simulator's true transmission (every
+#: annotated sweep has ``transmission.npy``): the fitted field's T against it
+#: (:mod:`ultron.train.transmission_check`). Diagnostic only; no reader of a field needs it.
+TRANSMISSION_CHECK = "transmission_check.json"
 
 
 def read_field_json(field_dir: Path) -> dict[str, Any]:
@@ -133,5 +138,25 @@ def read_train_log(out: Path, step: int) -> list[dict[str, Any]]:
 def clear_field_dir(out: Path) -> None:
     """Remove a previous fit's files from ``out`` (only FIELD_DIR's own file names), so that
     an interrupted fresh run never leaves a mix of two runs (or an old checkpoint to resume)."""
-    for name in (CHECKPOINT, FIELD_JSON, THETA_STATS, TRAIN_LOG):
+    for name in (CHECKPOINT, FIELD_JSON, THETA_STATS, TRAIN_LOG, TRANSMISSION_CHECK):
         (out / name).unlink(missing_ok=True)
+
+
+def write_transmission_check(out_dir: Path, check: dict[str, Any]) -> None:
+    """Write ``transmission_check.json`` atomically (see :data:`TRANSMISSION_CHECK`)."""
+    atomic.write_json(out_dir / TRANSMISSION_CHECK, check)
+
+
+def read_transmission_check(field_dir: Path) -> dict[str, Any] | None:
+    """FIELD_DIR's ``transmission_check.json``, or None when the field has none (a dataset
+    without ground truth, or a field fitted before the check existed)."""
+    path = Path(field_dir) / TRANSMISSION_CHECK
+    if not path.is_file():
+        return None
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise UltronInputError(path, TRANSMISSION_CHECK, f"not valid JSON ({exc})") from None
+    if not isinstance(data, dict):
+        raise UltronInputError(path, TRANSMISSION_CHECK, "expected a JSON object")
+    return data
