@@ -240,7 +240,11 @@ def test_end_to_end_resume_and_failed_cells(bench_dir: Path, monkeypatch, tiny_r
     done = out / "runs" / "L3-s0" / "ultron-10" / "metrics.json"
     stamp = done.stat().st_mtime_ns
     failing_finetune(monkeypatch, None)
+    check_file = out / "data" / "L2-s0" / "field" / "transmission_check.json"
+    written = json.loads(check_file.read_text())
+    check_file.unlink()  # as a field fitted before the check existed: recomputed, not refitted
     second = run_benchmark(tiny_config(), out)
+    assert json.loads(check_file.read_text()) == written
     rerun = ["run:L2-s0/finetune-1pct-100", *(AUTO_ULTRON_TASK for _ in auto_failed)]
     assert sorted(second.executed + second.failed) == sorted(rerun)
     assert second.executed[:1] == rerun[:1]

@@ -11,6 +11,7 @@ from ultron.errors import UltronInputError
 from ultron.metrics.transmission import (
     labelled_transmission_diagnostics,
     roc_auc,
+    target_met,
     transmission_diagnostics,
 )
 
@@ -52,6 +53,15 @@ def test_transmission_diagnostics_leaves_out_nan_and_names_bad_input():
         transmission_diagnostics(np.array([1.5]), np.array([1.0]))
     with pytest.raises(UltronInputError, match="shadow_t"):
         transmission_diagnostics(np.zeros(2), np.zeros(2), shadow_t=1.0)
+
+
+def test_target_met_compares_each_figure_its_own_way():
+    assert target_met("median_abs_error", 0.15) is True
+    assert target_met("median_abs_error", 0.151) is False
+    assert target_met("roc_auc", 0.9) is True and target_met("roc_auc", 0.89) is False
+    assert target_met("roc_auc", None) is None and target_met("roc_auc", math.nan) is None
+    with pytest.raises(UltronInputError, match="name"):
+        target_met("lit_median", 0.5)
 
 
 def test_labelled_diagnostics_use_annotated_pixels_only():

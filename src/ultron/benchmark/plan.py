@@ -271,6 +271,7 @@ class FieldJob:
     config: FieldTrainConfig
     out: str
     device: str = "cpu"
+    condition: str = DEFAULT  # the dataset's robustness condition (the Stage 1 table's mean)
 
 
 @dataclass(frozen=True)
@@ -410,6 +411,7 @@ class _Planner:
                 replace(config.field_fit, seed=spec.seed),
                 str(spec.field_dir(self.out)),
                 config.device,
+                spec.condition,
             )
             self.plan.tasks[field_id] = Task(field_id, (sim_id,), job)
         return sim_id, field_id

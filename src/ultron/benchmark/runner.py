@@ -46,7 +46,6 @@ from ultron.models.field_dir import (
     FIELD_JSON,
     TRANSMISSION_CHECK,
     read_field_json,
-    write_transmission_check,
 )
 from ultron.models.fitted import load_field
 from ultron.phantom.dataset import simulate_dataset
@@ -54,7 +53,7 @@ from ultron.pipeline.finetune import finetune
 from ultron.pipeline.record import RunRecord
 from ultron.pipeline.run import reconstruct
 from ultron.train.field_fit import fit_field
-from ultron.train.transmission_check import transmission_check
+from ultron.train.transmission_check import record_transmission_check
 
 Outcome = dict[str, Any]
 #: Called with (task, outcome, tasks finished, tasks in total) as each task ends.
@@ -125,9 +124,7 @@ def fit(job: FieldJob) -> bool:
     if done and _normalised(read_field_json(out).get("train")) == _normalised(job.config.to_dict()):
         if not (out / TRANSMISSION_CHECK).is_file():  # fitted before the check was written
             dataset = SweepDataset.load(job.dataset_dir)
-            check = transmission_check(dataset, load_field(out, job.device))
-            if check is not None:
-                write_transmission_check(out, check)
+            record_transmission_check(dataset, load_field(out, job.device), out)
         return True
     # resumes a checkpoint (also a larger iteration count); other settings are an error
     fit_field(SweepDataset.load(job.dataset_dir), job.config, out, resume=True, device=job.device)

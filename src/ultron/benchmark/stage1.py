@@ -16,9 +16,9 @@ from typing import Any
 
 import numpy as np
 
-from ultron.benchmark.plan import CONDITION_TAGS, DEFAULT, FieldJob, Plan
+from ultron.benchmark.plan import DEFAULT, FieldJob, Plan
 from ultron.errors import UltronInputError
-from ultron.metrics.transmission import TARGETS
+from ultron.metrics.transmission import TARGET_RELATIONS, TARGETS, target_met
 from ultron.models.field_dir import read_transmission_check
 
 STAGE1 = "stage1"
@@ -46,16 +46,10 @@ def field_checks(plan: Plan, status: Mapping[str, str]) -> list[dict[str, Any]]:
         if check is None:
             continue
         name = task_id.split(":", 1)[1]
-        entry: dict[str, Any] = {"dataset": name, "default": _is_default(name)}
+        entry: dict[str, Any] = {"dataset": name, "default": task.job.condition == DEFAULT}
         entry.update({k: check.get(k) for k in FIGURES})
         entries.append(entry)
     return entries
-
-
-def _is_default(dataset: str) -> bool:
-    """Dataset names carry their condition's tag (``L3-annot-s0``) except the default's."""
-    tags = [tag for condition, tag in CONDITION_TAGS.items() if condition != DEFAULT]
-    return not any(f"-{tag}-" in dataset for tag in tags)
 
 
 def summarise(entries: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
@@ -103,14 +97,11 @@ def targets(summary: Mapping[str, Any]) -> list[dict[str, Any]]:
     """Issue 15's stage-1 targets on the mean over the default datasets."""
     result = []
     for key, bound in TARGETS.items():
-        relation = "≤" if key == "median_abs_error" else "≥"
-        name = f"stage 1: {FIGURES[key]} {relation} {bound:g} (mean over datasets)"
+        name = f"stage 1: {FIGURES[key]} {TARGET_RELATIONS[key]} {bound:g} (mean over datasets)"
         value = summary["mean"].get(key) if summary["n"] else None
-        if value is None:
-            result.append({"name": name, "met": None, "detail": "not measured (no ground truth)"})
-            continue
-        met = value <= bound if key == "median_abs_error" else value >= bound
-        result.append({"name": name, "met": met, "detail": f"{value:.3f}"})
+        met = target_met(key, value)
+        detail = "not measured (no ground truth)" if met is None else f"{value:.3f}"
+        result.append({"name": name, "met": met, "detail": detail})
     return result
 
 

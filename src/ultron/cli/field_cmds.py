@@ -260,6 +260,8 @@ def _print_transmission_check(out: Path) -> None:
     check = read_transmission_check(out)
     if check is None:
         return
+    from ultron.metrics.transmission import TARGET_RELATIONS, TARGETS
+
     verdict = {True: "met", False: "missed", None: "n/a"}
     met = check.get("met", {})
 
@@ -267,12 +269,15 @@ def _print_transmission_check(out: Path) -> None:
         value = check.get(name)
         return "n/a" if value is None else format(value, spec)
 
+    def judged(name: str) -> str:
+        return f"({verdict[met.get(name)]}: {TARGET_RELATIONS[name]} {TARGETS[name]:g})"
+
     console.print(
         f"T against the simulator's truth ({out / TRANSMISSION_CHECK}): median |T − T_true|"
-        f" {figure('median_abs_error', '.3f')} ({verdict[met.get('median_abs_error')]}: ≤ 0.15),"
-        f" shadowed-vs-lit ROC AUC {figure('roc_auc', '.3f')}"
-        f" ({verdict[met.get('roc_auc')]}: ≥ 0.9), deep shadow (true T < 0.1) with T < 0.3:"
-        f" {figure('deep_shadow_share', '.0%')}, lit T median {figure('lit_median', '.2f')}",
+        f" {figure('median_abs_error', '.3f')} {judged('median_abs_error')},"
+        f" shadowed-vs-lit ROC AUC {figure('roc_auc', '.3f')} {judged('roc_auc')},"
+        f" deep shadow (true T < 0.1) with T < 0.3: {figure('deep_shadow_share', '.0%')},"
+        f" lit T median {figure('lit_median', '.2f')}",
         highlight=False,
     )
 

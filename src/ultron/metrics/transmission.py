@@ -26,10 +26,13 @@ from typing import Any
 import numpy as np
 from scipy.stats import rankdata
 
+from ultron.data.validation import LABEL_UNANNOTATED
 from ultron.errors import argument_error
 
 #: Issue 15's stage-1 targets: the largest median error and the smallest ROC AUC.
 TARGETS = {"median_abs_error": 0.15, "roc_auc": 0.9}
+#: How each target's figure must compare with its bound.
+TARGET_RELATIONS = {"median_abs_error": "≤", "roc_auc": "≥"}
 #: A pixel whose true T exceeds this counts as lit in ``lit_median``.
 LIT_T = 0.9
 
@@ -59,16 +62,18 @@ class TransmissionDiagnostics:
 
     def meets_targets(self) -> dict[str, bool | None]:
         """Per target of :data:`TARGETS`: met, missed, or ``None`` when not measurable."""
-        verdict: dict[str, bool | None] = {}
-        for name, bound in TARGETS.items():
-            value = getattr(self, name)
-            if math.isnan(value):
-                verdict[name] = None
-            elif name == "median_abs_error":
-                verdict[name] = value <= bound
-            else:
-                verdict[name] = value >= bound
-        return verdict
+        return {name: target_met(name, getattr(self, name)) for name in TARGETS}
+
+
+def target_met(name: str, value: float | None) -> bool | None:
+    """Whether ``value`` of figure ``name`` meets its target (:data:`TARGETS`,
+    :data:`TARGET_RELATIONS`); ``None`` for a figure that was not measured (None or NaN)."""
+    if name not in TARGETS:
+        raise argument_error("name", f"expected one of {sorted(TARGETS)}, got {name!r}")
+    if value is None or math.isnan(value):
+        return None
+    bound = TARGETS[name]
+    return value <= bound if TARGET_RELATIONS[name] == "≤" else value >= bound
 
 
 def roc_auc(scores: np.ndarray, positive: np.ndarray) -> float:
@@ -150,7 +155,7 @@ def labelled_transmission_diagnostics(
         shapes = {np.shape(estimate), np.shape(truths[name]), np.shape(labels[name])}
         if len(shapes) != 1:
             raise argument_error("estimates", f"sweep {name!r}: shapes differ: {sorted(shapes)}")
-        annotated = np.asarray(labels[name]) != 255
+        annotated = np.asarray(labels[name]) != LABEL_UNANNOTATED
         est_parts.append(np.asarray(estimate, dtype=np.float64)[annotated])
         true_parts.append(np.asarray(truths[name], dtype=np.float64)[annotated])
     if not est_parts:
@@ -163,8 +168,10 @@ def labelled_transmission_diagnostics(
 __all__ = [
     "LIT_T",
     "TARGETS",
+    "TARGET_RELATIONS",
     "TransmissionDiagnostics",
     "labelled_transmission_diagnostics",
     "roc_auc",
+    "target_met",
     "transmission_diagnostics",
 ]

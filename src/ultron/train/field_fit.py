@@ -54,7 +54,6 @@ from ultron.models.field_dir import (
     read_train_log,
     save_checkpoint,
     write_train_log,
-    write_transmission_check,
 )
 from ultron.models.fitted import FittedField, ThetaStatistics, probe_to_dict
 from ultron.render.renderer import RenderConfig, render_field
@@ -81,7 +80,7 @@ from ultron.train.losses import (
     ultranerf_loss,
     weighted_scattering_tv,
 )
-from ultron.train.transmission_check import transmission_check
+from ultron.train.transmission_check import record_transmission_check
 
 
 def sample_patches(
@@ -445,9 +444,7 @@ def fit_field(
     stats = theta_statistics(run.fitted, frames)
     atomic.write_json(out / THETA_STATS, stats.to_dict())
     fitted = replace_stats(run.fitted, stats)
-    check = transmission_check(dataset, fitted)
-    if check is not None:  # a simulated dataset: the fitted T against the true one
-        write_transmission_check(out, check)
+    record_transmission_check(dataset, fitted, out)  # simulated data: T against the true T
     return fitted
 
 
