@@ -61,7 +61,7 @@ def label_dataset(path: Path) -> tuple[np.ndarray, np.ndarray, float]:
 
     dataset = SweepDataset.load(path)
     start = time.perf_counter()
-    auto = [auto_label_frames(s.images, dataset.probe) for s in dataset.sweeps]
+    auto = [auto_label_frames(s.images, dataset.probe)[0] for s in dataset.sweeps]
     seconds = time.perf_counter() - start
     truth = [s.labels for s in dataset.sweeps]
     return np.concatenate(auto), np.concatenate(truth), seconds

@@ -256,11 +256,11 @@ CASES: dict[str, tuple[Callable[[Path, Path], list[str]], tuple[str, ...]]] = {
     ),
     "reconstruct_tiny_probe": (
         lambda t, d: _after(_tiny_probe(d), _recon(d, t / "out")),
-        ("dataset.json", "probe", "meshing grid", "0.001 mm wide / 6 columns"),
+        ("dataset.json", "probe", "pixels are", "0.001 mm wide / 6 columns"),
     ),
     "fit_field_tiny_probe": (
         lambda t, d: _after(_tiny_probe(d), ["fit-field", str(d), "--out", str(t / "f")]),
-        ("dataset.json", "probe", "acoustic field", "nodes per side"),
+        ("dataset.json", "probe", "pixels are", "width_mm and depth_mm"),
     ),
     "reconstruct_over_max_memory": (
         lambda t, d: _recon(d, t / "out", "--max-memory", "1e-6"),

@@ -136,3 +136,33 @@ def test_the_guard_counts_the_tiles_not_the_box():
     check_meshing_grid(dataset, "long", 0.5, max_memory_gib=1.01 * gib)  # fits now
     with pytest.raises(UltronInputError, match="field of view's tiles"):
         check_meshing_grid(dataset, "long", 0.5, max_memory_gib=0.9 * gib)
+
+
+# ------------------------------------------------------------- the voxel from the region
+def test_meshing_voxel_grows_with_the_region_only_beyond_the_budget():
+    from ultron.data.dataset import ProbeGeometry
+    from ultron.mesh.grid import MAX_REGION_VOXELS, meshing_voxel_mm
+
+    probe = ProbeGeometry(width_mm=40.0, depth_mm=30.0, height_px=100, width_px=80)  # 0.3 mm
+    assert meshing_voxel_mm(probe, None) == pytest.approx(0.3)
+    assert meshing_voxel_mm(probe, 0.7, region_mm3=1e12) == 0.7  # given: kept
+    small = 0.5 * MAX_REGION_VOXELS * 0.3**3  # half the budget at the pixel spacing
+    assert meshing_voxel_mm(probe, None, small) == pytest.approx(0.3)
+    # 1000 × the budget at the pixel spacing: the voxel grows by 10 (the cube root)
+    big = 1000 * MAX_REGION_VOXELS * 0.3**3
+    assert meshing_voxel_mm(probe, None, big) == pytest.approx(3.0)
+    # a larger budget never takes the voxel below the pixel spacing
+    assert meshing_voxel_mm(probe, None, big, max_voxels=8000 * MAX_REGION_VOXELS) == 0.3
+
+
+def test_field_of_view_volume_of_a_straight_sweep_is_its_swept_box():
+    from ultron.data.dataset import ProbeGeometry
+    from ultron.mesh.grid import field_of_view_volume_mm3
+
+    probe = ProbeGeometry(width_mm=40.0, depth_mm=30.0, height_px=61, width_px=81)  # 0.5 mm
+    poses = np.tile(np.eye(4), (101, 1, 1))
+    poses[:, 2, 3] = np.linspace(0.0, 100.0, 101)  # 1 mm steps along the elevation
+    volume = field_of_view_volume_mm3(poses, probe, 0.5, voxel_mm=1.0)
+    # the slabs sweep the image rectangle (pixel centre to centre: 40 × 30 mm) over 101 mm:
+    # 121 200 mm³, to within a voxel layer on each face
+    assert volume == pytest.approx(40.0 * 30.0 * 101.0, rel=0.1)

@@ -302,3 +302,63 @@ def test_evaluate_cli_with_visible_reference(tmp_path: Path, sphere):
     assert '"cd_visible": null' in text
     missing = runner.invoke(app, [*args, "--reference-visible", str(tmp_path / "nope.ply")])
     assert missing.exit_code == 2 and "nope.ply" in missing.stderr
+
+
+# --------------------------------------------------------------------- crop to the visible
+def _square(x0: float, size: float, z: float) -> trimesh.Trimesh:
+    """An axis-aligned square [x0, x0 + size] × [0, size] at height z, two triangles."""
+    corners = [[x0, 0, z], [x0 + size, 0, z], [x0 + size, size, z], [x0, size, z]]
+    return trimesh.Trimesh(corners, [[0, 1, 2], [0, 2, 3]])
+
+
+def test_crop_drops_faces_far_from_the_visible_reference_and_reports_their_area():
+    reference = _square(0.0, 20.0, 0.0)
+    visible = _square(0.0, 10.0, 0.0)
+    near = _square(0.0, 10.0, 0.5)  # 0.5 mm above the visible part: kept
+    far = _square(40.0, 10.0, 0.0)  # 30 mm beside it (a tibia): dropped, 100 mm²
+    recon = trimesh.util.concatenate([near, far])
+    config = MetricsConfig(n_points=4_000, repeats=1, crop_mm=5.0)
+    result = evaluate_meshes(recon, reference, config, reference_visible=visible)
+    crop = result["crop"]
+    assert crop["area_mm2"] == pytest.approx(200.0)
+    assert crop["area_kept_mm2"] == pytest.approx(100.0)
+    assert crop["area_outside_mm2"] == pytest.approx(100.0)
+    mean = result["mean"]
+    assert mean["mad"] == pytest.approx(0.5, abs=1e-6)  # the far square no longer counts
+    assert mean["hd"] == pytest.approx(0.5, abs=1e-6)
+    assert mean["fscore_visible_1mm"] == 1.0  # every visible point within 0.5 mm
+    uncropped = evaluate_meshes(recon, reference, MetricsConfig(n_points=4_000, repeats=1),
+                                reference_visible=visible)  # fmt: skip
+    assert uncropped["crop"] is None and uncropped["mean"]["hd"] > 20.0
+
+
+def test_visible_fscore_uses_the_visible_reference():
+    acc = np.array([0.5, 0.5, 3.0, 3.0])  # precision at 1 mm: 1/2
+    comp = np.array([5.0, 5.0])  # the whole reference: nothing within 1 mm
+    comp_visible = np.array([0.2, 0.2, 0.2, 3.0])  # recall 3/4
+    result = distance_metrics(acc, comp, comp_visible)
+    assert result["fscore_1mm"] == 0.0
+    assert result["fscore_visible_1mm"] == pytest.approx(2 * 0.5 * 0.75 / 1.25)
+    assert distance_metrics(acc, comp)["fscore_visible_1mm"] is None
+
+
+def test_crop_needs_a_visible_reference_and_a_positive_distance(sphere, tmp_path: Path):
+    with pytest.raises(UltronInputError, match="reference_visible"):
+        evaluate_meshes(sphere, sphere, MetricsConfig(n_points=100, repeats=1, crop_mm=5.0))
+    for bad in (0.0, -1.0, math.inf, math.nan):
+        with pytest.raises(UltronInputError, match="crop_mm"):
+            MetricsConfig(crop_mm=bad)
+    sphere.export(tmp_path / "ref.ply")
+    cli = CliRunner().invoke(
+        app, ["evaluate", str(tmp_path / "ref.ply"), str(tmp_path / "ref.ply"), "--crop-mm", "5"]
+    )
+    assert cli.exit_code == 2 and "--crop-mm" in cli.stderr and "Traceback" not in cli.output
+
+
+def test_crop_of_everything_gives_the_empty_figures(sphere):
+    far = trimesh.creation.icosphere(subdivisions=2, radius=10.0)
+    far.apply_translation([100.0, 0, 0])
+    config = MetricsConfig(n_points=1_000, repeats=1, crop_mm=5.0)
+    result = evaluate_meshes(far, sphere, config, reference_visible=sphere)
+    assert result["crop"]["area_kept_mm2"] == 0.0
+    assert math.isinf(result["mean"]["cd_visible"]) and result["mean"]["fscore_visible_1mm"] == 0.0

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 from pathlib import Path
 
@@ -85,15 +86,38 @@ def test_meshing_grid_estimate_is_scan_grids_shape(tiny_dataset: SweepDataset):
 
 
 def test_meshing_grid_too_large(tiny_dataset: SweepDataset):
-    small = _probe(tiny_dataset, 1e-3)  # 0.17 µm pixels
-    with pytest.raises(UltronInputError, match=r"^ds/dataset.json: probe: the meshing grid") as e:
-        check_meshing_grid(small, "ds", None, None)
-    assert "0.001 mm wide / 6 columns" in str(e.value) and "machine's memory" in str(e.value)
     with pytest.raises(UltronInputError, match=r"^argument: voxel_mm: .*--max-memory 1e-06 GiB"):
         check_meshing_grid(tiny_dataset, "ds", 0.5, 1e-6)
-    huge_voxels = _probe(tiny_dataset, 1e-300)  # the ratio overflows a float
+    with pytest.raises(UltronInputError, match=r"^ds/dataset.json: probe: the meshing grid"):
+        check_meshing_grid(tiny_dataset, "ds", None, 1e-6)  # the default voxel, named "probe"
+    # a given voxel whose ratio overflows a float is sized without allocating and refused
     with pytest.raises(UltronInputError, match="meshing grid"):
-        check_meshing_grid(huge_voxels, "ds", None, None)
+        check_meshing_grid(tiny_dataset, "ds", 1e-300, None)
+
+
+def test_tiny_pixels_get_a_voxel_from_the_region_not_a_petabyte_grid(tiny_dataset: SweepDataset):
+    """0.17 µm pixels once asked for petabytes (a grid at the pixel spacing over the field of
+    view); the voxel now follows the region's volume (:data:`MAX_REGION_VOXELS`)."""
+    from ultron.mesh.grid import MAX_REGION_VOXELS
+
+    small = _probe(tiny_dataset, 1e-3)
+    shape, voxel, _ = meshing_grid_shape(small, None)
+    assert voxel > 100 * small.probe.lateral_spacing_mm
+    assert math.prod(shape) < 100 * MAX_REGION_VOXELS
+    check_meshing_grid(small, "ds", None, None)
+
+
+def test_absurd_pixel_aspect_is_refused(tiny_dataset: SweepDataset):
+    from ultron.pipeline.resources import MAX_PIXEL_ASPECT, check_probe_aspect
+
+    check_probe_aspect(tiny_dataset, "ds")
+    probe = tiny_dataset.probe
+    ratio = probe.axial_spacing_mm / probe.lateral_spacing_mm
+    ok = _probe(tiny_dataset, probe.width_mm * ratio / (0.99 * MAX_PIXEL_ASPECT))
+    check_probe_aspect(ok, "ds")  # just under the limit
+    for width in (1e-3, 1e-300, 1e6):
+        with pytest.raises(UltronInputError, match=r"^ds/dataset.json: probe: its pixels are"):
+            check_probe_aspect(_probe(tiny_dataset, width), "ds")
 
 
 def test_field_grid(tiny_dataset: SweepDataset):

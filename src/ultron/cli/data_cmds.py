@@ -153,8 +153,13 @@ def _plus_summary(report, probe) -> list[str]:
         f" {report.orientation} → MF ({'flipped ' + ' and '.join(flips) if flips else 'no flip'})",
         f"Image → {report.probe_frame}: {fit.spacing_mm[0]:.5f} mm per column ×"
         f" {fit.spacing_mm[1]:.5f} mm per row; its image axes are {abs(fit.shear_deg):.2f}° from"
-        f" perpendicular: the rigid pose moves pixels by at most {fit.residual_max_mm:.3f} mm"
-        f" (RMS {fit.residual_rms_mm:.3f} mm) from PLUS's map",
+        f" perpendicular: a rigid pose would move pixels by at most {fit.residual_max_mm:.3f} mm"
+        f" (RMS {fit.residual_rms_mm:.3f} mm) from PLUS's map"
+        + (
+            "; frames resampled onto the rigid grid (every echo where PLUS puts it)"
+            if report.resampled
+            else ""
+        ),
         f"world frame: {report.world} ({report.chain} · ImageToProbe)",
     ]
     if report.clip is not None:

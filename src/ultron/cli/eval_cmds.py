@@ -8,6 +8,7 @@ from typing import Annotated
 import typer
 
 from ultron.cli.common import check_count, check_seed, console, user_errors
+from ultron.errors import argument_error
 
 
 @user_errors
@@ -20,6 +21,15 @@ def evaluate(
             "--reference-visible",
             help="The part of the reference the sweeps could see (e.g. a simulated dataset's "
             "reference_visible.ply): adds CD vis. and Comp. vis. (default: n/a).",
+        ),
+    ] = None,
+    crop_mm: Annotated[
+        float | None,
+        typer.Option(
+            "--crop-mm",
+            help="Keep only the mesh's faces within this distance (mm) of --reference-visible "
+            "before measuring (a real sweep images more than its reference holds, e.g. the "
+            "tibia beside a CT fibula); the area left outside is reported (default: no crop).",
         ),
     ] = None,
     points: Annotated[int, typer.Option("--points", help="Points sampled per surface.")] = 100_000,
@@ -35,6 +45,10 @@ def evaluate(
     check_count("--points", points)
     check_count("--repeats", repeats)
     check_seed("--seed", seed)
+    if crop_mm is not None and reference_visible is None:
+        raise argument_error("--crop-mm", "needs --reference-visible (the surface to crop to)")
+    if crop_mm is not None and not 0 < crop_mm < float("inf"):
+        raise argument_error("--crop-mm", f"expected a positive distance in mm, got {crop_mm}")
 
     from ultron import atomic
     from ultron.mesh.export import load_mesh
@@ -43,7 +57,7 @@ def evaluate(
     from ultron.report.tables import metrics_column_table
 
     target = check_output_file(out or mesh.with_name(mesh.stem + ".metrics.json"), "--out")
-    config = MetricsConfig(n_points=points, repeats=repeats, seed=seed)
+    config = MetricsConfig(n_points=points, repeats=repeats, seed=seed, crop_mm=crop_mm)
     recon = load_mesh(mesh, allow_empty=True)
     ref = load_mesh(reference)
     visible = None if reference_visible is None else load_mesh(reference_visible)
@@ -51,6 +65,13 @@ def evaluate(
     result["mesh"], result["reference"] = str(mesh), str(reference)
     result["reference_visible"] = None if reference_visible is None else str(reference_visible)
     console.print(metrics_column_table(result, title=f"{mesh.name} vs {reference.name} (mm)"))
+    if result["crop"] is not None:
+        crop = result["crop"]
+        console.print(
+            f"cropped to {crop_mm:g} mm of the visible reference: kept"
+            f" {crop['area_kept_mm2']:.0f} of {crop['area_mm2']:.0f} mm²"
+            f" ({crop['area_outside_mm2']:.0f} mm² outside, not measured)"
+        )
     atomic.write_json(target, result)
     console.print(f"wrote {target}")
 

@@ -24,8 +24,8 @@ def label(
         bool,
         typer.Option(
             "--auto",
-            help="Detect bone automatically: a bright echo casting an acoustic shadow (the only"
-            " mode; required).",
+            help="Detect bone automatically: the last dominant echo of each scanline, traced as"
+            " one continuous surface (the only mode; required).",
         ),
     ] = False,
     sweeps: Annotated[
@@ -43,7 +43,12 @@ def label(
 ) -> None:
     """Write bone labels (1 bone, 0 background, 255 unsure) into a dataset's sweeps."""
     apply_threads(threads)
-    from ultron.data.auto_label_dataset import auto_label_dataset, check_labelling
+    from ultron.data.auto_label_dataset import (
+        MAX_LISTED,
+        QUALITY_FILE,
+        auto_label_dataset,
+        check_labelling,
+    )
     from ultron.errors import argument_error
 
     if not auto:
@@ -57,6 +62,15 @@ def label(
             f"{s.name}: {s.frames} frames, bone {100 * s.bone:.2f} %, background"
             f" {100 * s.background:.1f} %, unsure {100 * s.unsure:.1f} %"
             f" ({'replaced' if s.replaced else 'wrote'} labels.npy, {s.seconds:.1f} s)",
+            highlight=False,
+            soft_wrap=True,
+        )
+        check = ", ".join(str(i) for i in s.frames_to_check[:MAX_LISTED])
+        more = " …" if len(s.frames_to_check) > MAX_LISTED else ""
+        console.print(
+            f"  {s.frames_without_bone} frames without bone; {len(s.frames_to_check)} where the"
+            f" surface dropped out{': check ' + check + more if check else ''}"
+            f" (per frame: {Path(dataset) / s.name / QUALITY_FILE})",
             highlight=False,
             soft_wrap=True,
         )

@@ -5,8 +5,15 @@ sweep's ``labels.npy`` atomically, then ``dataset.json`` (labels first, ``datase
 as :meth:`~ultron.data.dataset.SweepDataset.save` orders its writes), recording under
 ``metadata.auto_labels.<sweep>`` that the sweep's labels are automatic::
 
-    {"method": "ultron-auto-labels/1", "config": {...AutoLabelConfig...}, "frames": N,
-     "shares": {"bone": …, "background": …, "unsure": …}}
+    {"method": "ultron-auto-labels/2", "config": {...AutoLabelConfig...}, "frames": N,
+     "shares": {"bone": …, "background": …, "unsure": …},
+     "frames_without_bone": …, "frames_to_check": [...]}
+
+and writing, per sweep, ``auto_labels_quality.csv``: one row per frame (``frame``,
+``bone_scanlines``: the share of its scanlines with a surface, ``evidence``: the mean bone
+score along it, ``unsure``: the share of unsure pixels, ``check``: 1 where the surface dropped
+out while the neighbouring frames see one, :func:`~ultron.data.auto_labels.frames_to_check`),
+so that a user sees which frames to look at before trusting them.
 
 Existing labels — manual or automatic — are never overwritten unless ``replace`` is true.
 Everything that can be checked (sweep names, existing labels, writable folders) is checked
@@ -15,6 +22,7 @@ before any frame is labelled, so a refused call writes nothing.
 
 from __future__ import annotations
 
+import math
 import os
 import time
 from collections.abc import Callable, Sequence
@@ -25,7 +33,13 @@ from typing import Any
 import numpy as np
 
 from ultron import atomic
-from ultron.data.auto_labels import AUTO_LABELS_METHOD, AutoLabelConfig, auto_label_frames
+from ultron.data.auto_labels import (
+    AUTO_LABELS_METHOD,
+    AutoLabelConfig,
+    FrameQuality,
+    auto_label_frames,
+    frames_to_check,
+)
 from ultron.data.dataset import SweepDataset
 from ultron.data.validation import (
     LABEL_BACKGROUND,
@@ -37,6 +51,10 @@ from ultron.errors import UltronInputError, argument_error
 
 #: ``dataset.json`` metadata key holding, per sweep, the record of its automatic labels.
 METADATA_KEY = "auto_labels"
+#: The per-frame quality summary written into each labelled sweep's folder.
+QUALITY_FILE = "auto_labels_quality.csv"
+#: How many frames to check a record and the CLI name at most.
+MAX_LISTED = 20
 
 #: Progress callback: (sweep name, frames done, frames of the sweep).
 Progress = Callable[[str, int, int], None]
@@ -54,9 +72,22 @@ class SweepLabelSummary:
     unsure: float
     replaced: bool
     seconds: float
+    #: Frames without any detected bone, and those to check (:func:`frames_to_check`).
+    frames_without_bone: int = 0
+    frames_to_check: tuple[int, ...] = ()
 
     def shares(self) -> dict[str, float]:
         return {"bone": self.bone, "background": self.background, "unsure": self.unsure}
+
+
+def quality_csv(qualities: Sequence[FrameQuality]) -> str:
+    """The per-frame quality summary (module docstring) as CSV text."""
+    lines = ["frame,bone_scanlines,evidence,unsure,check"]
+    check = frames_to_check(list(qualities))
+    for i, q in enumerate(qualities):
+        evidence = "" if math.isnan(q.evidence) else f"{q.evidence:.4f}"  # no surface
+        lines.append(f"{i},{q.bone_scanlines:.4f},{evidence},{q.unsure:.4f},{int(check[i])}")
+    return "\n".join(lines) + "\n"
 
 
 def label_shares(labels: np.ndarray) -> dict[str, float]:
@@ -120,12 +151,15 @@ def check_labelling(
     return dataset, names
 
 
-def _record(config: AutoLabelConfig, frames: int, shares: dict[str, float]) -> dict[str, Any]:
+def _record(config: AutoLabelConfig, summary: SweepLabelSummary) -> dict[str, Any]:
     return {
         "method": AUTO_LABELS_METHOD,
         "config": config.to_dict(),
-        "frames": frames,
-        "shares": shares,
+        "frames": summary.frames,
+        "shares": summary.shares(),
+        "frames_without_bone": summary.frames_without_bone,
+        "frames_to_check": list(summary.frames_to_check[:MAX_LISTED]),
+        "quality": QUALITY_FILE,
     }
 
 
@@ -145,28 +179,32 @@ def auto_label_dataset(
         raise argument_error("config", f"expected an AutoLabelConfig, got {type(cfg).__name__}")
     root = Path(root)
     dataset, names = check_labelling(root, sweeps, replace)
-    computed: dict[str, np.ndarray] = {}
+    computed: dict[str, tuple[np.ndarray, list[FrameQuality]]] = {}
     summaries = []
     for name in names:  # every sweep is labelled before anything is written
         sweep = dataset.sweep(name)
         start = time.perf_counter()
         report = None if progress is None else (lambda d, t, n=name: progress(n, d, t))
-        labels = auto_label_frames(sweep.images, dataset.probe, cfg, progress=report)
+        labels, qualities = auto_label_frames(sweep.images, dataset.probe, cfg, progress=report)
         validate_labels(labels, f"sweep {name!r}", "labels")
-        computed[name] = labels
+        computed[name] = labels, qualities
         summary = SweepLabelSummary(
             name,
             sweep.n_frames,
             **label_shares(labels),
             replaced=sweep.labels is not None,
             seconds=time.perf_counter() - start,
+            frames_without_bone=sum(q.bone_scanlines == 0 for q in qualities),
+            frames_to_check=tuple(int(i) for i in np.flatnonzero(frames_to_check(qualities))),
         )
         summaries.append(summary)
     records = dict(dataset.metadata.get(METADATA_KEY) or {})
     for summary in summaries:
-        atomic.save_npy(root / summary.name / "labels.npy", computed[summary.name])
-        dataset.sweep(summary.name).labels = computed[summary.name]
-        records[summary.name] = _record(cfg, summary.frames, summary.shares())
+        labels, qualities = computed[summary.name]
+        atomic.save_npy(root / summary.name / "labels.npy", labels)
+        atomic.write_text(root / summary.name / QUALITY_FILE, quality_csv(qualities))
+        dataset.sweep(summary.name).labels = labels
+        records[summary.name] = _record(cfg, summary)
     dataset.metadata = {**dataset.metadata, METADATA_KEY: records}
     reference = dataset.reference.name if dataset.reference is not None else None
     visible = dataset.reference_visible_path

@@ -9,10 +9,14 @@ ultron's format places pixel (r, c) at probe point ((c − W/2)·s_x, r·s_y, 0)
 probe-to-world pose, so the affine ImageToProbe (it holds the pixel scale and, from a
 calibration fit, usually a small shear) is factored into a rigid pose and two pixel spacings
 (:func:`fit_image_plane`): the least-squares fit over the frame's pixels, exact wherever
-ImageToProbe is a scaled rotation; the shear it cannot represent is reported as the largest and
-RMS displacement of a pixel, in mm. Frames are flipped to MF (PLUS's orientation of B-mode
-frames, row 0 at the transducer face as the format wants), clipped to the configuration's clip
-rectangle and optionally area-downsampled with the spacings updated.
+ImageToProbe is a scaled rotation. Where it is not (a shear moves the rigid map's pixels by
+more than :data:`RESAMPLE_RESIDUAL_MM` from PLUS's, e.g. 0.96 mm at the corners of the shared
+spine phantom), the frames are resampled onto the rigid map's pixel grid
+(:func:`resample_to_rigid`): each new pixel takes the grey level PLUS's own calibration puts at
+its position (bilinear), so the imported sweep places every echo where PLUS does, corners
+included. Frames are flipped to MF (PLUS's orientation of B-mode frames, row 0 at the transducer
+face as the format wants), clipped to the configuration's clip rectangle and optionally
+area-downsampled with the spacings updated.
 """
 
 from __future__ import annotations
@@ -42,6 +46,9 @@ from ultron.errors import UltronInputError, argument_error
 #: Largest angle (degrees) between the calibration's image axes and a right angle that is
 #: factored into a rigid pose; beyond it the matrix is refused as far from a scaled rotation.
 MAX_SHEAR_DEG = 10.0
+#: A rigid fit that moves a pixel by more than this (mm) from PLUS's calibration has its frames
+#: resampled onto the rigid grid (:func:`resample_to_rigid`); below it they are used as they are.
+RESAMPLE_RESIDUAL_MM = 0.01
 #: The frame a tracker reports in; ``--to X`` other than it composes XToTracker⁻¹ · …ToTracker.
 TRACKER = "Tracker"
 #: The source frame of a transform name: PLUS splits at the "To" followed by a capital.
@@ -142,6 +149,44 @@ def fit_image_plane(
         residual_max_mm=residual_max,
         residual_rms_mm=residual_rms,
     )
+
+
+def rigid_to_image_pixels(calibration: np.ndarray, fit: ImagePlaneFit) -> np.ndarray:
+    """The affine map (3 × 3, homogeneous) from a pixel (i', j') of the rigid fit's grid to the
+    pixel (i, j) of the original frame that PLUS's ``calibration`` places at the same probe
+    point: a_x·i + a_y·j + t = o + i'·s_x·r₁ + j'·s_y·r₂, solved in the image plane (both maps
+    span it) with the pseudo-inverse of [a_x a_y]."""
+    inverse = np.linalg.pinv(np.asarray(calibration, dtype=np.float64)[:3, :2])  # (2, 3)
+    linear = inverse @ np.stack(
+        [fit.spacing_mm[0] * fit.rotation[:, 0], fit.spacing_mm[1] * fit.rotation[:, 1]], axis=1
+    )
+    offset = inverse @ (fit.origin_mm - np.asarray(calibration, dtype=np.float64)[:3, 3])
+    matrix = np.eye(3)
+    matrix[:2, :2], matrix[:2, 2] = linear, offset
+    return matrix
+
+
+def resample_to_rigid(
+    frames: np.ndarray, calibration: np.ndarray, fit: ImagePlaneFit
+) -> np.ndarray:
+    """uint8 (N, H, W) frames resampled onto the rigid fit's pixel grid (module doc): new pixel
+    (row j', column i') is the original frame bilinearly interpolated at the pixel
+    (:func:`rigid_to_image_pixels`) PLUS's ``calibration`` puts at the same probe point; 0
+    (PLUS's background) where that lies outside the frame."""
+    from scipy import ndimage
+
+    pixels = rigid_to_image_pixels(calibration, fit)
+    # ndimage works in (row, column) = (j, i) order: swap both sides of the map
+    swap = np.array([[0, 1, 0], [1, 0, 0], [0, 0, 1]], dtype=np.float64)
+    rows_cols = swap @ pixels @ swap
+    out = np.empty_like(frames)
+    for k, frame in enumerate(frames):
+        values = ndimage.affine_transform(
+            frame.astype(np.float32), rows_cols[:2, :2], rows_cols[:2, 2],
+            order=1, mode="constant", cval=0.0,
+        )  # fmt: skip
+        out[k] = np.clip(np.rint(values), 0, 255).astype(np.uint8)
+    return out
 
 
 # --------------------------------------------------------------------------- downsampling
@@ -313,6 +358,8 @@ class PlusImportReport:
     clip: tuple[tuple[int, int], tuple[int, int]] | None
     fit: ImagePlaneFit
     downsample: float
+    #: The frames were resampled onto the rigid grid (:func:`resample_to_rigid`).
+    resampled: bool = False
     metadata: dict[str, Any] = field(default_factory=dict)
 
 
@@ -391,7 +438,11 @@ def read_plus(
     fit = fit_image_plane(calibration, width, height, plus_config.path, label)
     poses = world.probe_to_world[world.valid] @ fit.dataset_probe_to_probe(width)
     shape = downsampled_shape(height, width, downsample)
-    images = downsample_frames(frames[world.valid], shape)
+    frames = frames[world.valid]
+    resampled = fit.residual_max_mm > RESAMPLE_RESIDUAL_MM
+    if resampled:  # the rigid map places pixels off PLUS's: move the grey levels instead
+        frames = resample_to_rigid(frames, calibration, fit)
+    images = downsample_frames(frames, shape)
     probe = ProbeGeometry(width * fit.spacing_mm[0], height * fit.spacing_mm[1], *shape)
     sweep = Sweep(name=name, kind=kind, images=images, probe_to_world=poses)
     report = PlusImportReport(
@@ -408,6 +459,7 @@ def read_plus(
         clip=clip,
         fit=fit,
         downsample=float(downsample),
+        resampled=resampled,
     )
     metadata = _import_metadata(seq, plus_config, report, np.flatnonzero(world.valid))
     return sweep, probe, replace(report, metadata=metadata)
@@ -431,6 +483,7 @@ def _import_metadata(
         "pixel_spacing_mm": list(fit.spacing_mm),
         "shear_deg": fit.shear_deg,
         "rigid_fit_residual_mm": {"max": fit.residual_max_mm, "rms": fit.residual_rms_mm},
+        "resampled_to_rigid_grid": report.resampled,
         "downsample": report.downsample,
         "frames": frames.tolist(),
         "skipped": report.skipped,

@@ -41,7 +41,7 @@ from ultron.data.dataset import SweepDataset
 from ultron.data.geometry import median_frame_gap_mm
 from ultron.data.labels import FrameSelection, LabelledPixels, gather_labelled_pixels
 from ultron.errors import UltronInputError, argument_error
-from ultron.mesh.grid import GridSpec
+from ultron.mesh.grid import GridSpec, meshing_voxel_mm
 from ultron.mesh.holes import fill_holes_nearest, fill_holes_stick
 from ultron.mesh.splat import SplatConfig, Splatter
 
@@ -52,7 +52,9 @@ _INTERPOLATIONS = {"nearest": "nearest", "linear": "linear", "trilinear": "linea
 
 @dataclass(frozen=True)
 class CompoundingConfig:
-    """Settings of :func:`compound_labels` (``None`` = derived from the data, see module doc)."""
+    """Settings of :func:`compound_labels` (``None`` = derived from the data, see module doc;
+    the voxel: the finer pixel spacing, grown where the bone's box would hold more than
+    :data:`~ultron.mesh.grid.MAX_REGION_VOXELS` voxels, :func:`~ultron.mesh.grid.meshing_voxel_mm`)."""
 
     voxel_mm: float | None = None
     mode: str = "mean"
@@ -165,9 +167,8 @@ def compound_labels(
     bone = points[pixels.label == 1]
     if len(bone) == 0:
         raise UltronInputError("dataset", "labels", "the selected frames contain no bone (label 1)")
-    probe = dataset.probe
-    voxel = config.voxel_mm or min(probe.lateral_spacing_mm, probe.axial_spacing_mm)
     bounds = np.stack([bone.min(0) - config.margin_mm, bone.max(0) + config.margin_mm])
+    voxel = meshing_voxel_mm(dataset.probe, config.voxel_mm, float(np.prod(np.ptp(bounds, 0))))
     grid = GridSpec.from_bounds(bounds, voxel)
     splatter = Splatter(grid, config.splat)
     splatter.add(points, pixel_values(dataset, pixels, config))

@@ -43,7 +43,7 @@ from ultron.errors import UltronInputError, argument_error
 from ultron.fields.context import ThetaContextConfig, theta_features
 from ultron.fields.occupancy import OccupancyNetwork
 from ultron.mesh.extract import ExtractionConfig, extract_surface_tiles
-from ultron.mesh.grid import GridSpec, meshing_voxel_mm
+from ultron.mesh.grid import GridSpec, field_of_view_volume_mm3, meshing_voxel_mm
 from ultron.mesh.observed import ObservedSurfaceConfig, SurfaceObservation, observe_surface
 from ultron.mesh.tiles import evaluate_tiles, field_of_view_tiles, tile_for_factor
 from ultron.timing import StageTimer
@@ -157,11 +157,23 @@ def elevation_half_thickness_mm(dataset: SweepDataset, voxel_mm: float) -> float
     return max(0.75 * max(gaps, default=0.0), voxel_mm)
 
 
+def scan_voxel_mm(dataset: SweepDataset, voxel_mm: float | None) -> float:
+    """The meshing voxel of :func:`scan_grid`: ``voxel_mm`` when given, else the finer pixel
+    spacing, grown where the field of view (:func:`~ultron.mesh.grid.field_of_view_volume_mm3`)
+    would hold more than :data:`~ultron.mesh.grid.MAX_REGION_VOXELS` voxels of it
+    (:func:`~ultron.mesh.grid.meshing_voxel_mm`)."""
+    if voxel_mm:
+        return voxel_mm
+    half = elevation_half_thickness_mm(dataset, 0.0)
+    region = field_of_view_volume_mm3(dataset.all_poses(), dataset.probe, half)
+    return meshing_voxel_mm(dataset.probe, None, region)
+
+
 def scan_grid(dataset: SweepDataset, voxel_mm: float | None) -> GridSpec:
-    """The meshing grid over everything the probe saw, voxel ≤ the finer pixel spacing. Only
-    its tiles that the field of view reaches are evaluated (:func:`mesh_occupancy`)."""
+    """The meshing grid over everything the probe saw, voxel :func:`scan_voxel_mm`. Only its
+    tiles that the field of view reaches are evaluated (:func:`mesh_occupancy`)."""
     bounds = field_of_view_bounds_mm(dataset.all_poses(), dataset.probe).numpy()
-    return GridSpec.from_bounds(bounds, meshing_voxel_mm(dataset.probe, voxel_mm))
+    return GridSpec.from_bounds(bounds, scan_voxel_mm(dataset, voxel_mm))
 
 
 def occupancy_training_data(

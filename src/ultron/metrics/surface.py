@@ -20,7 +20,14 @@ once per repeat in each direction, then reduced:
   simulated dataset's ``reference_visible.ply``), d_vis from its samples to the
   reconstruction: ``completeness_visible`` = mean d_vis, ``completeness_visible_hd95`` and
   ``cd_visible`` = (mean d_acc + mean d_vis) / 2 (accuracy stays against the whole reference).
-  Without one these three are None (shown as "n/a", never 0).
+  ``fscore_visible_1mm`` / ``2mm`` are the F-scores with recall against the visible reference
+  (share of d_vis < τ). Without a visible reference these five are None (shown as "n/a",
+  never 0).
+* **crop** (``crop_mm``, needs a visible reference): for a real sweep whose images show more
+  than the reference holds (the tibia and soft tissue beside a CT fibula), the reconstruction's
+  faces whose centroid lies farther than ``crop_mm`` from the visible reference are dropped
+  before sampling; every figure is then of the kept part, and ``"crop"`` reports the area kept
+  and the area left outside (mm²) so that what was dropped stays visible.
 
 The paper's table samples points on the reconstruction and measures to the CAD model, so its
 MAD, RMSE and HD correspond to ultron's accuracy figures (``mad``, ``rmse``, ``hd``), and its
@@ -57,24 +64,38 @@ METRIC_NAMES = (
     "hd95_sym",
     "fscore_1mm",
     "fscore_2mm",
+    "fscore_visible_1mm",
+    "fscore_visible_2mm",
 )
 #: The metrics that need a visible reference (None without one).
-VISIBLE_METRIC_NAMES = ("cd_visible", "completeness_visible", "completeness_visible_hd95")
+VISIBLE_METRIC_NAMES = (
+    "cd_visible",
+    "completeness_visible",
+    "completeness_visible_hd95",
+    "fscore_visible_1mm",
+    "fscore_visible_2mm",
+)
 
 
 @dataclass(frozen=True)
 class MetricsConfig:
-    """Sampling settings: points per surface, repeats (seeds ``seed … seed+repeats−1``)."""
+    """Sampling settings: points per surface, repeats (seeds ``seed … seed+repeats−1``) and
+    the optional crop of the reconstruction to ``crop_mm`` of the visible reference (module
+    doc; None: no crop)."""
 
     n_points: int = 100_000
     repeats: int = 3
     seed: int = 0
+    crop_mm: float | None = None
 
     def __post_init__(self) -> None:
         if self.n_points < 1:
             raise argument_error("n_points", f"expected ≥ 1, got {self.n_points}")
         if self.repeats < 1:
             raise argument_error("repeats", f"expected ≥ 1, got {self.repeats}")
+        crop = self.crop_mm
+        if crop is not None and not (isinstance(crop, int | float) and 0 < crop < math.inf):
+            raise argument_error("crop_mm", f"expected a positive distance in mm, got {crop!r}")
 
 
 def distance_metrics(
@@ -94,6 +115,8 @@ def distance_metrics(
             "fscore_1mm": 0.0, "fscore_2mm": 0.0,
         }  # fmt: skip
         result |= dict.fromkeys(VISIBLE_METRIC_NAMES, None if comp_visible_mm is None else inf)
+        if comp_visible_mm is not None:
+            result |= {"fscore_visible_1mm": 0.0, "fscore_visible_2mm": 0.0}
         return {name: result[name] for name in METRIC_NAMES}
     hd95, comp_hd95 = float(np.percentile(acc_mm, 95)), float(np.percentile(comp_mm, 95))
     result: dict[str, float | None] = {
@@ -113,11 +136,19 @@ def distance_metrics(
         result["completeness_visible_hd95"] = float(np.percentile(comp_visible_mm, 95))
         result["cd_visible"] = float((acc_mm.mean() + comp_visible_mm.mean()) / 2)
     for tau in (1, 2):
-        precision = float((acc_mm < tau).mean())
-        recall = float((comp_mm < tau).mean())
-        total = precision + recall
-        result[f"fscore_{tau}mm"] = 0.0 if total == 0 else 2 * precision * recall / total
+        result[f"fscore_{tau}mm"] = _fscore(acc_mm, comp_mm, tau)
+        if comp_visible_mm is not None:
+            result[f"fscore_visible_{tau}mm"] = _fscore(acc_mm, comp_visible_mm, tau)
     return {name: result[name] for name in METRIC_NAMES}
+
+
+def _fscore(acc_mm: np.ndarray, comp_mm: np.ndarray, tau: float) -> float:
+    """F = 2PR / (P + R), P = share of ``acc_mm`` < τ, R = share of ``comp_mm`` < τ (0 when
+    P + R = 0)."""
+    precision = float((acc_mm < tau).mean())
+    recall = float((comp_mm < tau).mean())
+    total = precision + recall
+    return 0.0 if total == 0 else 2 * precision * recall / total
 
 
 def sample_surface(mesh, n_points: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
@@ -147,6 +178,37 @@ def point_to_surface_distances(
     return mesh_distances(points, index)
 
 
+def crop_near(mesh, index: MeshDistanceIndex, max_mm: float):
+    """The faces of ``mesh`` whose centroid lies within ``max_mm`` of the surface indexed by
+    ``index`` (a new mesh, unreferenced vertices removed; empty when none is)."""
+    import trimesh
+
+    if len(mesh.faces) == 0:
+        return mesh
+    centroids = np.asarray(mesh.triangles_center, dtype=np.float64)
+    keep = mesh_distances(centroids, index) <= max_mm
+    cropped = trimesh.Trimesh(mesh.vertices, mesh.faces[keep], process=False)
+    cropped.remove_unreferenced_vertices()
+    return cropped
+
+
+def _crop_reconstruction(reconstruction, reference_visible, crop_mm: float):
+    """The reconstruction cropped to ``crop_mm`` of the visible reference and the crop's
+    record (areas in mm²)."""
+    empty = reconstruction is None or len(reconstruction.faces) == 0
+    total = 0.0 if empty else float(reconstruction.area)
+    if not empty:
+        reconstruction = crop_near(reconstruction, distance_index(reference_visible), crop_mm)
+    kept = 0.0 if empty or len(reconstruction.faces) == 0 else float(reconstruction.area)
+    record = {
+        "crop_mm": crop_mm,
+        "area_mm2": total,
+        "area_kept_mm2": kept,
+        "area_outside_mm2": total - kept,
+    }
+    return reconstruction, record
+
+
 def _check_reference(mesh, name: str) -> None:
     if mesh is None or len(mesh.faces) == 0 or mesh.area <= 0:
         raise UltronInputError(name, "mesh", f"{name} mesh is empty (no triangles)")
@@ -158,14 +220,24 @@ def evaluate_meshes(
     """Metrics of ``reconstruction`` against ``reference`` (trimesh meshes in mm), and its
     visible part ``reference_visible`` when given (module doc).
 
-    Returns ``{"mean": {...}, "std": {...}, "repeats": [{...}, ...], "config": {...}}`` where
-    each inner dict maps every name of :data:`METRIC_NAMES` to a float (None: not measured,
-    the visible figures without a visible reference).
+    Returns ``{"mean": {...}, "std": {...}, "repeats": [{...}, ...], "config": {...},
+    "crop": {...} | None}`` where each inner dict of figures maps every name of
+    :data:`METRIC_NAMES` to a float (None: not measured, the visible figures without a
+    visible reference).
     """
     config = config or MetricsConfig()
     _check_reference(reference, "reference")
     if reference_visible is not None:
         _check_reference(reference_visible, "reference_visible")
+    crop = None
+    if config.crop_mm is not None:
+        if reference_visible is None:
+            raise argument_error(
+                "reference_visible", "the crop (crop_mm) needs a visible reference"
+            )
+        reconstruction, crop = _crop_reconstruction(
+            reconstruction, reference_visible, config.crop_mm
+        )
     empty = reconstruction is None or len(reconstruction.faces) == 0 or reconstruction.area <= 0
     ref_index = None if empty else distance_index(reference)
     rec_index = None if empty else distance_index(reconstruction)
@@ -191,7 +263,13 @@ def evaluate_meshes(
         "mean": mean,
         "std": std,
         "repeats": runs,
-        "config": {"n_points": config.n_points, "repeats": config.repeats, "seed": config.seed},
+        "config": {
+            "n_points": config.n_points,
+            "repeats": config.repeats,
+            "seed": config.seed,
+            "crop_mm": config.crop_mm,
+        },
+        "crop": crop,
     }
 
 

@@ -38,9 +38,14 @@ from ultron.data.dataset import ProbeGeometry, SweepDataset
 from ultron.data.geometry import UnitCube, field_of_view_bounds_mm
 from ultron.data.outliers import check_pose_outliers
 from ultron.errors import UltronInputError
-from ultron.mesh.grid import grid_shape, meshing_voxel_mm
+from ultron.mesh.grid import grid_shape
 from ultron.mesh.tiles import MAX_VOLUME_VOXELS, reached_tiles, tile_for_factor, volume_factor
-from ultron.methods.ultron_method import UltronConfig, elevation_half_thickness_mm, scan_grid
+from ultron.methods.ultron_method import (
+    UltronConfig,
+    elevation_half_thickness_mm,
+    scan_grid,
+    scan_voxel_mm,
+)
 from ultron.models.fitted import RENDER_CHUNK_FRAMES
 from ultron.train.field_fit import check_fit_frames
 from ultron.train.frames import resampled_probe
@@ -120,7 +125,7 @@ def meshing_grid_shape(
 ) -> tuple[tuple[int, int, int], float, tuple[float, float, float]]:
     """The shape ``scan_grid(dataset, voxel_mm)`` will have, computed with Python integers
     (no overflow, nothing allocated), its voxel and the scanned extent in mm."""
-    voxel = meshing_voxel_mm(dataset.probe, voxel_mm)
+    voxel = scan_voxel_mm(dataset, voxel_mm)
     bounds = field_of_view_bounds_mm(dataset.all_poses(), dataset.probe).numpy()
     extent = tuple(float(e) for e in bounds[1] - bounds[0])
     return grid_shape(bounds, voxel), voxel, extent  # type: ignore[return-value]
@@ -287,6 +292,28 @@ def check_field_grid(
     )  # fmt: skip
 
 
+#: The largest ratio between a probe's two pixel spacings (lateral / axial or its inverse) a run
+#: accepts: scan-converted B-mode pixels are near square, RF-like ones ≈ 10 : 1; 0.17 µm by
+#: 0.55 mm (a width typed in metres) is not a probe.
+MAX_PIXEL_ASPECT = 100.0
+
+
+def check_probe_aspect(dataset: SweepDataset, root: str | Path) -> None:
+    """Refuse a probe whose pixel spacings differ by more than :data:`MAX_PIXEL_ASPECT`
+    (a width or depth in the wrong unit), naming both spacings."""
+    probe = dataset.probe
+    lateral, axial = probe.lateral_spacing_mm, probe.axial_spacing_mm
+    ratio = max(lateral / axial, axial / lateral)
+    if ratio <= MAX_PIXEL_ASPECT:
+        return
+    raise UltronInputError(
+        Path(root) / "dataset.json",
+        "probe",
+        f"its pixels are {ratio:.3g} times longer one way than the other ({describe_probe(probe)});"
+        f" at most {MAX_PIXEL_ASPECT:g} is a probe: check width_mm and depth_mm (mm, not m or µm)",
+    )
+
+
 def check_run_resources(
     dataset: SweepDataset,
     root: str | Path,
@@ -298,7 +325,9 @@ def check_run_resources(
     """Before any work: no outlier pose, the meshing grid (when ``mesh``: every method but
     RoCoSDF/UNSR, whose grid has a fixed resolution) and a field to fit (``field_config``,
     when one may be fitted) within the memory limit, the latter's frames no smaller than the
-    loss's SSIM window. ``root`` is the dataset directory, named in the errors."""
+    loss's SSIM window, and a probe whose pixels are not absurdly elongated
+    (:func:`check_probe_aspect`). ``root`` is the dataset directory, named in the errors."""
+    check_probe_aspect(dataset, root)
     check_pose_outliers(dataset, root)
     if mesh:
         check_meshing_grid(dataset, root, voxel_mm, max_memory_gib)

@@ -22,6 +22,8 @@ LABELS = {
     "completeness_hd95": "Comp. HD95",
     "fscore_1mm": "F@1mm",
     "fscore_2mm": "F@2mm",
+    "fscore_visible_1mm": "F@1mm vis.",
+    "fscore_visible_2mm": "F@2mm vis.",
 }
 
 
