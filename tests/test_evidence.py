@@ -213,6 +213,10 @@ def test_all_surface_writes_no_extracted_copy(tiny: Path, tmp_path: Path) -> Non
                                  "--occupancy-iters", "30", "--points", "2000",
                                  "--mesh-coordinates", "ras"])  # fmt: skip
     assert result.exit_code == 0, result.output
+    # off a terminal every stage says when it starts and what it took (issue 31: no minutes of
+    # silence in a log)
+    for stage in ("load", "occupancy_fit", "mesh_evaluate", "mesh_extract", "metrics", "report"):
+        assert f"{stage} …" in result.output and f"{stage}: " in result.output, stage
     assert not (out / EXTRACTED_MESH).exists()
     assert mesh_file_space(out / "mesh.ply") == "ras"
     flags = load_vertex_properties(out / "mesh.ply")["observed"]

@@ -120,6 +120,33 @@ def test_grid_resolution_follows_pixel_size_and_is_bounded() -> None:
         GridFieldConfig().resolved(500.0, 0.01)
 
 
+def test_per_axis_planes_for_an_elongated_box_only() -> None:
+    from ultron.fields.grid import GridField
+
+    # 40 mm cube side / 1 mm cell: 41 nodes; a box 1/4 as wide in x and y as in z
+    elongated = GridFieldConfig(n_levels=1).resolved(20.0, 1.0, (0.25, 0.25, 1.0))
+    assert elongated.axis_extent == (0.25, 0.25, 1.0)
+    assert elongated.axis_nodes() == [(11, 11, 41)]
+    assert elongated.plane_shapes() == [((11, 11), (41, 11), (41, 11))]
+    assert elongated.n_values() == 8 * (11 * 11 + 2 * 41 * 11)
+    compact = GridFieldConfig(n_levels=1).resolved(20.0, 1.0, (0.9, 0.8, 1.0))
+    assert compact.axis_extent is None and compact.n_values() == 3 * 8 * 41 * 41
+    field = GridField(elongated, generator=torch.Generator().manual_seed(0))
+    assert [tuple(p.shape) for p in field.planes[0]] == [(8, 11, 11), (8, 41, 11), (8, 41, 11)]
+    # a node of the per-axis grid is read exactly: unit x = 0.25 is the planes' last column
+    with torch.no_grad():
+        for plane in field.planes[0]:
+            plane.fill_(1.0)
+        field.planes[0][0][:, 3, 10] = 2.0  # xy plane, row (y) 3, column (x) 10
+        field.planes[0][1][:, 41 // 2, 10] = 3.0  # xz plane, row z = 0, column (x) 10
+    y3 = -0.25 + 3 * 0.05  # node 3 of 11 over [−0.25, 0.25]
+    value = field.features(torch.tensor([[0.25, y3, 0.0]]))
+    assert torch.allclose(value, torch.full((1, 8), 6.0))
+    loss = field.raw(torch.rand(16, 3) * 0.5 - 0.25).sum() + field.regularization()
+    loss.backward()
+    assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in field.planes[0])
+
+
 def test_resample_frames_keeps_pixel_positions() -> None:
     ramp = torch.arange(8.0)[None, None, :].expand(1, 4, 8) / 10  # value = 0.1 · column
     out = resample_frames(ramp, (4, 4))

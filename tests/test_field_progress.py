@@ -195,3 +195,42 @@ def test_fit_progress_of_older_checkpoints() -> None:
     assert fit_progress({"train": {"iterations": 20}}, {"step": 10}) == FitProgress(10, 20)
     assert fit_progress({}, {"step": 5, "iterations": 5}).finished
     assert fit_progress({}, {"step": 5}) is None
+
+
+# ------------------------------------------------------------ progress lines off a terminal
+class _Recorder:
+    """A fit's progress with a ``stage`` method: what a fit tells it, in order."""
+
+    def __init__(self) -> None:
+        self.events: list[tuple] = []
+
+    def stage(self, name: str, done: int, total: int) -> None:
+        self.events.append(("stage", name, done, total))
+
+    def __call__(self, entry: dict) -> None:
+        self.events.append(("step", entry["step"]))
+
+
+def test_the_fit_reports_its_confidence_maps_before_its_steps(tmp_path: Path) -> None:
+    recorder = _Recorder()
+    fit_field(make_dataset(), quick_config(iterations=3), tmp_path / "f", recorder)
+    stages = [e for e in recorder.events if e[0] == "stage"]
+    assert stages[0] == ("stage", "confidence maps", 0, 10)
+    assert stages[-1] == ("stage", "confidence maps", 10, 10) and len(stages) == 11
+    first_step = recorder.events.index(("step", 1))
+    assert first_step == len(stages)  # every map before the first update
+    plain = []  # a progress callable without ``stage`` gets the update dicts only
+    fit_field(make_dataset(), quick_config(iterations=3), tmp_path / "g", plain.append, False)
+    assert [e["step"] for e in plain] == [1, 2, 3]
+
+
+def test_cli_prints_a_line_per_stage_and_preparation_into_a_log(tmp_path: Path) -> None:
+    """Off a terminal (CliRunner is not one) fit-field prints the confidence maps' advance and
+    its steps, and reconstruct one line as each stage starts and one with its time."""
+    make_dataset().save(tmp_path / "d")
+    base = ["fit-field", str(tmp_path / "d"), "--out", str(tmp_path / "f"), "--iters", "4"]
+    result = runner.invoke(app, [*base, "--holdout-every", "0"], terminal_width=200)
+    assert result.exit_code == 0, result.output
+    assert "fit-field: confidence maps 0/10" in result.output
+    assert "fit-field: confidence maps 10/10" in result.output
+    assert "fit-field: step 4/4 (100 %)" in result.output

@@ -136,8 +136,15 @@ def test_field_fit_memory_estimate(tiny_dataset: SweepDataset):
     """Planes, frames and working memory from the shapes alone (module doc 3)."""
     config = FieldTrainConfig(fit_shape=(16, 12), frames_per_batch=4, patch_width=8)
     memory = field_fit_memory(tiny_dataset, config)
+    # the planes the fit builds (per-axis here: the tiny dataset's box is far from a cube)
+    from ultron.train.field_fit import _prepare
+
+    _, _, module, resolved = _prepare(tiny_dataset, config)
+    values = sum(p.numel() for p in module.planes.parameters())
+    assert memory.planes == values * FIELD_BYTES_PER_VALUE
+    assert resolved.grid.axis_extent is not None and memory.resolutions == resolved.grid.resolutions
     (fine, coarse) = memory.resolutions
-    assert memory.planes == 3 * (8 * fine**2 + 4 * coarse**2) * FIELD_BYTES_PER_VALUE
+    assert values < 3 * (8 * fine**2 + 4 * coarse**2) / 2  # less than half the square planes
     # 7 frames of 16 × 12 with their confidence maps, the 4-frame sweep's 8 × 6 copies
     assert memory.frames == 4 * (7 * 16 * 12 * 2 + 2 * 4 * 8 * 6)
     train = 4 * 8 * 16 * FIELD_TRAIN_BYTES_PER_SAMPLE["grid"]

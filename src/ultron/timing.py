@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import resource
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 
@@ -14,19 +14,30 @@ def peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
+#: Told each stage's name as it starts (seconds None) and again with its seconds as it ends.
+Announce = Callable[[str, "float | None"], None]
+
+
 @dataclass
 class StageTimer:
-    """Wall-clock seconds per named stage, in the order they ran."""
+    """Wall-clock seconds per named stage, in the order they ran; ``announce`` (optional) is
+    told as each stage starts and ends (e.g. to print progress lines)."""
 
     seconds: dict[str, float] = field(default_factory=dict)
+    announce: Announce | None = field(default=None, compare=False, repr=False)
 
     @contextmanager
     def stage(self, name: str) -> Iterator[None]:
         start = time.perf_counter()
+        if self.announce is not None:
+            self.announce(name, None)
         try:
             yield
         finally:
-            self.seconds[name] = self.seconds.get(name, 0.0) + time.perf_counter() - start
+            elapsed = time.perf_counter() - start
+            self.seconds[name] = self.seconds.get(name, 0.0) + elapsed
+            if self.announce is not None:
+                self.announce(name, elapsed)
 
     @property
     def total(self) -> float:

@@ -168,3 +168,60 @@ def apply_threads(threads: int | None) -> None:
         import torch
 
         torch.set_num_threads(threads)
+
+
+class _FitReporter:
+    """A fit's progress callback (per-update dicts) with a ``stage(name, done, total)``
+    method for its preparation (:func:`fit_progress`)."""
+
+    def __init__(self, title: str, bar, task) -> None:
+        self.title, self.bar, self.task = title, bar, task
+
+    def stage(self, name: str, done: int, total: int) -> None:
+        """A line at the preparation's start, every 10 % and at its end."""
+        if done in (0, total) or done % max(1, total // 10) == 0:
+            console.print(f"{self.title}: {name} {done}/{total}", highlight=False)
+
+    def __call__(self, entry: dict) -> None:
+        status = f"loss {entry.get('loss', float('nan')):.4f}"
+        if "psnr" in entry:
+            status += f"  PSNR {entry['psnr']:.2f} dB"
+        if "holdout_psnr" in entry:
+            status += (
+                f"  held-out {entry['holdout_psnr']:.2f} dB / SSIM {entry['holdout_ssim']:.3f}"
+            )
+        step, total = entry.get("step", 0), entry.get("iterations", 1)  # step: updates done
+        self.bar.update(self.task, total=total, completed=step, status=status)
+        if not console.is_terminal and (step % max(1, total // 20) == 0 or step == total):
+            line = f"{self.title}: step {step}/{total} ({100 * step / total:.0f} %), "
+            console.print(line + status, highlight=False)
+
+
+@contextmanager
+def fit_progress(title: str) -> Iterator[Callable[[dict], None]]:
+    """A progress bar fed by a fit's per-update dicts (``step``, ``iterations``, ``loss``,
+    optionally ``psnr`` and the held-out check); yields the callback. Off a terminal (a log
+    file, a batch job) the bar stays silent, so a plain line is printed every 5 % of the steps
+    instead. Its ``stage(name, done, total)`` prints a line as a preparation (the confidence
+    maps) starts, every 10 % and as it ends."""
+    from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+
+    bar = Progress(
+        TextColumn(f"[bold]{title}"),
+        BarColumn(),
+        TextColumn("{task.completed}/{task.total}"),
+        TextColumn("{task.fields[status]}"),
+        TimeRemainingColumn(),
+        console=console,
+        transient=True,
+    )
+    task = bar.add_task(title, total=1, status="")
+    with bar:
+        yield _FitReporter(title, bar, task)
+
+
+def stage_lines(name: str, seconds: float | None) -> None:
+    """A :class:`~ultron.timing.StageTimer` announcer: one line as each stage of a run starts
+    (``mesh_evaluate …``) and one with its time as it ends, so that a log shows what runs."""
+    text = f"{name} …" if seconds is None else f"{name}: {seconds:.1f} s"
+    console.print(text, highlight=False)

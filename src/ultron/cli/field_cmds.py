@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
 
@@ -19,6 +17,7 @@ from ultron.cli.common import (
     check_seed,
     console,
     err_console,
+    fit_progress,
     user_errors,
 )
 from ultron.errors import argument_error
@@ -191,7 +190,7 @@ def fit_field_command(
     if not no_resume:  # a checkpoint of another dataset or configuration: error before the bar
         check_resumable(out, config, data.content_hash())
     check_run_resources(data, dataset, mesh=False, field_config=config, max_memory_gib=max_memory)
-    with _fit_progress(config.iterations) as progress:
+    with fit_progress("fit-field") as progress:
         fitted = fit_field(
             data, config, out, progress=progress, resume=not no_resume, device=device
         )
@@ -204,35 +203,6 @@ def _check_holdout(holdout_every: int) -> None:
         raise argument_error(
             "--holdout-every", "expected 0 (none) or an integer ≥ 2 (1 holds out every frame)"
         )
-
-
-@contextmanager
-def _fit_progress(iterations: int) -> Iterator[Callable[[dict], None]]:
-    """fit-field's bar (loss, PSNR, the latest held-out check); yields the fit's callback."""
-    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
-
-    columns = (
-        TextColumn("[bold]fit-field"),
-        BarColumn(),
-        TextColumn("{task.completed}/{task.total}"),
-        TextColumn("loss {task.fields[loss]:.4f}  PSNR {task.fields[psnr]:.2f} dB"),
-        TextColumn("held-out {task.fields[holdout]}"),
-        TimeElapsedColumn(),
-    )
-    with Progress(*columns, console=console, transient=False) as bar:
-        task = bar.add_task("fit", total=iterations, loss=0.0, psnr=0.0, holdout="—")
-
-        def progress(entry: dict) -> None:
-            extra = {}
-            if "holdout_psnr" in entry:
-                extra["holdout"] = (
-                    f"{entry['holdout_psnr']:.2f} dB / SSIM {entry['holdout_ssim']:.3f}"
-                )
-            bar.update(
-                task, completed=entry["step"], loss=entry["loss"], psnr=entry["psnr"], **extra
-            )
-
-        yield progress
 
 
 def _print_fitted(fitted: FittedField, out: Path, device: str) -> None:

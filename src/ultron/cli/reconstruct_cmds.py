@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
 from pathlib import Path
 from typing import Annotated
 
@@ -19,6 +17,8 @@ from ultron.cli.common import (
     check_range,
     check_seed,
     console,
+    fit_progress,
+    stage_lines,
     user_errors,
 )
 
@@ -157,36 +157,9 @@ def _check_common(
     check_range("--max-memory", max_memory, 0.0, low_open=True)
 
 
-@contextmanager
-def _field_progress() -> Iterator[Callable[[dict], None]]:
-    """A rich progress bar fed by the field fit's per-step dicts; yields the callback.
-    When the console is not a terminal (a log file, a batch job) the bar stays silent, so a
-    plain line is printed every 5 % of the steps instead."""
-    from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
-
-    bar = Progress(
-        TextColumn("[bold]fitting acoustic field"),
-        BarColumn(),
-        TextColumn("{task.completed}/{task.total}"),
-        TextColumn("{task.fields[status]}"),
-        TimeRemainingColumn(),
-        console=console,
-        transient=True,
-    )
-    task = bar.add_task("field", total=1, status="")
-
-    def update(entry: dict) -> None:
-        status = f"loss {entry.get('loss', float('nan')):.4f}"
-        if "psnr" in entry:
-            status += f"  PSNR {entry['psnr']:.2f} dB"
-        step, total = entry.get("step", 0), entry.get("iterations", 1)  # step: updates done
-        bar.update(task, total=total, completed=step, status=status)
-        if not console.is_terminal and (step % max(1, total // 20) == 0 or step == total):
-            line = f"fitting acoustic field: step {step}/{total} ({100 * step / total:.0f} %), "
-            console.print(line + status, highlight=False)
-
-    with bar:
-        yield update
+def _field_progress():
+    """The field fit's progress (:func:`~ultron.cli.common.fit_progress`)."""
+    return fit_progress("fitting acoustic field")
 
 
 @user_errors
@@ -247,6 +220,7 @@ def reconstruct(
             progress=update,
             allow_other_field=allow_other_field,
             max_memory_gib=max_memory,
+            announce=stage_lines,
         )
     _print_summary({method: summary})
     console.print(f"outputs in {out}")

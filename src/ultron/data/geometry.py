@@ -204,6 +204,18 @@ class UnitCube:
         half = float((box[1] - box[0]).max() / 2 * (1 + margin))
         return cls(tuple(float(c) for c in center), max(half, 1e-6))
 
+    def box_extent(
+        self, bounds_mm: torch.Tensor | np.ndarray, margin: float = 0.05
+    ) -> tuple[float, float, float]:
+        """Half-extent per axis (x, y, z), in unit-cube units, of a (2, 3) box about this cube's
+        centre, each grown by ``margin`` × the box's largest half-side (as :meth:`from_bounds`
+        grows the cube) and at most 1: the cube's own box gives 1 on its longest axis."""
+        box = as_bounds_mm(bounds_mm)
+        center = np.asarray(self.center_mm)
+        half = np.maximum(np.abs(box[0] - center), np.abs(box[1] - center))
+        grown = half + margin * float(half.max())
+        return tuple(float(min(1.0, max(g / self.half_extent_mm, 1e-6))) for g in grown)
+
     def _center(self, like: torch.Tensor) -> torch.Tensor:
         return torch.tensor(self.center_mm, dtype=torch.float64, device=like.device)
 

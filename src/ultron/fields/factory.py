@@ -42,6 +42,8 @@ class FieldConfig:
             grid = dict(data.get("grid", {}))
             if grid.get("resolutions") is not None:
                 grid["resolutions"] = tuple(grid["resolutions"])
+            if grid.get("axis_extent") is not None:
+                grid["axis_extent"] = tuple(grid["axis_extent"])
             return cls(
                 backend=data.get("backend", "grid"),
                 learn_density=bool(data.get("learn_density", False)),
@@ -57,16 +59,22 @@ class FieldConfig:
 
 
 def build_field(
-    config: FieldConfig, half_extent_mm: float, pixel_mm: float, seed: int = 0
+    config: FieldConfig,
+    half_extent_mm: float,
+    pixel_mm: float,
+    seed: int = 0,
+    axis_extent: tuple[float, float, float] | None = None,
 ) -> tuple[AcousticField, FieldConfig]:
     """A freshly initialised backend and the config with derived sizes filled in.
 
-    ``half_extent_mm`` is the unit cube's half side and ``pixel_mm`` the data's smallest pixel
-    spacing (the grid's default finest cell). Initialisation is seeded by ``seed`` only.
+    ``half_extent_mm`` is the unit cube's half side, ``pixel_mm`` the data's smallest pixel
+    spacing (the grid's default finest cell) and ``axis_extent`` the data's box per axis in
+    unit-cube units (where the grid's planes reach; None: the whole cube). Initialisation is
+    seeded by ``seed`` only.
     """
     generator = torch.Generator().manual_seed(int(seed))
     if config.backend == "grid":
-        grid_config = config.grid.resolved(half_extent_mm, pixel_mm)
+        grid_config = config.grid.resolved(half_extent_mm, pixel_mm, axis_extent)
         resolved = replace(config, grid=grid_config)
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(int(seed))

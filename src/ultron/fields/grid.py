@@ -8,6 +8,15 @@ axis-aligned feature planes per level and combined by a Hadamard product (as in 
 which is a rank-limited trilinear-like 3D feature at the memory cost of 2D planes; the levels
 are concatenated and decoded by a small ReLU MLP into the raw θ outputs. The finest level's
 cell is at most the data's pixel size (``cell_mm``), so the field can hold pixel-scale detail.
+
+For a box far from a cube the planes span the data's box, not the whole cube: axis a covers
+[−e_a, e_a] of the unit cube (``axis_extent``, e = 1 on the box's longest axis) with nodes at
+the same spacing on every axis, so plane P^{xy} has n_y × n_x nodes, n_a = round((R − 1)·e_a)
++ 1. They are used where the square planes would hold more than :data:`PER_AXIS_SAVING` times
+their values: a long bone's recording (the 40 cm fibula, 10 cm across) then needs 20 M values
+instead of 66 M and a fit step 0.12 s instead of 0.45 s (the planes' gradient and Adam's update
+dominate it); a compact box (a vertebra) keeps square planes, whose one batched read is
+faster. Fields fitted before (no ``axis_extent``) have square planes.
 A dense 3D grid at that cell size would need (2·half_extent/cell)³ voxels (≈ 2·10⁸ for the l2
 sweep), which does not fit a CPU budget; planes need 3·R² per level.
 
@@ -38,6 +47,11 @@ from ultron.fields.properties import HeadConfig, initial_raw_bias, n_raw_channel
 
 #: Upper bound on a plane's side (memory guard: 3 planes × C × R² floats per level).
 MAX_RESOLUTION = 2048
+#: Per-axis planes replace the square ones when the square ones would hold more than this many
+#: times their values (a box far from a cube, e.g. a long bone's recording); for a compact box
+#: one batched read of square planes is faster (L3: 0.039 vs 0.059 s per step at 1.4 vs 0.9 M
+#: values; the fibula's 0.45 vs 0.12 s at 66 vs 20 M).
+PER_AXIS_SAVING = 2.0
 #: Side of the random window on which the smoothness prior is evaluated each step.
 TV_WINDOW = 96
 #: Probability of evaluating the prior on a plane larger than the window in a given step.
@@ -55,6 +69,9 @@ class GridFieldConfig:
 
     resolutions: tuple[int, ...] | None = None
     cell_mm: float | None = None
+    #: Half-extent of the planes per axis in unit-cube units (x, y, z), each in (0, 1];
+    #: None: the whole cube on every axis (square planes, fields fitted before it existed).
+    axis_extent: tuple[float, float, float] | None = None
     n_levels: int = 2
     level_factor: float = 4.0
     features: int = 8
@@ -72,6 +89,13 @@ class GridFieldConfig:
                     f"expected sides in [2, {MAX_RESOLUTION}], got {resolutions}",
                 )
             object.__setattr__(self, "resolutions", resolutions)
+        if self.axis_extent is not None:
+            extent = tuple(float(e) for e in self.axis_extent)
+            if len(extent) != 3 or not all(0 < e <= 1 for e in extent):
+                raise argument_error(
+                    "grid.axis_extent", f"expected three values in (0, 1], got {self.axis_extent}"
+                )
+            object.__setattr__(self, "axis_extent", extent)
         if self.cell_mm is not None and not self.cell_mm > 0:
             raise argument_error("grid.cell_mm", f"expected > 0, got {self.cell_mm}")
         if not isinstance(self.n_levels, int) or self.n_levels < 1:
@@ -85,8 +109,14 @@ class GridFieldConfig:
         if self.smoothness_weight < 0:
             raise argument_error("grid.smoothness_weight", "expected ≥ 0")
 
-    def resolved(self, half_extent_mm: float, pixel_mm: float) -> GridFieldConfig:
-        """This config with ``resolutions`` computed for a cube of ``half_extent_mm``."""
+    def resolved(
+        self,
+        half_extent_mm: float,
+        pixel_mm: float,
+        axis_extent: tuple[float, float, float] | None = None,
+    ) -> GridFieldConfig:
+        """This config with ``resolutions`` computed for a cube of ``half_extent_mm`` and, where
+        not set, the planes' ``axis_extent`` (the data's box in unit-cube units)."""
         if self.resolutions is not None:
             return self
         cell = self.cell_mm if self.cell_mm is not None else pixel_mm
@@ -98,11 +128,44 @@ class GridFieldConfig:
                 f" per side (max {MAX_RESOLUTION}); choose a larger cell",
             )
         sides = [max(2, round(finest / self.level_factor**i)) for i in range(self.n_levels)]
-        return replace(self, resolutions=tuple(sides))
+        square = replace(self, resolutions=tuple(sides))
+        extent = self.axis_extent if self.axis_extent is not None else axis_extent
+        if extent is None:
+            return square
+        per_axis = replace(square, axis_extent=extent)
+        if self.axis_extent is None and square.n_values() <= PER_AXIS_SAVING * per_axis.n_values():
+            return square  # a compact box: one batched read of square planes is faster
+        return per_axis
+
+    def axis_nodes(self) -> list[tuple[int, int, int]]:
+        """Per level the nodes (n_x, n_y, n_z) along each axis (module doc)."""
+        if self.resolutions is None:
+            raise argument_error("config", "call GridFieldConfig.resolved(...) first")
+        extent = self.axis_extent or (1.0, 1.0, 1.0)
+        return [
+            tuple(max(2, round((r - 1) * e) + 1) for e in extent)  # type: ignore[misc]
+            for r in self.resolutions
+        ]
+
+    def plane_shapes(self) -> list[tuple[tuple[int, int], ...]]:
+        """Per level the (rows, columns) of the xy, xz and yz planes."""
+        return [((ny, nx), (nz, nx), (nz, ny)) for nx, ny, nz in self.axis_nodes()]
+
+    def n_values(self) -> int:
+        """The planes' values (features × nodes) over every level."""
+        channels = [self.features] + [self.coarse_features] * (len(self.resolutions or ()) - 1)
+        return sum(
+            c * sum(rows * cols for rows, cols in shapes)
+            for c, shapes in zip(channels, self.plane_shapes(), strict=True)
+        )
 
 
 class GridField(AcousticField):
-    """Multi-resolution factorised planes read bilinearly + a tiny ReLU decoder."""
+    """Multi-resolution factorised planes read bilinearly + a tiny ReLU decoder.
+
+    Square planes over the whole cube (no ``axis_extent``) are one (3, C, R, R) tensor per
+    level, read with one ``grid_sample`` call (the layout of every field fitted before the
+    per-axis planes); per-axis planes are three tensors of their own shapes per level."""
 
     def __init__(
         self,
@@ -116,10 +179,22 @@ class GridField(AcousticField):
             raise argument_error("config", "call GridFieldConfig.resolved(...) first")
         self.config = config
         channels = [config.features] + [config.coarse_features] * (len(config.resolutions) - 1)
-        self.planes = nn.ParameterList(
-            nn.Parameter(1.0 + 0.1 * torch.randn(3, c, r, r, generator=generator))
-            for c, r in zip(channels, config.resolutions, strict=True)
-        )
+        self.per_axis = config.axis_extent is not None
+        if self.per_axis:
+            self.planes = nn.ModuleList(
+                nn.ParameterList(
+                    nn.Parameter(1.0 + 0.1 * torch.randn(c, *shape, generator=generator))
+                    for shape in shapes
+                )
+                for c, shapes in zip(channels, config.plane_shapes(), strict=True)
+            )
+        else:
+            self.planes = nn.ParameterList(
+                nn.Parameter(1.0 + 0.1 * torch.randn(3, c, r, r, generator=generator))
+                for c, r in zip(channels, config.resolutions, strict=True)
+            )
+        extent = config.axis_extent or (1.0, 1.0, 1.0)
+        self.register_buffer("_axis_scale", torch.tensor([1.0 / e for e in extent]), False)
         layers: list[nn.Module] = []
         fan_in = sum(channels)
         for _ in range(config.decoder_depth):
@@ -135,15 +210,24 @@ class GridField(AcousticField):
         """Concatenated plane-product features (…, Σ_levels C_level)."""
         shape = points_unit.shape[:-1]
         u = points_unit.reshape(-1, 3).to(torch.float32)
+        if self.per_axis:
+            u = u * self._axis_scale
         # grid_sample reads (x → last axis, y → second-last axis) of each plane.
         x, y, z = u.unbind(-1)
-        coords = torch.stack([x, y, x, z, y, z], dim=-1).view(-1, 3, 2).transpose(0, 1)[:, None]
         parts = []
-        for plane in self.planes:
-            sampled = F.grid_sample(
-                plane, coords, mode="bilinear", padding_mode="border", align_corners=True
-            )  # (3, C, 1, N)
-            parts.append(sampled[0, :, 0] * sampled[1, :, 0] * sampled[2, :, 0])  # (C, N)
+        if self.per_axis:
+            coords = [torch.stack(pair, dim=-1)[None, None] for pair in ((x, y), (x, z), (y, z))]
+            for level in self.planes:
+                xy, xz, yz = (
+                    _bilinear(plane[None], where)[0, :, 0]
+                    for plane, where in zip(level, coords, strict=True)
+                )  # (C, N) each
+                parts.append(xy * xz * yz)
+        else:
+            coords = torch.stack([x, y, x, z, y, z], dim=-1).view(-1, 3, 2).transpose(0, 1)[:, None]
+            for plane in self.planes:
+                sampled = _bilinear(plane, coords)  # (3, C, 1, N)
+                parts.append(sampled[0, :, 0] * sampled[1, :, 0] * sampled[2, :, 0])  # (C, N)
         feats = torch.cat(parts, dim=0).transpose(0, 1)
         return feats.reshape(*shape, feats.shape[-1])
 
@@ -155,26 +239,47 @@ class GridField(AcousticField):
 
             TV = Σ_levels mean_window[(P[i+1, j] − P[i, j])² + (P[i, j+1] − P[i, j])²]
 
-        A stochastic, unbiased estimate of the whole-plane means (``generator`` draws it): a plane
-        larger than ``TV_WINDOW`` is evaluated on one random window, and only with probability
+        (the mean over a level's three planes). A stochastic, unbiased estimate of the
+        whole-plane means (``generator`` draws it): a plane larger than ``TV_WINDOW`` is
+        evaluated on one random window, and only with probability
         ``TV_LARGE_PLANE_PROBABILITY`` (then scaled by its inverse), because the gradient of a
         window still costs a pass over the whole plane. The draws are made on ``generator``'s
         device (the fit's CPU generator), the penalty on the planes'.
         """
-        total = torch.zeros((), device=self.planes[0].device)
+        total = torch.zeros((), device=self._axis_scale.device)
         if self.config.smoothness_weight == 0:
             return total
-        for plane in self.planes:
-            side = plane.shape[-1]
-            scale = 1.0
-            if side > TV_WINDOW:
-                draw = torch.rand((), generator=generator)
-                i, j = torch.randint(0, side - TV_WINDOW + 1, (2,), generator=generator).tolist()
-                if float(draw) >= TV_LARGE_PLANE_PROBABILITY:
-                    continue
-                plane = plane[:, :, i : i + TV_WINDOW, j : j + TV_WINDOW]
-                scale = 1.0 / TV_LARGE_PLANE_PROBABILITY
-            dy = plane[:, :, 1:, :] - plane[:, :, :-1, :]
-            dx = plane[:, :, :, 1:] - plane[:, :, :, :-1]
-            total = total + scale * (dy.pow(2).mean() + dx.pow(2).mean())
+        for level in self.planes:
+            planes = list(level) if self.per_axis else [level]
+            total = total + sum(_plane_tv(plane, generator) for plane in planes) / len(planes)
         return self.config.smoothness_weight * total
+
+
+def _bilinear(planes: torch.Tensor, coords: torch.Tensor) -> torch.Tensor:
+    """``grid_sample`` of (B, C, rows, cols) planes at (B, 1, N, 2) unit coordinates."""
+    return F.grid_sample(planes, coords, mode="bilinear", padding_mode="border", align_corners=True)
+
+
+def _plane_tv(plane: torch.Tensor, generator: torch.Generator | None) -> torch.Tensor:
+    """Squared TV of a plane (…, rows, cols) — for square planes a level's (3, C, R, R)
+    tensor, whose mean is the three planes' — on a random ``TV_WINDOW`` window with probability
+    ``TV_LARGE_PLANE_PROBABILITY`` (then scaled by its inverse) where a side exceeds the window,
+    on the whole plane otherwise (:meth:`GridField.regularization`)."""
+    rows, cols = plane.shape[-2:]
+    scale = 1.0
+    if max(rows, cols) > TV_WINDOW:
+        draw = torch.rand((), generator=generator)
+        if rows == cols:
+            i, j = torch.randint(0, rows - TV_WINDOW + 1, (2,), generator=generator).tolist()
+        else:
+            i, j = (
+                int(torch.randint(0, max(1, n - TV_WINDOW + 1), (), generator=generator))
+                for n in (rows, cols)
+            )
+        if float(draw) >= TV_LARGE_PLANE_PROBABILITY:
+            return torch.zeros((), device=plane.device)
+        plane = plane[..., i : i + TV_WINDOW, j : j + TV_WINDOW]
+        scale = 1.0 / TV_LARGE_PLANE_PROBABILITY
+    dy = plane[..., 1:, :] - plane[..., :-1, :]
+    dx = plane[..., :, 1:] - plane[..., :, :-1]
+    return scale * (dy.pow(2).mean() + dx.pow(2).mean())

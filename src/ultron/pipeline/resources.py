@@ -237,12 +237,14 @@ def field_fit_memory(dataset: SweepDataset, config: FieldTrainConfig) -> FieldFi
     resolutions: tuple[int, ...] = ()
     values = 0
     if backend == "grid":
-        cube = UnitCube.from_bounds(field_of_view_bounds_mm(dataset.all_poses(), probe))
+        bounds = field_of_view_bounds_mm(dataset.all_poses(), probe)
+        cube = UnitCube.from_bounds(bounds)
         pixel = min(probe.axial_spacing_mm, probe.lateral_spacing_mm)
-        grid_config = config.field.grid
-        resolutions = grid_config.resolved(cube.half_extent_mm, pixel).resolutions or ()
-        channels = [grid_config.features] + [grid_config.coarse_features] * (len(resolutions) - 1)
-        values = sum(3 * c * r * r for c, r in zip(channels, resolutions, strict=True))
+        grid_config = config.field.grid.resolved(
+            cube.half_extent_mm, pixel, cube.box_extent(bounds)
+        )
+        resolutions = grid_config.resolutions or ()
+        values = grid_config.n_values()
     rows, cols = probe.image_shape
     native = max((s.n_frames for s in dataset.sweeps), default=0) * math.prod(
         dataset.probe.image_shape

@@ -286,23 +286,37 @@ def _resume(
     state = read_checkpoint(out)
     step = int(state["step"])
     _check_step(out, step, iterations)
-    module.load_state_dict(state["model"])
-    optimizer.load_state_dict(state["optimizer"])
+    try:
+        module.load_state_dict(state["model"])
+        optimizer.load_state_dict(state["optimizer"])
+    except (RuntimeError, ValueError) as exc:  # e.g. square planes saved by an earlier release
+        raise UltronInputError(
+            out / CHECKPOINT,
+            "model",
+            "the checkpoint's field does not match the one this release builds for the data"
+            f" ({str(exc).splitlines()[0][:120]}); fit again with --no-resume or a new --out",
+        ) from None
     generator.set_state(state["generator"])
     return step, read_train_log(out, step)
 
 
 def _prepare(
-    dataset: SweepDataset, config: FieldTrainConfig
+    dataset: SweepDataset, config: FieldTrainConfig, progress: Progress | None = None
 ) -> tuple[FrameSet, UnitCube, AcousticField, FieldConfig]:
-    """The fit's frames (with confidence maps where the prior needs them), unit cube and
-    freshly initialised field (in training mode) with its resolved configuration."""
+    """The fit's frames (with confidence maps where the prior needs them: a ``progress`` with
+    a ``stage(name, done, total)`` method is told as they are computed), unit cube and freshly
+    initialised field (in training mode) with its resolved configuration."""
     frames = FrameSet.from_dataset(dataset, config.fit_shape, config.holdout_every)
     if config.confidence_prior_weight > 0:
-        frames = frames.with_confidence()
-    cube = UnitCube.from_bounds(field_of_view_bounds_mm(dataset.all_poses(), frames.probe))
+        stage = getattr(progress, "stage", None)
+        report = None if stage is None else (lambda done, n: stage("confidence maps", done, n))
+        frames = frames.with_confidence(report)
+    bounds = field_of_view_bounds_mm(dataset.all_poses(), frames.probe)
+    cube = UnitCube.from_bounds(bounds)
     pixel_mm = min(frames.probe.axial_spacing_mm, frames.probe.lateral_spacing_mm)
-    module, resolved = build_field(config.field, cube.half_extent_mm, pixel_mm, config.seed)
+    module, resolved = build_field(
+        config.field, cube.half_extent_mm, pixel_mm, config.seed, cube.box_extent(bounds)
+    )
     return frames, cube, module.train(), resolved
 
 
@@ -411,7 +425,8 @@ def fit_field(
     batch generator continue from the checkpoint.
 
     The updates run in :func:`ultron.train.loop.run_training`; ``progress`` receives a dict
-    per update (``step``, ``iterations``, ``loss``, ``psnr``, ``lr`` (the rate of the next
+    per update (and, where it has a ``stage(name, done, total)`` method, is told how the
+    preparation, e.g. the confidence maps, advances) (``step``, ``iterations``, ``loss``, ``psnr``, ``lr`` (the rate of the next
     update), ``seconds`` and, when checked, ``holdout_psnr`` / ``holdout_ssim``); the log
     keeps the first update, every ``log_every``-th, every checked one and the last.
     """
@@ -419,7 +434,7 @@ def fit_field(
     device = resolve_device(device, "device")
     dataset_sha256 = dataset.content_hash()
     resuming = resume and check_resumable(out, config, dataset_sha256)
-    frames, cube, module, resolved = _prepare(dataset, config)
+    frames, cube, module, resolved = _prepare(dataset, config, progress)
     frames, module = frames.to(device), module.to(device)
     optimizer = make_optimizer(module, config.lr)
     generator = torch.Generator().manual_seed(config.seed)
