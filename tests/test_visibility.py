@@ -146,6 +146,23 @@ def test_confidence_map_sees_the_shadow_under_a_bright_line():
     assert above > 0.9 and below < 0.2 * above, (above, below)
 
 
+def test_confidence_maps_on_threads_equal_one_by_one():
+    from ultron.train.visibility import confidence_maps
+
+    rng = np.random.default_rng(0)
+    images = rng.integers(0, 256, size=(12, 20, 16)).astype(np.float32)
+    images /= 255.0
+    seen: list[tuple[int, int]] = []
+    parallel = confidence_maps(images, workers=2, report=lambda d, n: seen.append((d, n)))
+    assert parallel.dtype == np.float32 and parallel.shape == images.shape
+    for k in (0, 7, len(images) - 1):
+        assert np.array_equal(parallel[k], confidence_map(images[k]))
+    assert seen[0] == (0, len(images)) and seen[-1] == (len(images), len(images))
+    assert [d for d, _ in seen] == list(range(len(images) + 1))
+    with pytest.raises(UltronInputError, match="images"):
+        confidence_maps(images[0])
+
+
 def test_confidence_map_uniform_column_is_monotone():
     c = confidence_map(np.full((40, 20), 100, np.uint8), ConfidenceConfig())
     np.testing.assert_allclose(c[0], 1.0, atol=1e-6)

@@ -303,14 +303,15 @@ def _resume(
 def _prepare(
     dataset: SweepDataset, config: FieldTrainConfig, progress: Progress | None = None
 ) -> tuple[FrameSet, UnitCube, AcousticField, FieldConfig]:
-    """The fit's frames (with confidence maps where the prior needs them: a ``progress`` with
-    a ``stage(name, done, total)`` method is told as they are computed), unit cube and freshly
-    initialised field (in training mode) with its resolved configuration."""
+    """The fit's frames (with confidence maps where the prior needs them, as many at a time as
+    torch has threads (``--threads``): a ``progress`` with a ``stage(name, done, total)``
+    method is told as they are computed), unit cube and freshly initialised field (in training
+    mode) with its resolved configuration."""
     frames = FrameSet.from_dataset(dataset, config.fit_shape, config.holdout_every)
     if config.confidence_prior_weight > 0:
         stage = getattr(progress, "stage", None)
         report = None if stage is None else (lambda done, n: stage("confidence maps", done, n))
-        frames = frames.with_confidence(report)
+        frames = frames.with_confidence(report, workers=max(1, torch.get_num_threads()))
     bounds = field_of_view_bounds_mm(dataset.all_poses(), frames.probe)
     cube = UnitCube.from_bounds(bounds)
     pixel_mm = min(frames.probe.axial_spacing_mm, frames.probe.lateral_spacing_mm)

@@ -23,7 +23,7 @@ frames (N, H, W) of a sweep, e.g. to compound per-frame visibility into a 3D obs
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -233,6 +233,35 @@ def confidence_map(image: np.ndarray, config: ConfidenceConfig | None = None) ->
     )
     result = np.asarray(transform(image[None].astype(np.float64)), dtype=np.float64)
     return np.clip(result.reshape(image.shape), 0.0, 1.0).astype(np.float32)
+
+
+def confidence_maps(
+    images: np.ndarray,
+    config: ConfidenceConfig | None = None,
+    workers: int = 1,
+    report: Callable[[int, int], None] | None = None,
+) -> np.ndarray:
+    """:func:`confidence_map` of every frame (N, H, W) → float32 (N, H, W), ``workers`` frames
+    at a time on threads (the sparse solve, ≈ 0.3 s for a 30 k-pixel frame, releases the GIL:
+    2 threads take half the time; the maps are the same); ``report`` is told (done, N) as
+    frames finish, in order."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    cfg = config or ConfidenceConfig()
+    images = np.asarray(images)
+    if images.ndim != 3:
+        raise argument_error("images", f"expected (N, H, W) frames, got shape {images.shape}")
+    total = len(images)
+    out = np.empty(images.shape, dtype=np.float32)
+    if report is not None:
+        report(0, total)
+    with ThreadPoolExecutor(max(1, int(workers))) as pool:
+        maps = pool.map(lambda image: confidence_map(image, cfg), images)
+        for index, value in enumerate(maps):
+            out[index] = value
+            if report is not None:
+                report(index + 1, total)
+    return out
 
 
 def label_transmission(
