@@ -345,3 +345,31 @@ def test_library_refuses_unknown_sweeps_and_existing_labels(tiny_dataset_dir: Pa
         auto_label_dataset(tiny_dataset_dir, ["nope"])
     with pytest.raises(UltronInputError, match="already has labels"):
         auto_label_dataset(tiny_dataset_dir, ["row"])
+
+
+def test_a_recording_without_bone_is_warned_about_and_refused_before_any_work(tmp_path: Path):
+    """Speckle only: ``label --auto`` writes its labels and warns that it found no bone; every
+    reconstruction refuses in one line naming the dataset, before a field is fitted, and
+    writes nothing."""
+    rng = np.random.default_rng(0)
+    poses = np.repeat(np.eye(4)[None], 8, axis=0)
+    poses[:, 2, 3] = np.linspace(0.0, 7.0, 8)
+    images = np.clip(rng.rayleigh(60.0, size=(8, *PROBE.image_shape)), 0, 255).astype(np.uint8)
+    from ultron.data.dataset import Sweep
+
+    SweepDataset(PROBE, [Sweep("row", "row", images, poses)]).save(tmp_path / "d")
+    labelled = runner.invoke(app, ["label", str(tmp_path / "d"), "--auto"])
+    assert labelled.exit_code == 0, labelled.output
+    assert (
+        "warning:" in labelled.stderr and "no bone found in any of its 8 frames" in labelled.stderr
+    )
+    for method in ("compounding", "ultron"):
+        out = tmp_path / f"out-{method}"
+        result = runner.invoke(
+            app, ["reconstruct", str(tmp_path / "d"), "--method", method, "--out", str(out)]
+        )
+        assert result.exit_code == 2, result.output
+        lines = [line for line in result.stderr.splitlines() if line.strip()]
+        assert len(lines) == 1 and lines[0].startswith(f"error: {tmp_path / 'd'}: labels:")
+        assert "contain no bone pixel" in lines[0] and "Traceback" not in result.output
+        assert not out.exists() and not (tmp_path / "d" / "field").exists()

@@ -11,6 +11,7 @@ from ultron.cli.common import (
     ThreadsOption,
     apply_threads,
     console,
+    err_console,
     stage_progress,
     sweep_names,
     user_errors,
@@ -65,6 +66,14 @@ def label(
             highlight=False,
             soft_wrap=True,
         )
+        if s.frames and s.frames_without_bone == s.frames:
+            err_console.print(
+                f"warning: {Path(dataset) / s.name}: no bone found in any of its {s.frames}"
+                " frames (a recording without bone, or frames the detector does not suit):"
+                " its labels are background and unsure only, nothing to reconstruct from",
+                markup=False,
+                highlight=False,
+            )
         check = ", ".join(str(i) for i in s.frames_to_check[:MAX_LISTED])
         more = " …" if len(s.frames_to_check) > MAX_LISTED else ""
         console.print(

@@ -11,12 +11,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
 from ultron.data.dataset import SweepDataset
 from ultron.data.geometry import apply_pose, probe_points_mm
-from ultron.data.validation import LABEL_UNANNOTATED
+from ultron.data.validation import LABEL_TARGET, LABEL_UNANNOTATED
 from ultron.errors import UltronInputError, argument_error
 
 
@@ -67,6 +68,28 @@ def select_label_frames(dataset: SweepDataset, fraction: float, seed: int) -> Fr
         positions = np.floor((np.arange(k) + phase) * n / k).astype(np.int64)
         frames[name] = np.sort(indices[np.clip(positions, 0, n - 1)])
     return FrameSelection(fraction=float(fraction), seed=int(seed), frames=frames)
+
+
+def check_selection_has_bone(
+    dataset: SweepDataset, selection: FrameSelection, where: str | Path = "dataset"
+) -> None:
+    """Refuse a selection of frames without a single bone pixel (label 1) — nothing can be
+    reconstructed from it (a recording without bone, or automatic labels that found none) —
+    naming ``where`` (the dataset directory), the frames and what to look at."""
+    for sweep in dataset.sweeps:
+        frames = selection.frames.get(sweep.name)
+        if frames is not None and len(frames) and (sweep.labels[frames] == LABEL_TARGET).any():
+            return
+    names = ", ".join(name for name, frames in selection.frames.items() if len(frames))
+    raise UltronInputError(
+        where,
+        "labels",
+        f"the {selection.n_frames} frames chosen (label fraction {selection.fraction:g}, seed"
+        f" {selection.seed}) of sweep(s) {names} contain no bone pixel (label 1): nothing to"
+        " reconstruct; a recording without bone, or automatic labels that found none (see"
+        " each sweep's auto_labels_quality.csv), or a label fraction too small for the"
+        " frames that show bone",
+    )
 
 
 def _allocate(wanted: int, sizes: dict[str, int]) -> dict[str, int]:

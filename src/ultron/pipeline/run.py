@@ -21,6 +21,7 @@ from typing import Any
 
 from ultron import atomic
 from ultron.data.dataset import SweepDataset
+from ultron.data.labels import check_selection_has_bone, select_label_frames
 from ultron.device import describe_device, resolve_device
 from ultron.errors import argument_error
 from ultron.mesh.compounding import CompoundingConfig
@@ -250,6 +251,9 @@ def reconstruct(
             out_dir, "reconstruct", dataset_dir, (field_dir,), _meshing_voxel(request),
             get_method(request.method).scan_grid, None, max_memory_gib,
         )  # fmt: skip
+        # labels without bone: refused before minutes of field fit and training
+        selection = select_label_frames(dataset, request.label_fraction, request.seed)
+        check_selection_has_bone(dataset, selection, dataset_dir)
         # the oracle's files (an input) before the field to fit (its memory and frame size)
         truth = load_oracle_truth(request.ultron.visibility, dataset_dir, dataset)
         if to_fit is not None:
