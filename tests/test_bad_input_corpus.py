@@ -41,6 +41,13 @@ def _foreign_dir(path: Path) -> Path:
     return path
 
 
+def _field_like(path: Path) -> Path:
+    """A directory holding a field.json (what makes it a fitted field's directory)."""
+    path.mkdir(parents=True)
+    (path / "field.json").write_text("{}")
+    return path
+
+
 def _file(path: Path) -> Path:
     path.write_text("a file\n")
     return path
@@ -61,6 +68,29 @@ def _move_pose(data: Path, frame: int, offset_mm: float) -> None:
 def _tiny_probe(data: Path) -> None:
     """A 1 µm wide probe: 0.17 µm pixels."""
     _edit_dataset(data, lambda m: m["probe"].update(width_mm=1e-3))
+
+
+def _point_cloud(path: Path) -> None:
+    """``path``: a PLY of three vertices and no faces, and ``r.ply`` beside it a triangle."""
+    vertices = "0 0 0\n1 0 0\n0 1 0\n"
+    head = "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
+    head += "property float z\n"
+    path.write_text(head + "end_header\n" + vertices)
+    face = "element face 1\nproperty list uchar int vertex_indices\nend_header\n"
+    (path.parent / "r.ply").write_text(head + face + vertices + "3 0 1 2\n")
+
+
+def _detached_sequence(tmp: Path, data_file: str) -> list[str]:
+    """import-plus arguments for tmp/rec/rec.igs.mha whose payload is ``data_file``."""
+    from plus_synthetic import mha_header, recording, write_config
+
+    folder = tmp / "rec"
+    folder.mkdir()
+    header = "".join(f"{k} = {v}\n" for k, v in mha_header(recording(n=3, height=12, width=16)))
+    (folder / "rec.igs.mha").write_text(header + f"ElementDataFile = {data_file}\n")
+    config = write_config(folder / "config.xml", np.diag([0.3, 0.25, 1.0, 1.0]))
+    return ["import-plus", str(folder / "rec.igs.mha"), "--config", str(config),
+            "--out", str(tmp / "ds")]  # fmt: skip
 
 
 def _bad_reference(data: Path) -> None:
@@ -172,6 +202,22 @@ CASES: dict[str, tuple[Callable[[Path, Path], list[str]], tuple[str, ...]]] = {
         ),
         ("out", "--out", "holds the input"),
     ),
+    "fit_field_out_is_the_dataset": (
+        lambda t, d: ["fit-field", str(d), "--out", str(d)],
+        ("--out", "holds the dataset"),
+    ),
+    "fit_field_into_reconstruct_run": (
+        lambda t, d: ["fit-field", str(d), "--out", str(_run_dir(t / "out", "reconstruct"))],
+        ("out", "--out", "ultron run"),
+    ),
+    "fit_field_into_foreign_dir": (
+        lambda t, d: ["fit-field", str(d), "--out", str(_foreign_dir(t / "out"))],
+        ("out", "--out", "no field of an earlier fit"),
+    ),
+    "reconstruct_out_inside_its_field": (
+        lambda t, d: _recon(d, t / "field" / "run", "--field", str(_field_like(t / "field"))),
+        ("run", "--out", "lies inside the input"),
+    ),
     "demo_into_foreign_method_dir": (
         lambda t, d: ["demo", "--out", str(_foreign_dir(t / "demo" / "ultron").parent)],
         ("ultron", "--out", "holds no run.json"),
@@ -184,6 +230,33 @@ CASES: dict[str, tuple[Callable[[Path, Path], list[str]], tuple[str, ...]]] = {
     "reconstruct_out_below_a_file": (
         lambda t, d: _recon(d, _file(t / "out") / "sub"),
         ("out", "--out", "cannot be created"),
+    ),
+    # 4. a file that names a path outside its own folder (nothing outside is read)
+    "reconstruct_reference_outside_the_dataset": (
+        lambda t, d: _after(
+            _edit_dataset(d, lambda m: m.update(reference="../r.ply")), _recon(d, t / "out")
+        ),
+        ("dataset.json", "reference", "points outside"),
+    ),
+    "import_plus_data_file_outside_its_folder": (
+        lambda t, d: _detached_sequence(t, "/etc/passwd"),
+        ("rec.igs.mha", "ElementDataFile", "points outside"),
+    ),
+    # 5. work beyond the memory this process may use, refused before it starts
+    "simulate_voxel_beyond_memory": (
+        lambda t, d: ["simulate", "--voxel-mm", "0.0001", "--out", str(t / "sim")],
+        ("--voxel-mm", "more than"),
+    ),
+    "evaluate_points_beyond_memory": (
+        lambda t, d: _after(
+            _point_cloud(t / "m.ply"),
+            ["evaluate", str(t / "r.ply"), str(t / "r.ply"), "--points", "1000000000"],
+        ),
+        ("--points", "more than"),
+    ),
+    "evaluate_point_cloud": (
+        lambda t, d: _after(_point_cloud(t / "m.ply"), _evaluate(t, "--out", str(t / "x.json"))),
+        ("m.ply", "mesh", "no triangles"),
     ),
     "reconstruct_unreadable_reference": (
         lambda t, d: _after(_bad_reference(d), _recon(d, t / "out")),

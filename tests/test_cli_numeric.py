@@ -35,6 +35,8 @@ CASES = [
     ("fit-field", "--holdout-every", "1"),
     ("fit-field", "--iters", "0"),
     ("fit-field", "--iters", "-5"),
+    ("fit-field", "--iters", "99999999999999999999"),
+    ("fit-field", "--fit-shape", "coarse"),
     ("fit-field", "--scattering-floor", "nan"),
     ("fit-field", "--scattering-floor", "1"),
     ("fit-field", "--scattering-floor", "-0.1"),
@@ -126,3 +128,26 @@ def test_check_range_messages() -> None:
         check_range("--f", ok, 0.0, 1.0, low_open=True)
     with pytest.raises(UltronInputError, match=r"in \[0, 4294967295\], got -1$"):
         check_range("--seed", -1, 0, MAX_SEED)
+
+
+@pytest.mark.parametrize(
+    ("args", "option"),
+    [
+        (["simulate", "--frames", "ten"], "--frames"),
+        (["fit-field", "X", "--iters", "1.5"], "--iters"),
+    ],
+)
+def test_an_option_of_the_wrong_type_is_one_line(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture, args, option
+) -> None:
+    import sys
+
+    from ultron.cli.main import main
+
+    monkeypatch.setattr(sys, "argv", ["ultron", *args, "--out", str(tmp_path / "out")])
+    with pytest.raises(SystemExit) as caught:
+        main()
+    assert caught.value.code == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"error: argument: {option}: "), lines
+    assert not (tmp_path / "out").exists()

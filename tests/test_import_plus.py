@@ -532,7 +532,7 @@ BAD_CASES: dict[str, tuple[Callable[[Path], list[str]], tuple[str, ...]]] = {
     ),
     "plus_truncated_raw_payload": (
         _case(payload_edit=lambda b: b[:-5]),
-        ("bad.seq.mha", "ElementDataFile", "truncated payload: 763 of the 768 bytes"),
+        ("bad.seq.mha", "ElementDataFile", "truncated payload: 763 bytes where DimSize needs 768"),
     ),
     "plus_not_a_sequence": (_garbage, ("bad.seq.mha", "header", "not a MetaImage header")),
     "plus_rf_orientation": (

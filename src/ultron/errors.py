@@ -3,7 +3,9 @@ that names the file or argument and says what was expected; the CLI prints it an
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+import json
+from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -40,3 +42,36 @@ def config_from_dict(cls: type[_Config], data: Mapping[str, Any], name: str) -> 
         return cls(**data)
     except TypeError as exc:
         raise argument_error(name, f"unexpected entries ({exc})") from None
+
+
+@contextmanager
+def malformed_entries(where: str | Path, field: str) -> Iterator[None]:
+    """Read the entry ``field`` of the file ``where`` inside this block: a missing key, a value
+    of the wrong type or shape (KeyError, TypeError, ValueError, AttributeError, IndexError,
+    RecursionError) or an argument error of the config it builds becomes one
+    :class:`UltronInputError` naming the file and the entry."""
+    try:
+        yield
+    except UltronInputError as exc:
+        if exc.where != "argument":
+            raise
+        raise UltronInputError(where, f"{field}.{exc.field}", exc.problem) from None
+    except KeyError as exc:
+        key = exc.args[0] if exc.args else "?"
+        raise UltronInputError(where, field, f"entry {key!r} is missing") from None
+    except (TypeError, ValueError, AttributeError, IndexError, RecursionError) as exc:
+        text = str(exc).splitlines()[0][:160] if str(exc) else type(exc).__name__
+        raise UltronInputError(where, field, f"malformed ({text})") from None
+
+
+def read_json_file(path: str | Path, field: str) -> Any:
+    """The JSON value in ``path``; unreadable text, invalid JSON and nesting too deep for the
+    parser are one :class:`UltronInputError` naming the file and ``field``."""
+    try:
+        return json.loads(Path(path).read_text(encoding="utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise UltronInputError(path, field, f"not valid JSON ({exc})") from None
+    except RecursionError:
+        raise UltronInputError(path, field, "JSON nested too deeply to read") from None
+    except OSError as exc:
+        raise UltronInputError(path, field, f"cannot be read ({exc.strerror})") from None

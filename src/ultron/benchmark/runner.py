@@ -53,6 +53,7 @@ from ultron.pipeline.finetune import finetune
 from ultron.pipeline.record import RunRecord
 from ultron.pipeline.run import reconstruct
 from ultron.train.field_fit import fit_field
+from ultron.train.fit_shape import resolve_fit_shape
 from ultron.train.transmission_check import record_transmission_check
 
 Outcome = dict[str, Any]
@@ -120,14 +121,15 @@ def simulate(job: SimulateJob) -> bool:
 def fit(job: FieldJob) -> bool:
     """Fit the dataset's field unless it is done with the same settings; True when skipped."""
     out = Path(job.out)
+    dataset = SweepDataset.load(job.dataset_dir)
+    config = resolve_fit_shape(job.config, dataset)  # field.json records the resolved shape
     done = all((out / name).is_file() for name in (FIELD_DONE, FIELD_JSON, CHECKPOINT))
-    if done and _normalised(read_field_json(out).get("train")) == _normalised(job.config.to_dict()):
+    if done and _normalised(read_field_json(out).get("train")) == _normalised(config.to_dict()):
         if not (out / TRANSMISSION_CHECK).is_file():  # fitted before the check was written
-            dataset = SweepDataset.load(job.dataset_dir)
             record_transmission_check(dataset, load_field(out, job.device), out)
         return True
     # resumes a checkpoint (also a larger iteration count); other settings are an error
-    fit_field(SweepDataset.load(job.dataset_dir), job.config, out, resume=True, device=job.device)
+    fit_field(dataset, config, out, resume=True, device=job.device)
     atomic.write_text(out / FIELD_DONE, "ok\n")
     return False
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import functools
 import math
 from collections.abc import Callable, Iterator
@@ -27,8 +28,42 @@ console = Console()
 err_console = Console(stderr=True, soft_wrap=True)
 
 
+#: errno values of a write that the disk or the file-size limit refused.
+_DISK_ERRNOS = {errno.ENOSPC, errno.EFBIG, getattr(errno, "EDQUOT", errno.ENOSPC)}
+#: errno values of a file or folder this user may not read or write.
+_PERMISSION_ERRNOS = {errno.EACCES, errno.EPERM, errno.EROFS}
+#: What torch's and numpy's allocators say when memory runs out.
+_OUT_OF_MEMORY = ("can't allocate memory", "not enough memory", "out of memory")
+
+
+def resource_error(exc: BaseException) -> str | None:
+    """The one-line message for a run that ran out of memory or disk (None: another error).
+    Outputs are written atomically, so what was written before is whole; a field fit resumes
+    from its last checkpoint."""
+    if isinstance(exc, MemoryError) or (
+        isinstance(exc, RuntimeError) and any(s in str(exc).lower() for s in _OUT_OF_MEMORY)
+    ):
+        return (
+            "memory: ran out of memory (the process's limit, ulimit -v or the cgroup's, is"
+            " lower than this step needs); give --max-memory, a smaller grid, or more memory"
+        )
+    if isinstance(exc, OSError) and exc.errno in _PERMISSION_ERRNOS:
+        return (
+            f"{exc.filename or 'output'}: permission: {exc.strerror} (check the permissions of"
+            " the file and its folder, or give another path)"
+        )
+    if isinstance(exc, OSError) and exc.errno in _DISK_ERRNOS:
+        where = exc.filename or "output"
+        return (
+            f"{where}: disk: {exc.strerror} (no space left or the file-size limit, ulimit -f,"
+            " reached); free space and run again: finished outputs are whole, a fit resumes"
+        )
+    return None
+
+
 def user_errors(func: Callable[P, R]) -> Callable[P, R]:
-    """Turn :class:`UltronError` into a one-line ``error: …`` message on stderr and exit 2."""
+    """Turn :class:`UltronError`, running out of memory and a full disk (or file-size limit)
+    into a one-line ``error: …`` message on stderr and exit 2."""
 
     @functools.wraps(func)
     def wrapper(*args: P.args, **kwargs: P.kwargs) -> R:
@@ -37,8 +72,19 @@ def user_errors(func: Callable[P, R]) -> Callable[P, R]:
         except UltronError as exc:
             err_console.print(f"error: {exc}", markup=False, highlight=False)
             raise typer.Exit(EXIT_BAD_INPUT) from None
+        except (MemoryError, RuntimeError, OSError) as exc:
+            message = resource_error(exc)
+            if message is None:
+                raise
+            err_console.print(f"error: {message}", markup=False, highlight=False)
+            raise typer.Exit(EXIT_BAD_INPUT) from None
 
     return wrapper
+
+
+def warning_line(line: str) -> None:
+    """One ``warning: …`` line on stderr."""
+    err_console.print(f"warning: {line}", markup=False, highlight=False)
 
 
 def _number(value: float) -> str:
@@ -94,9 +140,14 @@ def check_seed(option: str, value: int | None) -> None:
     check_range(option, value, 0, MAX_SEED)
 
 
+#: The largest count any option takes (iterations, points, frames …): beyond it no run ends.
+MAX_COUNT = 10**9
+
+
 def check_count(option: str, value: int | None, minimum: int = 1) -> None:
-    """A count (iterations, points, frames, threads …) must be an integer ≥ ``minimum``."""
-    check_range(option, value, minimum)
+    """A count (iterations, points, frames, threads …) must be an integer in
+    [``minimum``, :data:`MAX_COUNT`]."""
+    check_range(option, value, minimum, MAX_COUNT)
 
 
 def check_choice(option: str, value: str | None, choices: tuple[str, ...]) -> None:

@@ -221,6 +221,18 @@ def info(
     for line in lines:
         console.print(line, highlight=False)
     _warn_outliers(data)
+    _warn_units(data)
+
+
+def _warn_units(data) -> None:
+    """A warning per implausible length (:mod:`ultron.data.units`: poses or reference not in
+    millimetres, a reference away from the scanned region)."""
+    from ultron.data.units import units_warnings
+    from ultron.mesh.export import load_mesh
+
+    vertices = None if data.reference is None else load_mesh(data.reference).vertices
+    for line in units_warnings(data, vertices):
+        console.print(f"warning: {line}", highlight=False)
 
 
 def _warn_outliers(data) -> None:

@@ -7,7 +7,7 @@ from typing import Annotated
 
 import typer
 
-from ultron.cli.common import check_count, check_seed, console, user_errors
+from ultron.cli.common import check_count, check_seed, console, err_console, user_errors
 from ultron.errors import argument_error
 
 
@@ -51,6 +51,7 @@ def evaluate(
         raise argument_error("--crop-mm", f"expected a positive distance in mm, got {crop_mm}")
 
     from ultron import atomic
+    from ultron.data.units import box_mismatch
     from ultron.mesh.export import load_mesh
     from ultron.metrics.surface import MetricsConfig, evaluate_meshes
     from ultron.outputs import check_output_file
@@ -61,6 +62,10 @@ def evaluate(
     recon = load_mesh(mesh, allow_empty=True)
     ref = load_mesh(reference)
     visible = None if reference_visible is None else load_mesh(reference_visible)
+    if len(recon.vertices):
+        mismatch = box_mismatch(recon.bounds, ref.bounds, f"the mesh {mesh}", "the reference")
+        if mismatch is not None:
+            err_console.print(f"warning: {mismatch}", markup=False, highlight=False)
     result = evaluate_meshes(recon, ref, config, reference_visible=visible)
     result["mesh"], result["reference"] = str(mesh), str(reference)
     result["reference_visible"] = None if reference_visible is None else str(reference_visible)

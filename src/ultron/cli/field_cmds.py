@@ -21,7 +21,8 @@ from ultron.cli.common import (
     user_errors,
 )
 from ultron.errors import argument_error
-from ultron.outputs import check_output_dir, check_output_file
+from ultron.models.field_dir import check_field_out
+from ultron.outputs import check_output_file
 
 if TYPE_CHECKING:
     import numpy as np
@@ -29,12 +30,14 @@ if TYPE_CHECKING:
     from ultron.models.fitted import FitProgress, FittedField
 
 
-def _parse_shape(text: str | None) -> tuple[int, int] | None:
-    if text is None:
-        return None
+def _parse_shape(text: str) -> tuple[int, int] | str:
+    if text.strip().lower() in ("auto", "native"):
+        return text.strip().lower()
     parts = text.lower().split("x")
     if len(parts) != 2 or not all(p.strip().isdigit() for p in parts):
-        raise argument_error("--fit-shape", f"expected HxW such as 256x128, got {text!r}")
+        raise argument_error(
+            "--fit-shape", f"expected HxW such as 256x128, auto or native, got {text!r}"
+        )
     return int(parts[0]), int(parts[1])
 
 
@@ -85,9 +88,11 @@ HoldoutEvery = Annotated[
     int, typer.Option("--holdout-every", help="Hold out every K-th frame for checks (0: none).")
 ]
 FitShape = Annotated[
-    str | None,
+    str,
     typer.Option(
-        "--fit-shape", help="Fit at HxW pixels, frames area-resampled (default: native size)."
+        "--fit-shape",
+        help="Fit at HxW pixels (frames area-resampled), native (the frames' own size) or auto"
+        " (the frames' own, or coarser where their pixels are finer than half a speckle grain).",
     ),
 ]
 TrainScatterers = Annotated[
@@ -136,7 +141,7 @@ def fit_field_command(
     confidence_prior: ConfidencePrior = None,
     seed: FitSeed = 0,
     holdout_every: HoldoutEvery = 10,
-    fit_shape: FitShape = None,
+    fit_shape: FitShape = "auto",
     train_scatterers: TrainScatterers = "expected",
     check_every: CheckEvery = 250,
     checkpoint_every: CheckpointEvery = None,
@@ -161,13 +166,14 @@ def fit_field_command(
     check_count("--checkpoint-every", checkpoint_every)
     check_range("--max-memory", max_memory, 0.0, low_open=True)
     apply_threads(threads)
-    check_output_dir(out)
+    check_field_out(out, dataset)
     device = check_device(device)
 
     from ultron.data.dataset import SweepDataset
     from ultron.pipeline.resources import check_run_resources
     from ultron.train import field_preset, fit_field
     from ultron.train.field_fit import check_resumable
+    from ultron.train.fit_shape import resolve_fit_shape
 
     data = SweepDataset.load(dataset)
     changes = {
@@ -187,6 +193,7 @@ def fit_field_command(
         train_scatterers=train_scatterers,
         check_every=check_every,
     )
+    config = resolve_fit_shape(config, data)
     if not no_resume:  # a checkpoint of another dataset or configuration: error before the bar
         check_resumable(out, config, data.content_hash())
     check_run_resources(data, dataset, mesh=False, field_config=config, max_memory_gib=max_memory)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 from typing import Annotated
 
 import typer
@@ -17,6 +18,7 @@ from ultron.cli import (
     reconstruct_cmds,
     volume_cmds,
 )
+from ultron.cli.common import EXIT_BAD_INPUT
 
 app = typer.Typer(
     name="ultron",
@@ -64,8 +66,24 @@ def _root(
 
 
 def main() -> None:
-    """Console-script entry point."""
-    app()
+    """Console-script entry point. An option value of the wrong type (``--frames ten``) is one
+    ``error:`` line naming the option, exit 2, like every other bad input; other usage errors
+    print click's usage message."""
+    try:
+        code = app(standalone_mode=False)
+    except typer.BadParameter as exc:
+        names = exc.param.opts if exc.param is not None and exc.param.opts else [exc.param_hint]
+        option = "/".join(str(n) for n in names if n) or "option"
+        print(f"error: argument: {option}: {exc.message}", file=sys.stderr)
+        sys.exit(EXIT_BAD_INPUT)
+    except typer.Abort:
+        sys.exit(1)
+    except Exception as exc:  # click's other usage errors carry their own message and code
+        if not (hasattr(exc, "show") and hasattr(exc, "exit_code")):
+            raise
+        exc.show()
+        sys.exit(exc.exit_code)
+    sys.exit(code if isinstance(code, int) else 0)
 
 
 if __name__ == "__main__":

@@ -20,6 +20,7 @@ from ultron.cli.common import (
     fit_progress,
     stage_lines,
     user_errors,
+    warning_line,
 )
 
 MESH_COORDINATES = ("lps", "ras")  # ultron.mesh.export.MESH_COORDINATES (lazy import)
@@ -221,6 +222,7 @@ def reconstruct(
             allow_other_field=allow_other_field,
             max_memory_gib=max_memory,
             announce=stage_lines,
+            warn=warning_line,
         )
     _print_summary({method: summary})
     console.print(f"outputs in {out}")

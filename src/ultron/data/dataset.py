@@ -42,6 +42,7 @@ import numpy as np
 from ultron import atomic
 from ultron.data.validation import (
     LABEL_UNANNOTATED,
+    contained_path,
     input_file,
     load_npy,
     validate_images,
@@ -51,7 +52,7 @@ from ultron.data.validation import (
     validate_positive,
     validate_transmission,
 )
-from ultron.errors import UltronInputError, argument_error
+from ultron.errors import UltronInputError, argument_error, read_json_file
 
 FORMAT = "ultron-sweeps/1"
 SWEEP_KINDS = ("row", "column", "tilted", "other")
@@ -388,7 +389,7 @@ def _reference_path(root: Path, meta_path: Path, meta: dict[str, Any], key: str)
         return None
     if not isinstance(name, str) or not name:
         raise UltronInputError(meta_path, key, f"expected a file name or null, got {name!r}")
-    return root / name
+    return contained_path(root, name, meta_path, key)
 
 
 def _copy_mesh(root: Path, source: str | Path, stem: str) -> str:
@@ -410,10 +411,7 @@ def _copy_mesh(root: Path, source: str | Path, stem: str) -> str:
 
 
 def _read_json(path: Path) -> dict[str, Any]:
-    try:
-        meta = json.loads(path.read_text(encoding="utf-8"))
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise UltronInputError(path, "dataset.json", f"not valid JSON ({exc})") from None
+    meta = read_json_file(path, "dataset.json")
     if not isinstance(meta, dict):
         raise UltronInputError(path, "dataset.json", "expected a JSON object")
     return meta
@@ -432,7 +430,7 @@ def _load_sweep(root: Path, meta_path: Path, index: int, entry: Any) -> Sweep:
         raise UltronInputError(
             meta_path, f"sweeps[{index}].kind", f"{kind!r} is not one of {SWEEP_KINDS}"
         )
-    folder = root / name
+    folder = contained_path(root, name, meta_path, f"sweeps[{index}].name")
     if not folder.is_dir():
         raise UltronInputError(
             folder, f"sweep {name!r}", "listed in dataset.json but the folder is missing"
@@ -458,7 +456,7 @@ def _load_sweep(root: Path, meta_path: Path, index: int, entry: Any) -> Sweep:
     true_poses = None
     true_name = entry.get("true_poses")
     if true_name is not None:
-        true_path = folder / str(true_name)
+        true_path = contained_path(folder, true_name, meta_path, f"sweeps[{index}].true_poses")
         true_poses = load_npy(true_path, "true_poses")
         validate_poses(true_poses, true_path, "true_poses")
         _check_count(true_poses, images.shape[0], true_path, "true_poses")

@@ -136,20 +136,43 @@ def numbered_frames(folder: Path) -> list[Path]:
     return [by_index[i] for i in range(len(files))]
 
 
+#: The largest frame a PNG may declare (pixels): far beyond any B-mode image, far below a
+#: decompression bomb.
+MAX_FRAME_PIXELS = 2**25
+
+
+def _read_png(file: Path) -> tuple[np.ndarray, str]:
+    """One PNG's pixels and mode; a palette image reads as its colours, never its indices."""
+    import warnings
+
+    from PIL import Image
+
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", Image.DecompressionBombWarning)
+            with Image.open(file) as img:
+                width, height = img.size
+                if width * height > MAX_FRAME_PIXELS:
+                    raise UltronInputError(
+                        file, "image", f"declares {width} × {height} pixels (more than"
+                        f" {MAX_FRAME_PIXELS}): not a B-mode frame",
+                    )  # fmt: skip
+                mode = img.mode
+                if mode in ("P", "PA"):
+                    img = img.convert("RGBA")
+                return np.asarray(img), mode
+    except (OSError, Image.DecompressionBombError, Image.DecompressionBombWarning) as exc:
+        raise UltronInputError(file, "image", f"not a readable PNG ({exc})") from None
+
+
 def read_png_frames(folder: Path) -> np.ndarray:
     """Read ``0.png, 1.png, …`` (:func:`numbered_frames`) as uint8 (N, H, W) grey frames."""
-    from PIL import Image
 
     files = numbered_frames(folder)
     frames = []
     for file in files:
         input_file(file, "image")
-        try:
-            with Image.open(file) as img:
-                array = np.asarray(img)
-                mode = img.mode
-        except OSError as exc:
-            raise UltronInputError(file, "image", f"not a readable PNG ({exc})") from None
+        array, mode = _read_png(file)
         if array.ndim == 3 and array.shape[2] in (3, 4):
             rgb = array[..., :3]
             if not (rgb == rgb[..., :1]).all():
@@ -183,7 +206,13 @@ def read_ultranerf(
     validate_positive(depth_mm, "argument", "depth_mm")
     if not src.is_dir():
         raise UltronInputError(src, "SRC", "not a directory")
-    if input_file(src / "images.npy", "images", required=False):
+    has_npy = input_file(src / "images.npy", "images", required=False) is not None
+    if has_npy and (src / "images").is_dir() and any((src / "images").glob("*.png")):
+        raise UltronInputError(
+            src, "images", "holds both images.npy and images/*.png: which are the frames is"
+            " ambiguous; move one of them away",
+        )  # fmt: skip
+    if has_npy:
         images_path = src / "images.npy"
         images = load_npy(images_path, "images")
     elif (src / "images").is_dir():

@@ -34,8 +34,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ultron.data.validation import input_file
+from ultron.data.validation import contained_path, input_file
 from ultron.errors import UltronInputError
+from ultron.memory import check_fits_in_memory
 
 #: File name endings read as sequences (longest first, so that a stem drops the whole ending).
 SEQUENCE_SUFFIXES = (
@@ -343,7 +344,7 @@ def _payload_source(fields: Mapping[str, str], path: Path, offset: int) -> tuple
         raise UltronInputError(
             path, "ElementDataFile", f"{data_file!r}: only LOCAL or one data file is supported"
         )
-    source = path.parent / data_file
+    source = contained_path(path.parent, data_file, path, "ElementDataFile")
     input_file(source, "ElementDataFile")
     return source, 0
 
@@ -376,17 +377,18 @@ def _read_metaimage_payload(
 ) -> np.ndarray:
     source, start = _payload_source(fields, path, offset)
     compressed = (_lookup(fields, "CompressedData") or "False").lower() == "true"
+    held = source.stat().st_size - start
+    if not compressed and held != n_bytes:
+        problem = "truncated payload" if held < n_bytes else "payload longer than DimSize"
+        raise UltronInputError(
+            path, "ElementDataFile", f"{problem}: {held} bytes where DimSize needs {n_bytes}"
+            " (a wrong DimSize, or a file cut short or appended to)",
+        )  # fmt: skip
+    check_fits_in_memory(2 * n_bytes, path, "DimSize", f"frames of {n_bytes} bytes")
     with source.open("rb") as handle:
         handle.seek(start)
         if not compressed:
-            data = handle.read(n_bytes)
-            if len(data) < n_bytes:
-                raise UltronInputError(
-                    path,
-                    "ElementDataFile",
-                    f"truncated payload: {len(data)} of the {n_bytes} bytes DimSize needs",
-                )
-            return np.frombuffer(data, dtype=np.uint8)
+            return np.frombuffer(handle.read(n_bytes), dtype=np.uint8)
         size = _lookup(fields, "CompressedDataSize")
         limit = -1
         if size is not None:
@@ -425,6 +427,12 @@ def _nrrd_header(path: Path, handle) -> dict[str, object]:
         raise UltronInputError(path, "header", f"not a readable NRRD header ({exc})") from None
     if "sizes" not in header:
         raise UltronInputError(path, "sizes", "missing: the frame size and count are unknown")
+    for key in ("data file", "datafile"):
+        if key in header:  # a detached payload: one file, inside the header's folder
+            name = str(header[key])
+            if name.upper().startswith("LIST") or "%" in name:
+                raise UltronInputError(path, key, f"{name!r}: only one data file is supported")
+            contained_path(path.parent, name, path, key)
     if str(header.get("type", "")).lower() not in _UINT8_NAMES:
         raise UltronInputError(
             path, "type", f"{header.get('type', 'missing')}; expected uint8 (B-mode)"

@@ -18,6 +18,10 @@ from ultron.errors import UltronInputError
 #: and of its determinant from +1.
 ROTATION_TOLERANCE = 1e-3
 
+#: The largest translation (mm, per axis) a pose may have: far beyond any tracker, far below
+#: where float arithmetic overflows (a pose of 1e300 mm).
+MAX_TRANSLATION_MM = 1e9
+
 #: Label values: 0 background, 1 target (bone), 255 not annotated.
 LABEL_BACKGROUND = 0
 LABEL_TARGET = 1
@@ -46,9 +50,57 @@ def input_file(path: Path, field: str, required: bool = True) -> Path | None:
     return path
 
 
+def contained_path(folder: Path, name: object, where: Path, field: str) -> Path:
+    """``folder / name`` for a path that the file ``where`` records in ``field``, refused in
+    one line (naming ``where`` and ``field``) unless it stays inside ``folder``: a non-empty
+    relative name without ``..`` whose target, symlinks followed, lies in ``folder`` (symlinks
+    followed too). A dataset or recording can so never make ultron read outside itself; a
+    file elsewhere is passed on the command line instead."""
+    if not isinstance(name, str) or not name.strip():
+        raise UltronInputError(where, field, f"expected a file name, got {name!r}")
+    relative = Path(name)
+    if relative.is_absolute() or ".." in relative.parts or name.startswith("~"):
+        raise UltronInputError(
+            where, field, f"{name!r} points outside {folder}: only names inside it are read"
+        )
+    target = folder / relative
+    try:
+        inside = target.resolve().is_relative_to(folder.resolve())
+    except (OSError, RuntimeError):  # a symlink loop: input_file names it
+        return target
+    if not inside:
+        raise UltronInputError(
+            where, field, f"{name!r} is a symlink out of {folder}: only files inside it are read"
+        )
+    return target
+
+
+def _check_npy_size(path: Path, field: str) -> None:
+    """Refuse a ``.npy`` whose header declares more data than the file holds (before anything
+    is allocated: a forged header can declare 10¹⁸ elements in a few bytes)."""
+    try:
+        with path.open("rb") as handle:
+            version = np.lib.format.read_magic(handle)
+            if version == (1, 0):
+                shape, _order, dtype = np.lib.format.read_array_header_1_0(handle)
+            else:
+                shape, _order, dtype = np.lib.format.read_array_header_2_0(handle)
+            offset = handle.tell()
+    except (ValueError, EOFError, OSError, SyntaxError, TypeError):
+        return  # np.load names what is wrong
+    declared = int(np.prod(shape, dtype=object)) * dtype.itemsize if not dtype.hasobject else 0
+    held = path.stat().st_size - offset
+    if declared > held:
+        raise UltronInputError(
+            path, field, f"the header declares {shape} {dtype} ({declared} bytes) but the file"
+            f" holds {held}: truncated or forged",
+        )  # fmt: skip
+
+
 def load_npy(path: Path, field: str) -> np.ndarray:
     """Load a ``.npy`` file without pickles, turning every failure into a clear error."""
     input_file(path, field)
+    _check_npy_size(path, field)
     try:
         return np.load(path, allow_pickle=False)
     except (ValueError, EOFError, OSError) as exc:
@@ -101,6 +153,13 @@ def validate_poses(
     if not finite.all():
         bad = int(np.flatnonzero(~finite)[0])
         raise UltronInputError(where, field, f"pose {bad} contains NaN or inf")
+    far = np.abs(poses[:, :3, 3]).max(axis=1) > MAX_TRANSLATION_MM
+    if far.any():
+        bad = int(np.flatnonzero(far)[0])
+        raise UltronInputError(
+            where, field, f"pose {bad} translates by {np.abs(poses[bad, :3, 3]).max():.3g} mm,"
+            f" beyond {MAX_TRANSLATION_MM:.0e} mm (1000 km): not a tracked probe in millimetres",
+        )  # fmt: skip
     last_row_ok = (poses[:, 3, :] == np.array([0.0, 0.0, 0.0, 1.0])).all(axis=1)
     if not last_row_ok.all():
         bad = int(np.flatnonzero(~last_row_ok)[0])

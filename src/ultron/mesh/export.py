@@ -108,7 +108,8 @@ def mesh_file_space(path: str | Path) -> str:
 def load_mesh(path: str | Path, allow_empty: bool = False):
     """Read a mesh file as one ``trimesh.Trimesh`` in world (LPS) mm — a file tagged
     ``SPACE=RAS`` is converted (:func:`mesh_file_space`); a missing, unreadable or empty file
-    is an error."""
+    is an error, and with ``allow_empty`` (an empty reconstruction, whose metrics are inf) still
+    a file of vertices without triangles (a point cloud)."""
     import trimesh
 
     path = Path(path)
@@ -120,13 +121,31 @@ def load_mesh(path: str | Path, allow_empty: bool = False):
         raise UltronInputError(path, "mesh", f"not a readable mesh ({exc})") from None
     if not isinstance(mesh, trimesh.Trimesh):
         raise UltronInputError(path, "mesh", f"expected a triangle mesh, got {type(mesh).__name__}")
-    if not allow_empty and len(mesh.faces) == 0:
+    if len(mesh.faces) == 0 and (not allow_empty or _holds_points(path)):
         raise UltronInputError(path, "mesh", "mesh is empty (no triangles)")
     if len(mesh.vertices) and not np.isfinite(mesh.vertices).all():
         raise UltronInputError(path, "mesh", "vertices contain NaN or inf")
+    faces = np.asarray(mesh.faces)
+    if faces.size and (faces.min() < 0 or faces.max() >= len(mesh.vertices)):
+        raise UltronInputError(
+            path, "mesh", f"a face names vertex {int(faces.max())} of {len(mesh.vertices)}"
+            " (index out of range)",
+        )  # fmt: skip
     if len(mesh.vertices) and mesh_file_space(path) == "ras":
         mesh.vertices = np.asarray(mesh.vertices, dtype=np.float64) * _FLIP_XY
     return mesh
+
+
+def _holds_points(path: Path) -> bool:
+    """Whether a file that reads as a mesh without triangles holds vertices all the same (a
+    point cloud: not a surface, never an empty reconstruction)."""
+    import trimesh
+
+    try:
+        loaded = trimesh.load(path, process=False)
+    except Exception:  # read once already; any doubt is settled by the caller's error
+        return True
+    return len(getattr(loaded, "vertices", ())) > 0
 
 
 def load_vertex_properties(path: str | Path) -> dict[str, np.ndarray]:

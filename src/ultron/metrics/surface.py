@@ -46,6 +46,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ultron.errors import UltronInputError, argument_error
+from ultron.memory import check_fits_in_memory
 from ultron.metrics.distance import MeshDistanceIndex, build_distance_index, mesh_distances
 
 #: Every metric, in display order (the visible-reference figures first).
@@ -75,6 +76,11 @@ VISIBLE_METRIC_NAMES = (
     "fscore_visible_1mm",
     "fscore_visible_2mm",
 )
+
+
+#: Bytes per sampled point while both surfaces are scored: points and normals (float64), the
+#: distances both ways, a surface's nearest-triangle query and the visible crop's; rounded up.
+POINT_BYTES = 512
 
 
 @dataclass(frozen=True)
@@ -226,6 +232,10 @@ def evaluate_meshes(
     visible reference).
     """
     config = config or MetricsConfig()
+    check_fits_in_memory(
+        float(config.n_points) * POINT_BYTES, "argument", "n_points (--points)",
+        f"{config.n_points} points per surface",
+    )  # fmt: skip
     _check_reference(reference, "reference")
     if reference_visible is not None:
         _check_reference(reference_visible, "reference_visible")

@@ -22,7 +22,8 @@ import torch
 
 from ultron import atomic
 from ultron.device import cpu_state
-from ultron.errors import UltronInputError
+from ultron.errors import UltronInputError, read_json_file
+from ultron.outputs import check_output_dir, is_inside
 
 FIELD_FORMAT = "ultron-field/1"
 FIELD_JSON = "field.json"
@@ -40,10 +41,7 @@ def read_field_json(field_dir: Path) -> dict[str, Any]:
     path = field_dir / FIELD_JSON
     if not path.is_file():
         raise UltronInputError(path, FIELD_JSON, "file is missing (not a fitted field directory)")
-    try:
-        meta = json.loads(path.read_text(encoding="utf-8"))
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise UltronInputError(path, FIELD_JSON, f"not valid JSON ({exc})") from None
+    meta = read_json_file(path, FIELD_JSON)
     if not isinstance(meta, dict) or meta.get("format") != FIELD_FORMAT:
         raise UltronInputError(path, "format", f"expected {FIELD_FORMAT!r}")
     return meta
@@ -133,6 +131,28 @@ def read_train_log(out: Path, step: int) -> list[dict[str, Any]]:
         if entry["step"] <= step:
             entries.append(entry)
     return entries
+
+
+def check_field_out(out: str | Path, dataset_dir: str | Path, option: str = "--out") -> Path:
+    """Refuse (one line naming ``out``) a FIELD_DIR to write that is not new, empty or an
+    earlier fit's (it holds field.json, checkpoint.pt or train_log.jsonl), or that is or holds
+    the dataset; creates nothing (a subdirectory of the dataset is fine: its sweeps are listed). The rule of :func:`ultron.pipeline.rundir.
+    check_run_dir`: an output directory belongs to one kind of output."""
+    out = check_output_dir(out, option)
+    if is_inside(dataset_dir, out):
+        raise UltronInputError(
+            out, option, f"holds the dataset {dataset_dir}; write the field into its own directory"
+        )
+    if not out.is_dir() or not any(out.iterdir()):
+        return out
+    if any((out / name).exists() for name in (FIELD_JSON, CHECKPOINT, TRAIN_LOG)):
+        return out
+    what = (
+        "an ultron run (run.json)" if (out / "run.json").exists() else "no field of an earlier fit"
+    )
+    raise UltronInputError(
+        out, option, f"is not empty and holds {what}; give a new or empty directory"
+    )
 
 
 def clear_field_dir(out: Path) -> None:

@@ -21,7 +21,7 @@ is the commit point, and its ``step`` is the authority on the progress (:class:`
 
 from __future__ import annotations
 
-import json
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -32,7 +32,7 @@ import torch
 from ultron.data.dataset import ProbeGeometry
 from ultron.data.geometry import UnitCube, as_pose_tensor
 from ultron.device import evaluation_chunk, map_chunks, module_device, resolve_device
-from ultron.errors import UltronInputError, argument_error
+from ultron.errors import UltronInputError, argument_error, malformed_entries, read_json_file
 from ultron.fields.base import AcousticField
 from ultron.fields.factory import FieldConfig, build_field
 from ultron.fields.properties import CHANNELS, CHANNELS_WITH_DENSITY, AcousticProperties
@@ -68,6 +68,18 @@ class ThetaStatistics:
     channels: tuple[str, ...]
     mean: tuple[float, ...]
     std: tuple[float, ...]
+
+    def __post_init__(self) -> None:
+        n = len(self.channels)
+        if not n or not all(isinstance(c, str) for c in self.channels):
+            raise argument_error("channels", f"expected channel names, got {self.channels!r}")
+        for name in ("mean", "std"):
+            values = getattr(self, name)
+            numbers = all(isinstance(v, int | float) and not isinstance(v, bool) for v in values)
+            if len(values) != n or not numbers or not all(math.isfinite(v) for v in values):
+                raise argument_error(name, f"expected {n} finite numbers, got {values!r:.80}")
+        if not all(s > 0 for s in self.std):
+            raise argument_error("std", f"expected positive values, got {self.std!r}")
 
     def normalise(self, theta: torch.Tensor) -> torch.Tensor:
         """(θ − mean) / std for a (…, C) tensor in :attr:`channels` order."""
@@ -307,6 +319,16 @@ class FittedField:
         return theta, transmission
 
 
+def check_finite_weights(module: torch.nn.Module, where: str | Path, field: str) -> None:
+    """Refuse a network any of whose weights is NaN or infinite (a diverged or damaged fit:
+    everything it renders or meshes would be NaN), naming the file and the first tensor."""
+    for name, tensor in module.state_dict().items():
+        if tensor.is_floating_point() and not bool(torch.isfinite(tensor).all()):
+            raise UltronInputError(
+                where, field, f"weights {name!r} hold NaN or inf (a diverged fit); fit again"
+            )
+
+
 def load_field(field_dir: str | Path, device: torch.device | str = "cpu") -> FittedField:
     """Load a fitted field from FIELD_DIR (field.json + checkpoint.pt [+ theta_stats.json])
     onto ``device`` (the checkpoint's tensors are read onto the CPU, then moved: a field
@@ -317,13 +339,17 @@ def load_field(field_dir: str | Path, device: torch.device | str = "cpu") -> Fit
         raise UltronInputError(root, "field_dir", "is not a directory")
     meta = read_field_json(root)
     where = root / FIELD_JSON
-    try:
+    for key in ("field", "render", "probe", "unit_cube"):
+        if not isinstance(meta.get(key), dict):
+            raise UltronInputError(where, key, f"expected an object, got {meta.get(key)!r:.60}")
+    with malformed_entries(where, "field"):
         field_config = FieldConfig.from_dict(meta["field"])
+    with malformed_entries(where, "render"):
         render_config = RenderConfig.from_dict(meta["render"])
+    with malformed_entries(where, "probe"):
         probe = ProbeGeometry(**meta["probe"])
+    with malformed_entries(where, "unit_cube"):
         unit_cube = UnitCube.from_dict(meta["unit_cube"])
-    except KeyError as exc:
-        raise UltronInputError(where, str(exc.args[0]), "entry is missing") from None
     checkpoint = read_checkpoint(root)
     module, _ = build_field(
         field_config,
@@ -336,10 +362,12 @@ def load_field(field_dir: str | Path, device: torch.device | str = "cpu") -> Fit
         raise UltronInputError(
             root / CHECKPOINT, "model", f"does not match field.json ({str(exc).splitlines()[0]})"
         ) from None
+    check_finite_weights(module, root / CHECKPOINT, "model")
     stats = None
     stats_path = root / THETA_STATS
     if stats_path.is_file():
-        stats = ThetaStatistics.from_dict(json.loads(stats_path.read_text(encoding="utf-8")))
+        with malformed_entries(stats_path, THETA_STATS):
+            stats = ThetaStatistics.from_dict(read_json_file(stats_path, THETA_STATS))
     progress = fit_progress(meta, checkpoint)
     module.to(device)
     return FittedField(module, field_config, unit_cube, probe, render_config, stats, progress)

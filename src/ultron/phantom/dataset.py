@@ -47,6 +47,7 @@ from ultron import atomic
 from ultron.data.dataset import ProbeGeometry, Sweep, SweepDataset
 from ultron.data.geometry import field_of_view_bounds_mm
 from ultron.errors import argument_error
+from ultron.memory import check_fits_in_memory
 from ultron.phantom.annotation import AnnotationConfig, annotate
 from ultron.phantom.protocols import (
     DEFAULT_SWEEPS,
@@ -71,6 +72,11 @@ VISIBLE_REFERENCE = "reference_visible.ply"
 
 #: The coarsest SDF grid / reference-mesh voxel, mm.
 MAX_VOXEL_MM = 2.0
+
+
+#: Bytes a simulated frame keeps per pixel: the B-mode and labels (uint8), the true T
+#: (float16) and the float32 rendering it is made from.
+FRAME_BYTES_PER_PIXEL = 8
 
 
 @dataclass(frozen=True)
@@ -207,6 +213,10 @@ def _simulate(
     specs = [sweep_spec(name) for name in config.sweeps]
     n_frames = config.scan.frames_per_sweep
     total = len(specs) * n_frames + 2
+    check_fits_in_memory(
+        float(len(specs) * n_frames) * probe.height_px * probe.width_px * FRAME_BYTES_PER_PIXEL,
+        "argument", "frames (--frames)", f"{len(specs)} sweeps of {n_frames} frames",
+    )  # fmt: skip
 
     report("phantom SDF grid", 0, total)
     volume = phantom.sdf_volume(config.voxel_mm)

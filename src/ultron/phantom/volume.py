@@ -16,6 +16,7 @@ import torch
 import torch.nn.functional as F
 
 from ultron.errors import argument_error
+from ultron.memory import check_fits_in_memory
 from ultron.mesh.extract import mesh_on_grid
 from ultron.mesh.grid import GridSpec
 from ultron.mesh.marching import marching_cubes
@@ -24,6 +25,10 @@ if TYPE_CHECKING:
     import trimesh
 
     from ultron.phantom.shapes import Phantom
+
+#: Bytes per voxel of an SDF grid while it is built and meshed (float32 values, the float64
+#: copy marching cubes reads, the band mask): rounded up.
+SDF_BYTES_PER_VOXEL = 24
 
 
 @dataclass(frozen=True)
@@ -55,6 +60,11 @@ class SdfVolume:
         box = phantom.primitive_box_mm
         lo = box[0] - margin_mm
         n_coarse = np.ceil((box[1] + margin_mm - lo) / coarse_mm).astype(int) + 1
+        n_voxels = float(np.prod(((n_coarse - 1) * factor + 1).astype(float)))
+        check_fits_in_memory(
+            n_voxels * SDF_BYTES_PER_VOXEL, "argument", "voxel_mm (--voxel-mm)",
+            f"the phantom's SDF grid at {voxel_mm:g} mm ({n_voxels:.3g} voxels)",
+        )  # fmt: skip
         coarse = _evaluate_grid(phantom, lo, coarse_mm, n_coarse)
         n_fine = (n_coarse - 1) * factor + 1
         fine = F.interpolate(

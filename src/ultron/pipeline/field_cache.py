@@ -19,6 +19,7 @@ from ultron.errors import UltronInputError
 from ultron.models.field_dir import CHECKPOINT, FIELD_JSON
 from ultron.models.fitted import load_field
 from ultron.train.field_fit import fit_field
+from ultron.train.fit_shape import resolve_fit_shape
 from ultron.train.loop import Progress
 
 CHUNK = 1 << 20
@@ -70,6 +71,7 @@ def get_or_fit_field(
     (:meth:`SweepDataset.content_hash`, which covers the labels too, while the cache key does
     not): then the fit starts afresh, so that field.json names the dataset it is used with."""
     device = resolve_device(device, "device")
+    config = resolve_fit_shape(config, dataset)  # the key holds the shape the fit uses
     field_dir = cached_field_dir(dataset_dir, config.to_dict(), device.type)
     done = field_dir / "done"
     if done.is_file() and (field_dir / FIELD_JSON).is_file() and (field_dir / CHECKPOINT).is_file():

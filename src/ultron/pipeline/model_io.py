@@ -22,9 +22,10 @@ import torch
 from torch import nn
 
 from ultron import atomic
-from ultron.errors import UltronInputError
+from ultron.errors import UltronInputError, malformed_entries
 from ultron.fields.occupancy import OccupancyNetwork, OccupancyNetworkConfig
 from ultron.fields.sdf import SDFNetwork, SDFNetworkConfig
+from ultron.models.fitted import check_finite_weights
 
 NETWORK_FILE = "network.pt"
 NETWORK_FORMAT = "ultron-network/1"
@@ -79,12 +80,20 @@ def load_network(model_dir: str | Path) -> tuple[nn.Module, dict[str, Any]]:
             str(path), "kind", f"expected one of {tuple(classes)}, got {payload.get('kind')!r}"
         )
     network_class, config_class = classes[payload["kind"]]
-    network = network_class(config_class(**payload["config"]))
+    for key, required in (("config", True), ("state_dict", True), ("meta", False)):
+        value = payload.get(key) if required else payload.get(key, {})
+        if not isinstance(value, dict):
+            raise UltronInputError(str(path), key, f"expected an object, got {value!r:.60}")
+    with malformed_entries(path, "config"):
+        network = network_class(config_class(**payload["config"]))
     try:
         network.load_state_dict(payload["state_dict"])
-    except RuntimeError as error:
+    except (RuntimeError, TypeError, ValueError) as error:
+        first = str(error).strip().splitlines()
+        detail = " ".join(line.strip() for line in first[:2])[:200]
         raise UltronInputError(
-            str(path), "state_dict", f"does not fit its config: {error}"
-        ) from error
+            str(path), "state_dict", f"does not fit its config ({detail})"
+        ) from None
+    check_finite_weights(network, path, "state_dict")
     network.eval()
     return network, dict(payload.get("meta", {}))

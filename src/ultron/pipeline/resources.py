@@ -29,7 +29,6 @@ memory, or the cgroup's limit where lower).
 from __future__ import annotations
 
 import math
-import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -38,6 +37,7 @@ from ultron.data.dataset import ProbeGeometry, SweepDataset
 from ultron.data.geometry import UnitCube, field_of_view_bounds_mm
 from ultron.data.outliers import check_pose_outliers
 from ultron.errors import UltronInputError
+from ultron.memory import memory_limit
 from ultron.mesh.grid import grid_shape
 from ultron.mesh.tiles import MAX_VOLUME_VOXELS, reached_tiles, tile_for_factor, volume_factor
 from ultron.methods.ultron_method import (
@@ -48,6 +48,7 @@ from ultron.methods.ultron_method import (
 )
 from ultron.models.fitted import RENDER_CHUNK_FRAMES
 from ultron.train.field_fit import check_fit_frames
+from ultron.train.fit_shape import resolve_fit_shape
 from ultron.train.frames import resampled_probe
 
 if TYPE_CHECKING:
@@ -75,33 +76,6 @@ FIELD_RENDER_BYTES_PER_SAMPLE = {"grid": 512, "mlp": 2560}
 #: measured above the import baseline for a one-frame-batch fit of a 4-frame dataset.
 FIELD_FIXED_BYTES = 64 * 1024**2
 _GIB = 1024**3
-
-
-def machine_memory_bytes() -> int | None:
-    """Physical memory, or the cgroup's memory limit where lower; None if unknown."""
-    limits = []
-    try:
-        limits.append(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
-    except (ValueError, OSError, AttributeError):
-        pass
-    for path in ("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory/memory.limit_in_bytes"):
-        try:
-            text = Path(path).read_text(encoding="ascii").strip()
-        except OSError:
-            continue
-        if text.isdigit() and int(text) > 0:
-            limits.append(int(text))
-    return min(limits) if limits else None
-
-
-def memory_limit(max_memory_gib: float | None = None) -> tuple[float, str]:
-    """The memory a run may plan for, bytes (inf if unknown), and how to name it."""
-    if max_memory_gib is not None:
-        return max_memory_gib * _GIB, f"--max-memory {max_memory_gib:g} GiB"
-    machine = machine_memory_bytes()
-    if machine is None:
-        return math.inf, "this machine's memory"
-    return float(machine), f"this machine's memory ({machine / _GIB:.1f} GiB)"
 
 
 def _size(n_bytes: float) -> str:
@@ -233,6 +207,7 @@ def field_fit_memory(dataset: SweepDataset, config: FieldTrainConfig) -> FieldFi
     dataset's shapes and the options alone. Raises the grid's :class:`UltronInputError` when
     its finest plane would exceed ``MAX_RESOLUTION`` nodes per side."""
     backend = config.field.backend
+    config = resolve_fit_shape(config, dataset)
     probe = resampled_probe(dataset.probe, config.fit_shape)
     resolutions: tuple[int, ...] = ()
     values = 0
@@ -268,6 +243,7 @@ def check_field_grid(
 ) -> None:
     """Refuse a field fit of ``config`` whose grid planes (module doc, 3) exceed the backend's
     largest side, or whose estimated memory (:func:`field_fit_memory`) exceeds the limit."""
+    config = resolve_fit_shape(config, dataset)
     probe = resampled_probe(dataset.probe, config.fit_shape)
     where = Path(root) / "dataset.json"
     cause = (
@@ -334,5 +310,6 @@ def check_run_resources(
     if mesh:
         check_meshing_grid(dataset, root, voxel_mm, max_memory_gib)
     if field_config is not None:
+        field_config = resolve_fit_shape(field_config, dataset)
         check_field_grid(dataset, root, field_config, max_memory_gib)
         check_fit_frames(dataset.probe, field_config, Path(root) / "dataset.json")

@@ -15,6 +15,7 @@ oracle's files, outlier poses and the grids' memory (:mod:`ultron.pipeline.resou
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -22,6 +23,7 @@ from typing import Any
 from ultron import atomic
 from ultron.data.dataset import SweepDataset
 from ultron.data.labels import check_selection_has_bone, select_label_frames
+from ultron.data.units import units_warnings
 from ultron.device import describe_device, resolve_device
 from ultron.errors import argument_error
 from ultron.mesh.compounding import CompoundingConfig
@@ -234,9 +236,11 @@ def reconstruct(
     allow_other_field: bool = False,
     max_memory_gib: float | None = None,
     announce: Announce | None = None,
+    warn: Callable[[str], None] | None = None,
 ) -> dict[str, Any]:
     """Check everything cheap (:func:`prepare_run`), get the field (given, or fitted and
-    cached), run, write DIR (with ``report.html`` unless ``report`` is false).
+    cached), run, write DIR (with ``report.html`` unless ``report`` is false). ``warn`` is
+    told each implausible length (:func:`ultron.data.units.units_warnings`).
 
     A given ``field_dir`` must have been fitted on this dataset (see
     :func:`load_or_fit_field`) unless ``allow_other_field``; ``max_memory_gib`` caps the
@@ -254,6 +258,9 @@ def reconstruct(
         # labels without bone: refused before minutes of field fit and training
         selection = select_label_frames(dataset, request.label_fraction, request.seed)
         check_selection_has_bone(dataset, selection, dataset_dir)
+        reference = references[0]
+        for line in units_warnings(dataset, None if reference is None else reference.vertices):
+            (warn or (lambda _line: None))(line)
         # the oracle's files (an input) before the field to fit (its memory and frame size)
         truth = load_oracle_truth(request.ultron.visibility, dataset_dir, dataset)
         if to_fit is not None:

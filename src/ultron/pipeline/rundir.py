@@ -51,6 +51,11 @@ def _previous_kind(out: Path) -> str | None:
     return run_kind(run) if isinstance(run, dict) else None
 
 
+def _is_output_dir(path: Path) -> bool:
+    """Whether ``path`` is a directory ultron writes as a whole (a field or a run)."""
+    return path.is_dir() and any((path / name).exists() for name in ("field.json", RUN_JSON))
+
+
 def check_run_dir(
     out: str | Path, kind: str, inputs: Iterable[str | Path | None] = (), option: str = "--out"
 ) -> Path:
@@ -66,6 +71,11 @@ def check_run_dir(
             raise UltronInputError(
                 out, option, f"holds the input {given}; the output directory is replaced as a"
                 " whole, give another one",
+            )  # fmt: skip
+        if given is not None and _is_output_dir(Path(given)) and is_inside(out, given):
+            raise UltronInputError(
+                out, option, f"lies inside the input {given}, itself an ultron output; a run"
+                " is written beside it, never into it: give another directory",
             )  # fmt: skip
     if not out.is_dir() or not any(out.iterdir()):
         return out

@@ -64,7 +64,9 @@ class FieldTrainConfig:
     check_every: int = 250
     checkpoint_every: int = 500
     log_every: int = 25
-    fit_shape: tuple[int, int] | None = None
+    #: (H, W) to fit at, None for the frames' own size, or "auto"
+    #: (:func:`ultron.train.fit_shape.auto_fit_shape`: no finer than the speckle needs).
+    fit_shape: tuple[int, int] | str | None = "auto"
     ssim_weight: float = 0.75
     mse_weight: float = 0.25
     scattering_tv_weight: float = 0.0
@@ -93,7 +95,14 @@ class FieldTrainConfig:
             raise argument_error("learning_rate", f"expected > 0, got {self.learning_rate}")
         if self.lr_decay_steps is not None and self.lr_decay_steps < 1:
             raise argument_error("lr_decay_steps", "expected ≥ 1")
-        if self.fit_shape is not None:
+        if self.fit_shape == "native":
+            object.__setattr__(self, "fit_shape", None)
+        elif isinstance(self.fit_shape, str):
+            if self.fit_shape != "auto":
+                raise argument_error(
+                    "fit_shape", f"expected (H, W), 'auto' or 'native', got {self.fit_shape!r}"
+                )
+        elif self.fit_shape is not None:
             shape = tuple(int(s) for s in self.fit_shape)
             if len(shape) != 2 or min(shape) < MIN_FIT_SIDE:
                 raise argument_error(
@@ -142,7 +151,8 @@ class FieldTrainConfig:
     def to_dict(self) -> dict[str, Any]:
         data = asdict(self)
         data["field"] = self.field.to_dict()
-        data["fit_shape"] = list(self.fit_shape) if self.fit_shape else None
+        shape = self.fit_shape
+        data["fit_shape"] = list(shape) if isinstance(shape, tuple) else shape
         return data
 
     @classmethod
@@ -153,7 +163,8 @@ class FieldTrainConfig:
         values.setdefault("confidence_prior_weight", 0.0)
         values["field"] = FieldConfig.from_dict(values.get("field", {}))
         values["render"] = RenderConfig.from_dict(values.get("render", {}))
-        if values.get("fit_shape") is not None:
+        values.setdefault("fit_shape", None)  # fields fitted before "auto": their own size
+        if isinstance(values["fit_shape"], list):
             values["fit_shape"] = tuple(values["fit_shape"])
         return cls(**values)
 

@@ -70,6 +70,7 @@ from ultron.train.field_config import (
     field_preset,
     learning_rate_at,
 )
+from ultron.train.fit_shape import resolve_fit_shape
 from ultron.train.frames import FrameSet, resampled_probe
 from ultron.train.loop import Progress, run_training
 from ultron.train.losses import (
@@ -215,8 +216,11 @@ def check_fit_frames(
     probe: ProbeGeometry, config: FieldTrainConfig, where: str | Path = "dataset"
 ) -> None:
     """Refuse frames smaller than the loss's SSIM window (:data:`MIN_FIT_SIDE` px on each side)
-    at the fit resolution, naming ``where`` (the dataset's dataset.json) and its probe."""
-    rows, cols = resampled_probe(probe, config.fit_shape).image_shape
+    at the fit resolution, naming ``where`` (the dataset's dataset.json) and its probe. An
+    unresolved ``"auto"`` is checked at the frames' own size (auto never goes below the window
+    nor above the frames)."""
+    shape = config.fit_shape if isinstance(config.fit_shape, tuple) else None
+    rows, cols = resampled_probe(probe, shape).image_shape
     if min(rows, cols) < MIN_FIT_SIDE:
         raise UltronInputError(
             where,
@@ -431,6 +435,9 @@ def fit_field(
     update), ``seconds`` and, when checked, ``holdout_psnr`` / ``holdout_ssim``); the log
     keeps the first update, every ``log_every``-th, every checked one and the last.
     """
+    if not isinstance(dataset, SweepDataset):
+        raise argument_error("dataset", "expected a SweepDataset")
+    config = resolve_fit_shape(config, dataset)
     out = _check_fit_inputs(dataset, config, out_dir)
     device = resolve_device(device, "device")
     dataset_sha256 = dataset.content_hash()

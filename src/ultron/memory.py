@@ -1,0 +1,82 @@
+"""How much memory this process may use: the machine's, the cgroup's limit and what the
+address-space limit (``ulimit -v``) leaves, or what the user gives (``--max-memory``).
+
+A base module (like :mod:`ultron.device`): the readers refuse a file that would not fit before
+allocating it, and :mod:`ultron.pipeline.resources` plans runs against the same limit.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from pathlib import Path
+
+_GIB = 1024**3
+
+
+def machine_memory_bytes() -> int | None:
+    """Physical memory, or the cgroup's memory limit where lower; None if unknown."""
+    limits = []
+    try:
+        limits.append(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
+    except (ValueError, OSError, AttributeError):
+        pass
+    for path in ("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory/memory.limit_in_bytes"):
+        try:
+            text = Path(path).read_text(encoding="ascii").strip()
+        except OSError:
+            continue
+        if text.isdigit() and int(text) > 0:
+            limits.append(int(text))
+    return min(limits) if limits else None
+
+
+def address_space_left_bytes() -> int | None:
+    """Under an address-space limit (``ulimit -v``, RLIMIT_AS): the limit less the address
+    space this process already maps (/proc/self/status ``VmSize``: torch alone maps a few
+    GiB it never touches); None without a limit or where it cannot be read."""
+    try:
+        import resource
+
+        soft, _hard = resource.getrlimit(resource.RLIMIT_AS)
+    except (ImportError, ValueError, OSError):
+        return None
+    if soft == resource.RLIM_INFINITY or soft <= 0:
+        return None
+    mapped = 0
+    try:
+        for line in Path("/proc/self/status").read_text(encoding="ascii").splitlines():
+            if line.startswith("VmSize:"):
+                mapped = int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return max(0, soft - mapped)
+
+
+def memory_limit(max_memory_gib: float | None = None) -> tuple[float, str]:
+    """The memory a run may plan for, bytes (inf if unknown), and how to name it: the
+    ``--max-memory`` given, else the least of the machine's memory, the cgroup's limit and what
+    the address-space limit leaves (:func:`address_space_left_bytes`)."""
+    if max_memory_gib is not None:
+        return max_memory_gib * _GIB, f"--max-memory {max_memory_gib:g} GiB"
+    machine = machine_memory_bytes()
+    left = address_space_left_bytes()
+    if left is not None and (machine is None or left < machine):
+        return float(
+            left
+        ), f"what the address-space limit (ulimit -v) leaves ({left / _GIB:.2f} GiB)"
+    if machine is None:
+        return math.inf, "this machine's memory"
+    return float(machine), f"this machine's memory ({machine / _GIB:.1f} GiB)"
+
+
+def check_fits_in_memory(n_bytes: float, where: str | Path, field: str, what: str) -> None:
+    """Refuse (one :class:`UltronInputError` naming ``where`` and ``field``) to allocate
+    ``n_bytes`` for ``what`` when that exceeds the memory this process may use."""
+    from ultron.errors import UltronInputError
+
+    limit, name = memory_limit()
+    if n_bytes > limit:
+        raise UltronInputError(
+            where, field, f"{what} would take {n_bytes / _GIB:.3g} GiB, more than {name}"
+        )

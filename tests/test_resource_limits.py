@@ -1,0 +1,99 @@
+"""Running out of memory or disk ends in one line, exit 2: the memory a run plans for respects
+the process's address-space limit, and a write the disk or ``ulimit -f`` refuses names its
+file."""
+
+from __future__ import annotations
+
+import errno
+import resource
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from ultron.cli.common import resource_error
+
+ALLOCATOR_MESSAGE = (
+    "[enforce fail at alloc_cpu.cpp:118] data. DefaultCPUAllocator: can't allocate memory:"
+    " you tried to allocate 8000000000 bytes. Error code 12 (Cannot allocate memory)"
+)
+
+
+def test_memory_and_disk_errors_get_one_line_and_others_do_not() -> None:
+    for exc in (MemoryError(), RuntimeError(ALLOCATOR_MESSAGE)):
+        message = resource_error(exc)
+        assert message is not None and message.startswith("memory: ran out of memory")
+    full = resource_error(OSError(errno.ENOSPC, "No space left on device", "/runs/a/mesh.ply"))
+    assert full is not None and full.startswith("/runs/a/mesh.ply: disk: No space left")
+    too_big = resource_error(OSError(errno.EFBIG, "File too large"))
+    assert too_big is not None and too_big.startswith("output: disk: File too large")
+    for other in (
+        OSError(errno.ENOENT, "No such file"),
+        RuntimeError("shape mismatch"),
+        KeyError(),
+    ):
+        assert resource_error(other) is None
+
+
+def _run_limited(limit: str, code: str) -> subprocess.CompletedProcess[str]:
+    """``code`` in a fresh Python under the shell's ``ulimit`` ``limit`` (e.g. ``-f 200``)."""
+    script = f'ulimit {limit} && exec "{sys.executable}" -c "$0" "$@"'
+    return subprocess.run(
+        ["bash", "-c", script, code], capture_output=True, text=True, check=False, timeout=300
+    )
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="ulimit and /proc are Linux's")
+def test_a_write_beyond_the_file_size_limit_is_one_line_naming_the_file(tmp_path: Path) -> None:
+    out = tmp_path / "sim"
+    result = subprocess.run(
+        ["bash", "-c", f'ulimit -f 100 && exec "{sys.executable}" -m ultron.cli.main "$@"',
+         "ultron", "simulate", "--out", str(out), "--frames", "6"],
+        capture_output=True, text=True, check=False, timeout=300,
+    )  # fmt: skip
+    assert result.returncode == 2, result.stderr[-2000:]
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1, lines
+    assert lines[0].startswith(f"error: {out}") and ": disk: File too large" in lines[0]
+    assert "Traceback" not in result.stderr
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="ulimit and /proc are Linux's")
+def test_the_memory_a_run_plans_for_respects_the_address_space_limit() -> None:
+    soft, _ = resource.getrlimit(resource.RLIMIT_AS)
+    if soft != resource.RLIM_INFINITY and soft < 4 * 1024**3:
+        pytest.skip("this test sets a 4 GiB limit itself")
+    code = (
+        "from ultron.pipeline.resources import memory_limit; limit, name = memory_limit();"
+        " print(limit); print(name)"
+    )
+    result = _run_limited("-v 4194304", code)  # 4 GiB, in KiB
+    assert result.returncode == 0, result.stderr
+    limit, name = result.stdout.strip().splitlines()
+    assert 0 < float(limit) < 4 * 1024**3 and "ulimit -v" in name
+
+
+@pytest.mark.parametrize(
+    ("args", "option"),
+    [
+        (["simulate", "--voxel-mm", "0.0001", "--out", "{tmp}/sim"], "--voxel-mm"),
+        (["simulate", "--frames", "100000000", "--out", "{tmp}/sim"], "--frames"),
+        (["evaluate", "{tmp}/box.ply", "{tmp}/box.ply", "--points", "1000000000"], "--points"),
+    ],
+)
+def test_work_beyond_the_memory_is_refused_before_it_starts(
+    tmp_path: Path, args: list[str], option: str
+) -> None:
+    import trimesh
+    from typer.testing import CliRunner
+
+    from ultron.cli.main import app
+
+    trimesh.creation.box(extents=(10.0, 10.0, 10.0)).export(tmp_path / "box.ply")
+    before = sorted(p.name for p in tmp_path.iterdir())
+    result = CliRunner().invoke(app, [a.format(tmp=tmp_path) for a in args])
+    assert result.exit_code == 2, result.output
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and option in lines[0] and "more than" in lines[0], lines
+    assert sorted(p.name for p in tmp_path.iterdir()) == before
