@@ -55,8 +55,9 @@ def test_a_write_beyond_the_file_size_limit_is_one_line_naming_the_file(tmp_path
     assert result.returncode == 2, result.stderr[-2000:]
     lines = result.stderr.strip().splitlines()
     assert len(lines) == 1, lines
-    assert lines[0].startswith(f"error: {out}") and ": disk: File too large" in lines[0]
+    assert lines[0].startswith(f"error: {tmp_path}") and ": disk: File too large" in lines[0]
     assert "Traceback" not in result.stderr
+    assert list(tmp_path.iterdir()) == []  # written whole or not at all: no half dataset
 
 
 @pytest.mark.skipif(sys.platform != "linux", reason="ulimit and /proc are Linux's")

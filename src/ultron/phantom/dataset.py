@@ -34,6 +34,8 @@ import contextlib
 import dataclasses
 import io
 import math
+import os
+import shutil
 import tempfile
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
@@ -260,7 +262,46 @@ def _simulate(
     report("reference mesh", 1 + len(specs) * n_frames, total)
     reference_ply = volume.mesh().export(file_type="ply")
     report("visible reference", 1 + len(specs) * n_frames, total)
+    if out is not None and not Path(out).exists():  # written whole or not at all
+        with _staged_directory(Path(out)) as staging:
+            _write_simulation(staging, reference_ply, sweeps, true_poses, config, phantom, probe)
+        report("done", total, total)
+        return SweepDataset.load(out)
     root = Path(out) if out is not None else Path(tempfile.mkdtemp(prefix="ultron-phantom-"))
+    dataset = _write_simulation(
+        root, reference_ply, sweeps, true_poses, config, phantom, probe, save=out is not None
+    )
+    report("done", total, total)
+    return dataset
+
+
+@contextlib.contextmanager
+def _staged_directory(out: Path) -> Iterator[Path]:
+    """A hidden sibling of ``out`` to write into, renamed to ``out`` on success and removed on
+    any failure (a full disk, a kill's KeyboardInterrupt), so ``out`` never holds half a
+    dataset."""
+    out.parent.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".new", dir=out.parent))
+    try:
+        yield staging
+        os.replace(staging, out)
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
+
+
+def _write_simulation(
+    root: Path,
+    reference_ply: bytes,
+    sweeps: list[Sweep],
+    true_poses: list[np.ndarray],
+    config: SimulationConfig,
+    phantom: Any,
+    probe: ProbeGeometry,
+    save: bool = True,
+) -> SweepDataset:
+    """Write the reference meshes into ``root`` and, with ``save``, the simulated dataset and
+    phantom.json (dataset.json last)."""
     reference = root / "reference.ply"
     atomic.write_bytes(reference, reference_ply)
     visible_path, visibility = _write_visible_reference(
@@ -279,10 +320,9 @@ def _simulate(
         metadata=metadata,
         reference_visible_path=visible_path,
     )
-    if out is not None:
+    if save:
         atomic.write_json(root / "phantom.json", phantom_json(config, visibility))
         dataset.save(root)
-    report("done", total, total)
     return dataset
 
 
