@@ -91,3 +91,19 @@ def test_a_resolved_config_round_trips_through_field_json() -> None:
     assert FieldTrainConfig.from_dict(resolved.to_dict()) == resolved
     legacy = {k: v for k, v in resolved.to_dict().items() if k != "fit_shape"}
     assert FieldTrainConfig.from_dict(legacy).fit_shape is None  # fitted before "auto"
+
+
+def test_the_meshing_voxel_is_no_finer_than_the_detail_the_frames_carry() -> None:
+    from ultron.data.resolution import resolved_spacing_mm
+    from ultron.mesh.grid import meshing_voxel_mm
+
+    sigma_px, spacing_mm = 3.0, 0.05
+    oversampled = speckle_dataset(sigma_px, spacing_mm)
+    finest = resolved_spacing_mm(oversampled)
+    expected_mm = FWHM_PER_SIGMA * sigma_px * spacing_mm / PIXELS_PER_GRAIN
+    assert finest == pytest.approx(expected_mm, rel=0.12)
+    assert meshing_voxel_mm(oversampled.probe, None, 1.0, finest_mm=finest) == finest
+    assert meshing_voxel_mm(oversampled.probe, None, 1.0) == spacing_mm  # the pixel alone
+    assert meshing_voxel_mm(oversampled.probe, 0.7, 1.0, finest_mm=finest) == 0.7  # given
+    white = speckle_dataset(0.0, spacing_mm)
+    assert resolved_spacing_mm(white) == pytest.approx(spacing_mm)

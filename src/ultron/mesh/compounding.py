@@ -40,6 +40,7 @@ import numpy as np
 from ultron.data.dataset import SweepDataset
 from ultron.data.geometry import median_frame_gap_mm
 from ultron.data.labels import FrameSelection, LabelledPixels, gather_labelled_pixels
+from ultron.data.resolution import resolved_spacing_mm
 from ultron.errors import UltronInputError, argument_error
 from ultron.mesh.grid import GridSpec, meshing_voxel_mm
 from ultron.mesh.holes import fill_holes_nearest, fill_holes_stick
@@ -168,7 +169,10 @@ def compound_labels(
     if len(bone) == 0:
         raise UltronInputError("dataset", "labels", "the selected frames contain no bone (label 1)")
     bounds = np.stack([bone.min(0) - config.margin_mm, bone.max(0) + config.margin_mm])
-    voxel = meshing_voxel_mm(dataset.probe, config.voxel_mm, float(np.prod(np.ptp(bounds, 0))))
+    region_mm3 = float(np.prod(np.ptp(bounds, 0)))
+    voxel = meshing_voxel_mm(
+        dataset.probe, config.voxel_mm, region_mm3, finest_mm=resolved_spacing_mm(dataset)
+    )
     grid = GridSpec.from_bounds(bounds, voxel)
     splatter = Splatter(grid, config.splat)
     splatter.add(points, pixel_values(dataset, pixels, config))

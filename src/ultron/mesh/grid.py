@@ -33,10 +33,13 @@ def meshing_voxel_mm(
     voxel_mm: float | None,
     region_mm3: float | None = None,
     max_voxels: int = MAX_REGION_VOXELS,
+    finest_mm: float | None = None,
 ) -> float:
-    """The meshing voxel: ``voxel_mm`` when given; else the probe's finer pixel spacing s,
-    grown where the region to be gridded (``region_mm3``: a compounding's box, the field of
-    view UltrON evaluates) would hold more than ``max_voxels`` voxels of s:
+    """The meshing voxel: ``voxel_mm`` when given; else s, the finest detail the frames carry
+    (``finest_mm``, :func:`ultron.data.resolution.resolved_spacing_mm`: the probe's finer
+    pixel spacing unless the pixels are finer than half the speckle grain; default the pixel
+    spacing), grown where the region to be gridded (``region_mm3``: a compounding's box, the
+    field of view UltrON evaluates) would hold more than ``max_voxels`` voxels of s:
 
         v = max(s, (region_mm3 / max_voxels)^(1/3)).
 
@@ -46,6 +49,8 @@ def meshing_voxel_mm(
     if voxel_mm:
         return voxel_mm
     spacing = min(probe.lateral_spacing_mm, probe.axial_spacing_mm)
+    if finest_mm is not None:
+        spacing = max(spacing, float(finest_mm))
     if region_mm3 is None or not math.isfinite(region_mm3) or region_mm3 <= 0:
         return spacing
     return max(spacing, (region_mm3 / max_voxels) ** (1.0 / 3.0))

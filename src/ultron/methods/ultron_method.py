@@ -38,6 +38,7 @@ import torch
 from ultron.data.dataset import SweepDataset
 from ultron.data.geometry import field_of_view_bounds_mm, median_frame_gap_mm
 from ultron.data.labels import FrameSelection, gather_labelled_pixels, select_label_frames
+from ultron.data.resolution import resolved_spacing_mm
 from ultron.device import evaluation_chunk, module_device
 from ultron.errors import UltronInputError, argument_error
 from ultron.fields.context import ThetaContextConfig, theta_features
@@ -166,7 +167,7 @@ def scan_voxel_mm(dataset: SweepDataset, voxel_mm: float | None) -> float:
         return voxel_mm
     half = elevation_half_thickness_mm(dataset, 0.0)
     region = field_of_view_volume_mm3(dataset.all_poses(), dataset.probe, half)
-    return meshing_voxel_mm(dataset.probe, None, region)
+    return meshing_voxel_mm(dataset.probe, None, region, finest_mm=resolved_spacing_mm(dataset))
 
 
 def scan_grid(dataset: SweepDataset, voxel_mm: float | None) -> GridSpec:

@@ -1,99 +1,34 @@
-"""The resolution a field is fitted at: the frames' own, or coarser where the images carry no
-finer detail than their speckle (``fit_shape="auto"``, the default).
-
-A scanner may store its B-mode frames on a grid much finer than the imaging system resolves
-(PLUS recordings at 0.08 mm pixels of speckle half a millimetre long). Fitted there, every
-speckle grain spans many pixels the renderer's per-pixel scatterers cannot reproduce, the grid
-field gets a node per pixel (``GridFieldConfig.cell_mm`` defaults to the pixel size) that few
-frames constrain, and each step costs the pixels' square. The speckle grain's axial length is
-measured on the data itself:
-
-    g = FWHM of the mean axial autocorrelation of  i − G_σ ∗ i,   σ = 1 mm per axis,
-
-over up to eight evenly spaced frames (``i − G_σ ∗ i`` keeps the sub-millimetre content, the
-speckle, and drops the tissue layers' slow variation). The fit samples each grain with two
-pixels (Nyquist): the pixel spacing is raised to at least g / 2 on both axes, never lowered.
-Frames whose pixels are already that coarse are fitted at their own size, unchanged.
+"""The fit shape ``"auto"`` (the default of :class:`~ultron.train.field_config.
+FieldTrainConfig`): the frames' own size, or coarser where their pixels are finer than half the
+speckle grain they carry (:mod:`ultron.data.resolution` measures it). Fitted there, the PLUS
+spine phantom's 0.08 mm frames converge; at their own size the field collapsed to a black image
+(docs/real-sweeps.md).
 """
 
 from __future__ import annotations
 
-import math
 from dataclasses import replace
 
-import numpy as np
-from scipy.ndimage import gaussian_filter
-
-from ultron.data.dataset import ProbeGeometry, SweepDataset
-from ultron.errors import argument_error
+from ultron.data.dataset import SweepDataset
+from ultron.data.resolution import PIXELS_PER_GRAIN, axial_grain_px, resolved_shape
 from ultron.train.field_config import MIN_FIT_SIDE, FieldTrainConfig
 
-#: Pixels per speckle grain (axial autocorrelation FWHM) at the fitting resolution.
-PIXELS_PER_GRAIN = 2.0
-#: Scale (mm, Gaussian σ) above which image content counts as structure, not speckle.
-STRUCTURE_SIGMA_MM = 1.0
-#: Frames the grain is measured on (evenly spaced over the dataset).
-GRAIN_FRAMES = 8
 #: ``fit_shape`` values that are not an explicit (H, W).
 FIT_SHAPE_MODES = ("auto", "native")
 
-
-def axial_grain_px(frames: np.ndarray, probe: ProbeGeometry) -> float:
-    """Axial speckle length of ``frames`` (N, H, W) in pixels: the full width at half maximum
-    of the column-averaged axial autocorrelation of the high-passed frames (module doc), median
-    over the frames; ``nan`` where no frame has a measurable grain (a flat image)."""
-    frames = np.asarray(frames)
-    if frames.ndim != 3 or min(frames.shape) < 1:
-        raise argument_error("frames", f"expected (N, H, W), got {frames.shape}")
-    sigma_px = (
-        STRUCTURE_SIGMA_MM / probe.axial_spacing_mm,
-        STRUCTURE_SIGMA_MM / probe.lateral_spacing_mm,
-    )
-    rows = frames.shape[1]
-    widths = []
-    for frame in frames.astype(np.float64):
-        detail = frame - gaussian_filter(frame, sigma_px, mode="nearest")
-        spectrum = np.fft.rfft(detail, n=2 * rows, axis=0)
-        correlation = np.fft.irfft(np.abs(spectrum) ** 2, axis=0)[:rows].sum(axis=1)
-        if not correlation[0] > 0:
-            continue
-        widths.append(_full_width_at_half(correlation / correlation[0]))
-    finite = [w for w in widths if math.isfinite(w)]
-    return float(np.median(finite)) if finite else math.nan
-
-
-def _full_width_at_half(correlation: np.ndarray) -> float:
-    """2 × the first lag where a normalised autocorrelation falls to ½ (linear between lags)."""
-    below = np.flatnonzero(correlation < 0.5)
-    if below.size == 0:
-        return math.nan
-    lag = int(below[0])
-    before, after = correlation[lag - 1], correlation[lag]
-    return 2.0 * (lag - 1 + (before - 0.5) / (before - after))
+__all__ = [
+    "FIT_SHAPE_MODES",
+    "PIXELS_PER_GRAIN",
+    "auto_fit_shape",
+    "axial_grain_px",
+    "resolve_fit_shape",
+]
 
 
 def auto_fit_shape(dataset: SweepDataset) -> tuple[int, int] | None:
-    """The fit shape for ``dataset`` (module doc): None where its own pixels already sample the
-    axial speckle grain with at most :data:`PIXELS_PER_GRAIN` pixels, else (H, W) with both
-    spacings raised to at least grain / 2."""
-    if not isinstance(dataset, SweepDataset):
-        raise argument_error("dataset", "expected a SweepDataset")
-    probe = dataset.probe
-    counts = [len(sweep.images) for sweep in dataset.sweeps]
-    picks = np.linspace(0, sum(counts) - 1, min(GRAIN_FRAMES, sum(counts))).round().astype(int)
-    starts = np.cumsum([0, *counts])
-    frames = [
-        dataset.sweeps[s].images[k - starts[s]]
-        for k in picks
-        for s in [int(np.searchsorted(starts, k, side="right")) - 1]
-    ]
-    grain = axial_grain_px(np.stack(frames), probe)
-    if not grain > PIXELS_PER_GRAIN:
-        return None
-    spacing_mm = grain / PIXELS_PER_GRAIN * probe.axial_spacing_mm
-    rows = min(probe.height_px, max(1, round(probe.depth_mm / spacing_mm)))
-    cols = min(probe.width_px, max(1, round(probe.width_mm / spacing_mm)))
-    return None if (rows, cols) == probe.image_shape else (rows, cols)
+    """The shape ``fit_shape="auto"`` fits ``dataset`` at (before the SSIM window's minimum):
+    :func:`ultron.data.resolution.resolved_shape`."""
+    return resolved_shape(dataset)
 
 
 def resolve_fit_shape(config: FieldTrainConfig, dataset: SweepDataset) -> FieldTrainConfig:
@@ -102,7 +37,7 @@ def resolve_fit_shape(config: FieldTrainConfig, dataset: SweepDataset) -> FieldT
     resolved shape (field.json), so resuming it compares like with like."""
     if config.fit_shape != "auto":
         return config
-    shape = auto_fit_shape(dataset)
+    shape = resolved_shape(dataset)
     if shape is not None:
         shape = (max(MIN_FIT_SIDE, shape[0]), max(MIN_FIT_SIDE, shape[1]))
     return replace(config, fit_shape=shape)
