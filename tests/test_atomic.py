@@ -50,6 +50,31 @@ def test_written_files_honour_the_umask(tmp_path: Path, mask: int, expected: int
     assert mode(tmp_path / "b.npy") == expected
 
 
+@pytest.mark.parametrize(("mask", "expected"), [(0o022, 0o755), (0o077, 0o700)])
+def test_a_staged_directory_honours_the_umask_and_leaves_nothing_on_failure(
+    tmp_path: Path, mask: int, expected: int
+) -> None:
+    with umask(mask), atomic.staged_directory(tmp_path / "whole") as staging:
+        (staging / "a.txt").write_text("x")
+    assert mode(tmp_path / "whole") == expected
+    assert (tmp_path / "whole" / "a.txt").read_text() == "x"
+    with pytest.raises(OSError), atomic.staged_directory(tmp_path / "half") as staging:
+        (staging / "a.txt").write_text("x")
+        raise OSError(28, "No space left on device")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["whole"]
+
+
+def test_simulate_into_a_new_directory_honours_the_umask(tmp_path: Path) -> None:
+    from ultron.phantom.dataset import SimulationConfig, simulate_dataset
+    from ultron.phantom.protocols import ScanConfig
+
+    config = SimulationConfig(sweeps=("row",), scan=ScanConfig(frames_per_sweep=3), height_px=16,
+                              width_px=12)  # fmt: skip
+    with umask(0o022):
+        simulate_dataset(config, out=tmp_path / "sim")
+    assert mode(tmp_path / "sim") == 0o755
+
+
 def test_umask_fallback_without_proc(monkeypatch) -> None:
     real_open = open
 

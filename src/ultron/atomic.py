@@ -22,6 +22,7 @@ import io
 import json
 import os
 import re
+import shutil
 import tempfile
 import time
 from collections.abc import Iterator
@@ -138,6 +139,23 @@ def atomic_open(path: str | Path) -> Iterator[BinaryIO]:
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp_name)
+        raise
+
+
+@contextlib.contextmanager
+def staged_directory(path: str | Path) -> Iterator[Path]:
+    """A new hidden sibling of ``path`` (mode ``0o777 & ~umask``, not mkdtemp's 0700) to
+    write a whole directory into, renamed to ``path`` on success and removed on any failure,
+    so ``path`` never holds half of it. ``path`` must not exist yet."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=_TEMP_SUFFIX, dir=path.parent))
+    try:
+        os.chmod(staging, directory_mode())
+        yield staging
+        staging.rename(path)
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
         raise
 
 

@@ -62,9 +62,8 @@ def memory_limit(max_memory_gib: float | None = None) -> tuple[float, str]:
     machine = machine_memory_bytes()
     left = address_space_left_bytes()
     if left is not None and (machine is None or left < machine):
-        return float(
-            left
-        ), f"what the address-space limit (ulimit -v) leaves ({left / _GIB:.2f} GiB)"
+        name = f"what the address-space limit (ulimit -v) leaves ({left / _GIB:.2f} GiB)"
+        return float(left), name
     if machine is None:
         return math.inf, "this machine's memory"
     return float(machine), f"this machine's memory ({machine / _GIB:.1f} GiB)"

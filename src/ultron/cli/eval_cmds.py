@@ -7,7 +7,7 @@ from typing import Annotated
 
 import typer
 
-from ultron.cli.common import check_count, check_seed, console, err_console, user_errors
+from ultron.cli.common import check_count, check_seed, console, user_errors, warning_line
 from ultron.errors import argument_error
 
 
@@ -65,7 +65,7 @@ def evaluate(
     if len(recon.vertices):
         mismatch = box_mismatch(recon.bounds, ref.bounds, f"the mesh {mesh}", "the reference")
         if mismatch is not None:
-            err_console.print(f"warning: {mismatch}", markup=False, highlight=False)
+            warning_line(mismatch)
     result = evaluate_meshes(recon, ref, config, reference_visible=visible)
     result["mesh"], result["reference"] = str(mesh), str(reference)
     result["reference_visible"] = None if reference_visible is None else str(reference_visible)

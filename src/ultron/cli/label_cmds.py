@@ -11,10 +11,10 @@ from ultron.cli.common import (
     ThreadsOption,
     apply_threads,
     console,
-    err_console,
     stage_progress,
     sweep_names,
     user_errors,
+    warning_line,
 )
 
 
@@ -67,12 +67,10 @@ def label(
             soft_wrap=True,
         )
         if s.frames and s.frames_without_bone == s.frames:
-            err_console.print(
-                f"warning: {Path(dataset) / s.name}: no bone found in any of its {s.frames}"
-                " frames (a recording without bone, or frames the detector does not suit):"
-                " its labels are background and unsure only, nothing to reconstruct from",
-                markup=False,
-                highlight=False,
+            warning_line(
+                f"{Path(dataset) / s.name}: no bone found in any of its {s.frames} frames (a"
+                " recording without bone, or frames the detector does not suit): its labels are"
+                " background and unsure only, nothing to reconstruct from"
             )
         check = ", ".join(str(i) for i in s.frames_to_check[:MAX_LISTED])
         more = " …" if len(s.frames_to_check) > MAX_LISTED else ""

@@ -26,12 +26,12 @@ of simulated data, for diagnosis only (never read by a reconstruction):
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import os
 import re
 import shutil
-import tempfile
 from collections.abc import Collection
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -206,6 +206,16 @@ class SweepDataset:
             "sweep", f"no sweep {name!r}; available: {[s.name for s in self.sweeps]}"
         )
 
+    @functools.cached_property
+    def resolved_shape(self) -> tuple[int, int] | None:
+        """The frame shape that samples this dataset's speckle (None: its own), measured once
+        per dataset object — the field fit, the pre-flight checks and the meshing voxel all ask
+        (:func:`ultron.data.resolution.measure_resolved_shape`; a dataset's frames are not
+        changed after construction, :func:`dataclasses.replace` makes a new one)."""
+        from ultron.data.resolution import measure_resolved_shape
+
+        return measure_resolved_shape(self)
+
     def all_poses(self) -> np.ndarray:
         """Every frame's probe-to-world pose, sweeps concatenated in order, (N_total, 4, 4)."""
         return np.concatenate([s.probe_to_world for s in self.sweeps], axis=0)
@@ -309,15 +319,8 @@ class SweepDataset:
         if root.exists():
             self._write_into(root, only_sweeps)
             return
-        root.parent.mkdir(parents=True, exist_ok=True)
-        staging = Path(tempfile.mkdtemp(prefix=f".{root.name}.", suffix=".tmp", dir=root.parent))
-        try:
-            os.chmod(staging, atomic.directory_mode())  # mkdtemp's 0700 would hide the dataset
+        with atomic.staged_directory(root) as staging:
             self._write_into(staging, None)
-            staging.rename(root)
-        except BaseException:
-            shutil.rmtree(staging, ignore_errors=True)
-            raise
 
     def _write_into(self, root: Path, only_sweeps: Collection[str] | None) -> None:
         for sweep in self.sweeps:

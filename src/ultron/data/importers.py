@@ -167,7 +167,6 @@ def _read_png(file: Path) -> tuple[np.ndarray, str]:
 
 def read_png_frames(folder: Path) -> np.ndarray:
     """Read ``0.png, 1.png, …`` (:func:`numbered_frames`) as uint8 (N, H, W) grey frames."""
-
     files = numbered_frames(folder)
     frames = []
     for file in files:

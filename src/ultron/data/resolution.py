@@ -70,11 +70,17 @@ def _full_width_at_half(correlation: np.ndarray) -> float:
 
 
 def resolved_shape(dataset: SweepDataset) -> tuple[int, int] | None:
-    """The frame shape that samples ``dataset``'s speckle (module doc): None where its own
-    pixels already sample the axial grain with at most :data:`PIXELS_PER_GRAIN` pixels, else
-    (H, W) with both spacings raised to at least grain / 2."""
+    """The frame shape that samples ``dataset``'s speckle (module doc), measured once per
+    dataset object (:attr:`SweepDataset.resolved_shape`)."""
     if not isinstance(dataset, SweepDataset):
         raise argument_error("dataset", "expected a SweepDataset")
+    return dataset.resolved_shape
+
+
+def measure_resolved_shape(dataset: SweepDataset) -> tuple[int, int] | None:
+    """The measurement behind :func:`resolved_shape`: None where ``dataset``'s own pixels
+    already sample the axial grain with at most :data:`PIXELS_PER_GRAIN` pixels, else (H, W)
+    with both spacings raised to at least grain / 2."""
     probe = dataset.probe
     counts = [len(sweep.images) for sweep in dataset.sweeps]
     picks = np.linspace(0, sum(counts) - 1, min(GRAIN_FRAMES, sum(counts))).round().astype(int)

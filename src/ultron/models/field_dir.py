@@ -136,8 +136,9 @@ def read_train_log(out: Path, step: int) -> list[dict[str, Any]]:
 def check_field_out(out: str | Path, dataset_dir: str | Path, option: str = "--out") -> Path:
     """Refuse (one line naming ``out``) a FIELD_DIR to write that is not new, empty or an
     earlier fit's (it holds field.json, checkpoint.pt or train_log.jsonl), or that is or holds
-    the dataset; creates nothing (a subdirectory of the dataset is fine: its sweeps are listed). The rule of :func:`ultron.pipeline.rundir.
-    check_run_dir`: an output directory belongs to one kind of output."""
+    the dataset; creates nothing. A subdirectory of the dataset is fine (its sweeps are listed
+    by name). The rule of :func:`ultron.pipeline.rundir.check_run_dir`: an output directory
+    belongs to one kind of output."""
     out = check_output_dir(out, option)
     if is_inside(dataset_dir, out):
         raise UltronInputError(
@@ -173,10 +174,7 @@ def read_transmission_check(field_dir: Path) -> dict[str, Any] | None:
     path = Path(field_dir) / TRANSMISSION_CHECK
     if not path.is_file():
         return None
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise UltronInputError(path, TRANSMISSION_CHECK, f"not valid JSON ({exc})") from None
+    data = read_json_file(path, TRANSMISSION_CHECK)
     if not isinstance(data, dict):
         raise UltronInputError(path, TRANSMISSION_CHECK, "expected a JSON object")
     return data

@@ -34,8 +34,6 @@ import contextlib
 import dataclasses
 import io
 import math
-import os
-import shutil
 import tempfile
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
@@ -263,7 +261,7 @@ def _simulate(
     reference_ply = volume.mesh().export(file_type="ply")
     report("visible reference", 1 + len(specs) * n_frames, total)
     if out is not None and not Path(out).exists():  # written whole or not at all
-        with _staged_directory(Path(out)) as staging:
+        with atomic.staged_directory(out) as staging:
             _write_simulation(staging, reference_ply, sweeps, true_poses, config, phantom, probe)
         report("done", total, total)
         return SweepDataset.load(out)
@@ -273,21 +271,6 @@ def _simulate(
     )
     report("done", total, total)
     return dataset
-
-
-@contextlib.contextmanager
-def _staged_directory(out: Path) -> Iterator[Path]:
-    """A hidden sibling of ``out`` to write into, renamed to ``out`` on success and removed on
-    any failure (a full disk, a kill's KeyboardInterrupt), so ``out`` never holds half a
-    dataset."""
-    out.parent.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".new", dir=out.parent))
-    try:
-        yield staging
-        os.replace(staging, out)
-    except BaseException:
-        shutil.rmtree(staging, ignore_errors=True)
-        raise
 
 
 def _write_simulation(

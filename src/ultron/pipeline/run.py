@@ -258,9 +258,10 @@ def reconstruct(
         # labels without bone: refused before minutes of field fit and training
         selection = select_label_frames(dataset, request.label_fraction, request.seed)
         check_selection_has_bone(dataset, selection, dataset_dir)
-        reference = references[0]
-        for line in units_warnings(dataset, None if reference is None else reference.vertices):
-            (warn or (lambda _line: None))(line)
+        if warn is not None:
+            reference = references[0]
+            for line in units_warnings(dataset, None if reference is None else reference.vertices):
+                warn(line)
         # the oracle's files (an input) before the field to fit (its memory and frame size)
         truth = load_oracle_truth(request.ultron.visibility, dataset_dir, dataset)
         if to_fit is not None:
