@@ -322,6 +322,27 @@ def test_cli_exits_non_zero_when_a_cell_failed(tmp_path: Path, monkeypatch):
     assert seen["executor"] == "local"
 
 
+def test_the_benchmark_simulates_a_real_acquisitions_imperfections(tmp_path: Path):
+    config = BenchmarkConfig()
+    assert config.phantoms == ("L2", "L3", "L3b", "L4", "condyle")  # a bone that is no vertebra
+    simulation = config.simulation
+    assert simulation.annotation.missing_fraction == 0.05  # 5 % of frames unannotated
+    assert simulation.annotation.jitter_mm == 0.3 and simulation.annotation.error_rate == 0.02
+    assert (simulation.tracking.translation_mm, simulation.tracking.rotation_deg) == (0.3, 0.3)
+    # the robustness condition worsens the annotation, and keeps the unannotated frames
+    assert config.robust_annotation.missing_fraction == 0.05
+    assert config.robust_annotation.jitter_mm == 1.0
+    assert quick_config().simulation == simulation
+    plan = plan_benchmark(
+        replace(config, phantoms=("condyle",), seeds=1, generalisation=False), tmp_path
+    )
+    simulate = [t.job for t in plan.tasks.values() if type(t.job).__name__ == "SimulateJob"]
+    assert [job.config.phantom for job in simulate] == ["condyle"]
+    assert simulate[0].config.annotation.missing_fraction == 0.05
+    with pytest.raises(UltronInputError, match=r"phantoms.*'femur'.*condyle"):
+        BenchmarkConfig(phantoms=("femur",))
+
+
 def test_plan_shares_runs_and_builds_robustness_datasets(tmp_path: Path):
     config = BenchmarkConfig(phantoms=("L2", "L3"), seeds=2, robustness=True)
     plan = plan_benchmark(config, tmp_path)

@@ -24,6 +24,38 @@ def test_phantom_names():
     assert get_phantom("L3").name == "L3"
 
 
+def test_condyle_is_a_short_long_bone_for_the_benchmark():
+    from ultron.phantom.shapes import BENCHMARK_PHANTOMS
+
+    condyle = get_phantom("condyle")
+    assert BENCHMARK_PHANTOMS == ("L2", "L3", "L3b", "L4", "condyle")
+    pts = torch.tensor(
+        [
+            [0.0, 0.0, 0.0],  # shaft axis at mid-shaft: 12 mm from the surface
+            [0.0, -12.0, 0.0],  # the shaft's posterior surface, which faces the probe
+            [14.0, 0.0, -34.0],  # a condyle's centre (z = -25 - 18/2)
+            [0.0, 0.0, 38.0],  # inside the rounded cap (centre z = 25 + 6, radius 12)
+            [30.0, 0.0, 0.0],  # lateral of the shaft
+            [0.0, 0.0, 60.0],  # beyond the cap
+        ],
+        dtype=torch.float64,
+    )
+    d = condyle.sdf(pts)
+    # the smooth union of the two overlapping shaft segments adds at most blend / 4 = 0.625 mm
+    assert d[0].item() == pytest.approx(-12.0, abs=0.7)
+    assert abs(d[1].item()) < 0.7
+    assert d[2].item() < -12.0
+    assert d[3].item() < -4.0
+    assert d[4].item() == pytest.approx(18.0, abs=0.7)
+    assert d[5].item() > 10.0
+    lo, hi = condyle.bounds_mm.numpy()
+    # 2 × (14 + 14) = 56 mm wide at the condyles; 18·1.5 + 50 + 12·1.5 = 95 mm long; the
+    # shaft 24 mm thick
+    assert hi[0] - lo[0] == pytest.approx(56.0, abs=1.0)
+    assert hi[2] - lo[2] == pytest.approx(95.0, abs=1.0)
+    assert hi[1] - lo[1] == pytest.approx(32.0, abs=1.0)  # the condyles' 2 × 16 mm
+
+
 def test_unknown_phantom_is_a_clear_error():
     with pytest.raises(UltronInputError, match=r"phantom.*'L9'.*L2"):
         get_phantom("L9")

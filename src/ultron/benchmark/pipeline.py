@@ -186,6 +186,7 @@ def build_payload(
                 "runtime_s": float(outcome["runtime_s"]) if cell.primary else 0.0,
             }
         )
+    annotation, tracking = config.robust_annotation, config.robust_tracking
     settings = {
         **config.to_dict(),
         "out": str(out),
@@ -194,9 +195,10 @@ def build_payload(
         "notes": list(plan.notes),
         "robustness_conditions": {
             "annotation errors": "annotation: jitter_mm, error_rate, error_shift_mm as in"
-            " robust_annotation (defaults 0.3 mm, 0.02, 2 mm)",
+            f" robust_annotation ({annotation.jitter_mm} mm, {annotation.error_rate},"
+            f" {annotation.error_shift_mm} mm)",
             "pose misalignment": "tracking: translation_mm, rotation_deg per axis as in"
-            " robust_tracking (defaults 0.3 mm, 0.2 deg)",
+            f" robust_tracking ({tracking.translation_mm} mm, {tracking.rotation_deg} deg)",
         },
         "aggregation": "mean ± std (ddof 1) over phantoms × seeds of each cell's metric means",
         "settings": config.settings(),

@@ -41,7 +41,8 @@ Seeds = Annotated[
 Phantoms = Annotated[
     str | None,
     typer.Option(
-        "--phantoms", help="Comma-separated phantoms (default L2,L3,L3b,L4; L3 with --quick)."
+        "--phantoms",
+        help="Comma-separated phantoms (default L2,L3,L3b,L4,condyle; L3 with --quick).",
     ),
 ]
 Jobs = Annotated[

@@ -62,7 +62,13 @@ def _check_numbers(
 
 
 Out = Annotated[Path, typer.Option("--out", help="Dataset directory to write (created).")]
-PhantomName = Annotated[str, typer.Option("--phantom", help="Vertebra phantom: L2, L3, L3b or L4.")]
+PhantomName = Annotated[
+    str,
+    typer.Option(
+        "--phantom",
+        help="Phantom: vertebrae L2, L3, L3b, L4; condyle (end of a long bone); femur (44 cm, long sweeps).",
+    ),
+]
 Seed = Annotated[int, typer.Option("--seed", help="Random seed (same seed → same files).")]
 Sweeps = Annotated[
     str,

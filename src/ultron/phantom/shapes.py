@@ -425,10 +425,35 @@ LONG_BONES: Mapping[str, Phantom] = MappingProxyType(
 )
 
 
+#: The end of a long bone (the benchmark's non-vertebra bone, ``ultron benchmark``'s
+#: ``condyle``): two condyles (14 × 16 × 18 mm semi-axes, 14 mm either side of the mid-line)
+#: on a 50 mm straight shaft of 12 mm radius closed by a rounded cap — 95 mm long, 56 mm wide at
+#: the condyles, in the size range of an adult distal femur's bicondylar width (≈ 75–85 mm)
+#: scaled to the probe's 38 mm field of view. Its surfaces are convex and smooth where a
+#: vertebra's are ridged and concave: a different bone for the benchmark to generalise to.
+CONDYLE = Phantom(
+    "condyle",
+    LongBoneShape(
+        shaft_length_mm=50.0,
+        shaft_radius_mm=12.0,
+        bow_mm=0.0,
+        shaft_segments=2,
+        condyle_radii_mm=(14.0, 16.0, 18.0),
+        condyle_spread_mm=14.0,
+        head_radii_mm=(12.0, 12.0, 12.0),
+    ),
+    "end of a long bone: two condyles on a 5 cm shaft, 9.5 cm (non-vertebra benchmark bone)",
+)
+#: Other bones of the benchmark (not vertebrae, short enough for the default sweeps).
+OTHER_BONES: Mapping[str, Phantom] = MappingProxyType({"condyle": CONDYLE})
+#: What ``ultron benchmark`` runs by default: the vertebrae and the other bones.
+BENCHMARK_PHANTOMS = (*PHANTOMS, *OTHER_BONES)
+
+
 def get_phantom(name: str) -> Phantom:
-    """The phantom called ``name`` (one of ``PHANTOMS`` or ``LONG_BONES``); a clear error
-    otherwise."""
-    known = {**PHANTOMS, **LONG_BONES}
+    """The phantom called ``name`` (one of ``PHANTOMS``, ``OTHER_BONES`` or ``LONG_BONES``); a
+    clear error otherwise."""
+    known = {**PHANTOMS, **OTHER_BONES, **LONG_BONES}
     if name not in known:
         raise argument_error("phantom", f"unknown phantom {name!r}; expected one of {list(known)}")
     return known[name]
