@@ -129,7 +129,7 @@ def simulate(
     preview: Preview = False,
     threads: ThreadsOption = None,
 ) -> None:
-    """Simulate a tracked multi-sweep B-mode dataset of a vertebra phantom, with labels."""
+    """Simulate a tracked multi-sweep B-mode dataset of a digital bone phantom, with labels."""
     apply_threads(threads)
     _check_numbers(
         seed, frames, step_mm, probe_width_mm, depth_mm, height_px, width_px, pose_noise_mm,
