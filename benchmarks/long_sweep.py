@@ -72,6 +72,15 @@ def run_stage(name: str, command: list[str], log_dir: Path) -> dict:
     return {"stage": name, "seconds": seconds, "peak_rss_bytes": peak}
 
 
+def run_unless_done(name: str, command: list[str], done: Path, log_dir: Path) -> dict | None:
+    """:func:`run_stage` unless ``done`` exists (a resumed benchmark; then None). The log file
+    is named after ``name`` with spaces as underscores."""
+    if done.exists():
+        print(f"[{name}] done before", flush=True)
+        return None
+    return run_stage(name.replace(" ", "_"), command, log_dir)
+
+
 def simulate_command(out: Path, args: argparse.Namespace, frames: int, phantom: str) -> list[str]:
     return [
         "ultron", "simulate", "--phantom", phantom, "--out", str(out), "--seed",

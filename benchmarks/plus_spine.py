@@ -27,7 +27,7 @@ import argparse
 import json
 from pathlib import Path
 
-from long_sweep import GIB, run_stage
+from long_sweep import GIB, run_unless_done
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "plus-spine-phantom"
 SEQUENCE = "SpinePhantomFreehand.igs.mha"
@@ -82,10 +82,10 @@ def main() -> None:
     args.out.mkdir(parents=True, exist_ok=True)
     rows = {}
     for name, command, done in stages(args.data, args.out):
-        if done.exists():
-            print(f"[{name}] done before", flush=True)
+        row = run_unless_done(name, command, done, args.out / "logs")
+        if row is None:
             continue
-        rows[name] = run_stage(name.replace(" ", "_"), command, args.out / "logs")
+        rows[name] = row
         if name == "label --auto":
             done.write_text("ok\n")
     log = [json.loads(line) for line in (args.out / "field" / "train_log.jsonl").open()]

@@ -31,7 +31,7 @@ import json
 import shutil
 from pathlib import Path
 
-from long_sweep import run_stage
+from long_sweep import run_unless_done
 
 #: Tuning datasets: phantoms × seeds that ``ultron benchmark`` never scores (it uses 0 … n−1).
 DEFAULT_DATASETS = "L3:11,L4:12,condyle:11"
@@ -67,23 +67,15 @@ def simulate_command(phantom: str, seed: int, out: Path) -> list[str]:
     ]  # fmt: skip
 
 
-def stage(name: str, command: list[str], done: Path, logs: Path) -> dict | None:
-    """Run ``command`` unless ``done`` exists (resume)."""
-    if done.exists():
-        print(f"[{name}] done before, skipped", flush=True)
-        return None
-    return run_stage(name, command, logs)
-
-
 def cell_rows(args: argparse.Namespace, phantom: str, seed: int) -> list[dict]:
     root = args.out / f"{phantom}-s{seed}"
     dataset, field = root / "dataset", root / "field"
     logs = args.out / "logs"
     tag = f"{phantom}-s{seed}"
-    stage(f"simulate {tag}", simulate_command(phantom, seed, dataset), dataset / "dataset.json",
-          logs)  # fmt: skip
-    stage(f"fit-field {tag}", ["ultron", "fit-field", str(dataset), "--out", str(field)],
-          field / "field.json", logs)  # fmt: skip
+    simulate = simulate_command(phantom, seed, dataset)
+    run_unless_done(f"simulate {tag}", simulate, dataset / "dataset.json", logs)
+    fit = ["ultron", "fit-field", str(dataset), "--out", str(field)]
+    run_unless_done(f"fit-field {tag}", fit, field / "field.json", logs)
     rows = []
     for fraction in (float(f) for f in args.fractions.split(",")):
         for name, method, extra in VARIANTS:
@@ -94,7 +86,7 @@ def cell_rows(args: argparse.Namespace, phantom: str, seed: int) -> list[dict]:
                 "--label-fraction", str(fraction), "--points", str(args.points), "--out",
                 str(run), *extra,
             ]  # fmt: skip
-            stage(f"{tag} {slug}", command, run / "metrics.json", logs)
+            run_unless_done(f"{tag} {slug}", command, run / "metrics.json", logs)
             metrics = json.loads((run / "metrics.json").read_text())["mean"]
             rows.append({"dataset": tag, "fraction": fraction, "T": name,
                          **{m: metrics[m] for m in METRICS}})  # fmt: skip
@@ -103,12 +95,10 @@ def cell_rows(args: argparse.Namespace, phantom: str, seed: int) -> list[dict]:
 
 def checks(rows: list[dict]) -> list[dict]:
     """Per dataset × fraction: monotone in T and the loss's margin over its ablation."""
+    cd = {(r["dataset"], r["fraction"], r["T"]): r["cd_visible"] for r in rows}
     out = []
-    keys = sorted({(r["dataset"], r["fraction"]) for r in rows})
-    for dataset, fraction in keys:
-        cd = {r["T"]: r["cd_visible"] for r in rows if (r["dataset"], r["fraction"]) == (
-            dataset, fraction)}  # fmt: skip
-        oracle, fitted, ones = (cd[name] for name, _, _ in VARIANTS)
+    for dataset, fraction in sorted({key[:2] for key in cd}):
+        oracle, fitted, ones = (cd[dataset, fraction, name] for name, _, _ in VARIANTS)
         out.append({
             "dataset": dataset, "fraction": fraction,
             "monotone": oracle <= fitted <= ones,

@@ -26,7 +26,7 @@ from ultron.benchmark import (
     run_benchmark,
     run_tasks,
 )
-from ultron.benchmark.plan import CellEntry, robustness_row
+from ultron.benchmark.plan import CellEntry, SimulateJob, robustness_row
 from ultron.benchmark.tables import (
     aggregate,
     table1_targets,
@@ -336,7 +336,7 @@ def test_the_benchmark_simulates_a_real_acquisitions_imperfections(tmp_path: Pat
     plan = plan_benchmark(
         replace(config, phantoms=("condyle",), seeds=1, generalisation=False), tmp_path
     )
-    simulate = [t.job for t in plan.tasks.values() if type(t.job).__name__ == "SimulateJob"]
+    simulate = [t.job for t in plan.tasks.values() if isinstance(t.job, SimulateJob)]
     assert [job.config.phantom for job in simulate] == ["condyle"]
     assert simulate[0].config.annotation.missing_fraction == 0.05
     with pytest.raises(UltronInputError, match=r"phantoms.*'femur'.*condyle"):
