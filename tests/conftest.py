@@ -16,6 +16,16 @@ SHARED = Path(os.environ.get("ULTRON_SHARED", REPO_ROOT.parent / "shared"))
 L2_SAMPLE = SHARED / "data" / "ultranerf-synthetic-l2"
 
 
+@pytest.fixture
+def one_thread():
+    """Torch on one thread for the test (tiny workloads run faster and steadier on a shared
+    CPU); the previous thread count is restored afterwards."""
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(previous)
+
+
 def rotation_z(degrees: float) -> np.ndarray:
     angle = np.deg2rad(degrees)
     c, s = np.cos(angle), np.sin(angle)

@@ -234,7 +234,14 @@ def test_end_to_end_resume_and_failed_cells(bench_dir: Path, monkeypatch, tiny_r
         if cell["status"] == "ok" and cell["table"] == "table1":
             assert cell["runtime_s"] > 0 and (out / cell["run_dir"] / "metrics.json").is_file()
     assert {t["name"].split(" ")[0] for t in payload["targets"]} >= {"UltrON", "fine-tuning"}
-    assert all(t["met"] in (True, False, None) and t["detail"] for t in payload["targets"])
+    assert all(any(t["met"] is v for v in (True, False, None)) for t in payload["targets"])
+    assert all(t["detail"] for t in payload["targets"])
+    # a verdict follows from the table it judges: the loss target from Table 1's two CDs
+    cd = {row["row"]: row["mean"]["cd"] for row in payload["tables"]["table1"] if row["n"]}
+    ours, ablation = cd.get("UltrON (10%)"), cd.get("UltrON w/o loss (10%)")
+    measured = all(v is not None and math.isfinite(v) for v in (ours, ablation))
+    loss = next(t for t in payload["targets"] if "compensated loss helps" in t["name"])
+    assert loss["met"] is ((ours < ablation) if measured else None)
 
     # resume: everything done is skipped; only the failed cell runs again (and now succeeds)
     done = out / "runs" / "L3-s0" / "ultron-10" / "metrics.json"

@@ -65,14 +65,20 @@ def test_unavailable_cuda_is_one_line(spec):
 def test_describe_device_records_name_and_torch():
     record = describe_device(torch.device("cpu"))
     assert record["device"] == "cpu" and record["torch"] == torch.__version__
-    assert json.dumps(record)  # JSON-able, for run.json
+    assert json.loads(json.dumps(record)) == record  # JSON round-trips, for run.json
 
 
-def test_cpu_state_copies_nested_tensors_to_cpu():
-    state = {"a": torch.ones(2), "b": [torch.zeros(1), 3], "c": {"d": torch.arange(3)}}
-    copied = cpu_state(state)
-    assert copied["b"][1] == 3 and torch.equal(copied["c"]["d"], torch.arange(3))
-    assert copied["a"] is not state["a"] or copied["a"].device.type == "cpu"
+def test_cpu_state_moves_nested_tensors_to_cpu_detached():
+    weight = torch.ones(2, requires_grad=True)
+    state = {"a": weight * 2, "b": [torch.zeros(1), 3], "c": {"d": (torch.arange(3), "x")}}
+    moved = cpu_state(state)
+    assert moved.keys() == state.keys() and type(moved["b"]) is list
+    assert type(moved["c"]["d"]) is tuple and moved["c"]["d"][1] == "x" and moved["b"][1] == 3
+    assert torch.equal(moved["c"]["d"][0], torch.arange(3))
+    assert torch.equal(moved["a"], torch.full((2,), 2.0))
+    assert moved["a"].grad_fn is None and not moved["a"].requires_grad  # detached
+    tensors = [moved["a"], moved["b"][0], moved["c"]["d"][0]]
+    assert all(t.device == torch.device("cpu") for t in tensors)
 
 
 # ------------------------------------------------------------------ device-correct compute

@@ -30,14 +30,7 @@ from ultron.models.field_dir import TRANSMISSION_CHECK
 from ultron.render import RenderConfig, pixel_points_mm, render_properties
 from ultron.train import FieldTrainConfig, field_preset, fit_field, resample_frames
 
-
-@pytest.fixture(autouse=True)
-def one_thread():
-    """Tiny workloads run faster (and steadier on a shared CPU) on one thread."""
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 PROBE = ProbeGeometry(width_mm=8.0, depth_mm=9.0, height_px=24, width_px=16)

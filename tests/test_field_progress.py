@@ -9,7 +9,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import torch
 from typer.testing import CliRunner
 
 from field_configs import quick_field_config
@@ -26,12 +25,7 @@ runner = CliRunner()
 PROBE = ProbeGeometry(width_mm=8.0, depth_mm=9.0, height_px=24, width_px=16)
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def make_dataset(n: int = 10) -> SweepDataset:

@@ -29,12 +29,7 @@ PROBE = ProbeGeometry(width_mm=8.0, depth_mm=9.0, height_px=24, width_px=16)
 MISMATCH = "checkpoint was fitted on another dataset; use a new --out or --no-resume"
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def make_dataset(seed: int = 0, n: int = 10) -> SweepDataset:

@@ -21,13 +21,14 @@ from ultron.pipeline.presets import (
     preset_request,
 )
 from ultron.train.field_config import PAPER_ITERATIONS, FieldTrainConfig
+from ultron.train.occupancy import OccupancyTrainConfig
 
 
 def test_fast_preset_is_every_component_default():
     preset = pipeline_preset("fast", seed=3)
     assert preset.field == FieldTrainConfig(seed=3)
     assert preset.ultron.occupancy.seed == 3
-    assert preset.ultron == UltronConfig(occupancy=preset.ultron.occupancy)
+    assert preset.ultron == UltronConfig(occupancy=OccupancyTrainConfig(seed=3))
     assert preset.on == ONConfig() and preset.rocosdf_preset == "fast"
 
 
@@ -76,7 +77,7 @@ def test_request_takes_the_preset_and_options_win():
     assert preset_request(visibility="labels").ultron.visibility.source == "labels"
     assert preset_request(oracle=True).ultron.visibility.source == "oracle"
     fast = preset_request()
-    assert fast.ultron == UltronConfig(occupancy=fast.ultron.occupancy)
+    assert fast.ultron == UltronConfig(occupancy=OccupancyTrainConfig(seed=fast.seed))
     assert fast.on == ONConfig() and fast.method == "ultron" and fast.label_fraction == 0.1
     assert preset_field_config("paper", 1).iterations == 75_000
     assert preset_field_config("paper", 1, 10).iterations == 10

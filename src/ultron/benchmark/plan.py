@@ -215,9 +215,8 @@ def quick_config(**changes: Any) -> BenchmarkConfig:
     repeats (default 100k × 3). RoCoSDF keeps its ``fast`` preset (a ``ReconstructionRequest``
     carries only the preset name). ``changes`` override any field.
 
-    Estimated from measured stage times on 2 idle cores, jobs 1: simulation ≈ 5 s and field
-    ≈ 37 s per dataset (L3, L2), RoCoSDF ≈ 175 s, ON ≈ 37 s, each UltrON cell ≈ 43 s (four),
-    compounding ≈ 5 s (two), fine-tuning ≈ 22 s (two): ≈ 9 min in all."""
+    Sized to take minutes on 2 idle cores (the measured stage times behind that estimate:
+    docs/decisions.md#benchmark-the-quick-run-benchmarkplanpy)."""
     on = ONConfig()
     base = BenchmarkConfig(
         phantoms=("L3",),

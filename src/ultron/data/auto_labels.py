@@ -319,8 +319,9 @@ def frames_to_check(
     """Which frames of a sweep (bool per frame) to look at: those whose share of scanlines
     with bone falls below ``drop`` × the median over the ``neighbours`` frames on either side
     (the frame included) — the surface dropped out where the sweep's neighbouring frames see
-    it. On the fibula's ``pass1`` this flagged 12 of 547 frames, whose bone recall against the
-    CT-derived labels was 0.42 against 0.73 for the rest."""
+    it. On the fibula's ``pass1`` the frames it flagged had a much lower bone recall against the
+    CT-derived labels than the rest
+    (docs/decisions.md#auto-labels-frames-to-check-dataauto_labelspy)."""
     shares = np.array([q.bone_scanlines for q in qualities], dtype=np.float64)
     if shares.size == 0:
         return np.zeros(0, dtype=bool)

@@ -10,13 +10,13 @@ probe-to-world pose, so the affine ImageToProbe (it holds the pixel scale and, f
 calibration fit, usually a small shear) is factored into a rigid pose and two pixel spacings
 (:func:`fit_image_plane`): the least-squares fit over the frame's pixels, exact wherever
 ImageToProbe is a scaled rotation. Where it is not (a shear moves the rigid map's pixels by
-more than :data:`RESAMPLE_RESIDUAL_MM` from PLUS's, e.g. 0.96 mm at the corners of the shared
-spine phantom), the frames are resampled onto the rigid map's pixel grid
-(:func:`resample_to_rigid`): each new pixel takes the grey level PLUS's own calibration puts at
-its position (bilinear), so the imported sweep places every echo where PLUS does, corners
-included. Frames are flipped to MF (PLUS's orientation of B-mode frames, row 0 at the transducer
-face as the format wants), clipped to the configuration's clip rectangle and optionally
-area-downsampled with the spacings updated.
+more than :data:`RESAMPLE_RESIDUAL_MM` from PLUS's, as on the shared spine phantom:
+docs/decisions.md#plus-import-resampling-to-a-rigid-map-dataplus_importpy), the frames are
+resampled onto the rigid map's pixel grid (:func:`resample_to_rigid`): each new pixel takes the
+grey level PLUS's own calibration puts at its position (bilinear), so the imported sweep places
+every echo where PLUS does, corners included. Frames are flipped to MF (PLUS's orientation of
+B-mode frames, row 0 at the transducer face as the format wants), clipped to the
+configuration's clip rectangle and optionally area-downsampled with the spacings updated.
 """
 
 from __future__ import annotations

@@ -3,11 +3,11 @@ no finer detail than their speckle. The field is fitted there (``fit_shape="auto
 :mod:`ultron.train.fit_shape`) and no meshing voxel is finer (:mod:`ultron.mesh.grid`).
 
 A scanner may store its B-mode frames on a grid much finer than the imaging system resolves
-(PLUS recordings at 0.08 mm pixels of speckle half a millimetre long). Fitted there, every
-speckle grain spans many pixels the renderer's per-pixel scatterers cannot reproduce, the grid
-field gets a node per pixel (``GridFieldConfig.cell_mm`` defaults to the pixel size) that few
-frames constrain, and each step costs the pixels' square. The speckle grain's axial length is
-measured on the data itself:
+(the PLUS recordings: docs/decisions.md#speckle-resolution-dataresolutionpy-trainfit_shapepy).
+Fitted there, every speckle grain spans many pixels the renderer's per-pixel scatterers cannot
+reproduce, the grid field gets a node per pixel (``GridFieldConfig.cell_mm`` defaults to the
+pixel size) that few frames constrain, and each step costs the pixels' square. The speckle
+grain's axial length is measured on the data itself:
 
     g = FWHM of the mean axial autocorrelation of  i − G_σ ∗ i,   σ = 1 mm per axis,
 

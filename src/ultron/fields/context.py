@@ -15,18 +15,15 @@ in the same frame convention (the fine-tuning setting); the neighbours are not a
 because the side on which the shadow lies is the information. ``radii_mm=()`` is the paper's
 θ(x) alone.
 
-Measured on tuning data only (L3 seed 11, never a benchmark seed; 10 % labels, plain BCE,
-default field; held-out labelled frames, pixels with f ≥ 0.5): θ(x) alone reached no pixel at
-all (posterior never ≥ 0.5), θ(x) ⊕ the 6-neighbour *average* at 1 and 2 mm needed a class
-weight and then had precision 0.19; the directional stencil at 1 mm gave precision 0.68 /
-recall 0.49, at 0.5 mm 0.60 / 0.32, at 1 and 2 mm 0.69 / 0.55 (the default). Meshed (observed
-surface): CD vis. 1.06 mm, MAD 0.30 mm, HD95 0.67 mm against 2.32 / 3.50 / 10.7 with θ(x) and
-the balanced loss, and 1.82 / 0.54 / 1.35 for label compounding of the same labels.
+On tuning data θ(x) alone let f_ω call no pixel bone, a neighbour *average* needed a class
+weight and stayed imprecise, and the directional stencil at 1 and 2 mm (the default) had the
+best precision and recall; meshed, it beat θ(x) alone and label compounding of the same labels
+on visible CD, MAD and HD95. Figures in
+docs/decisions.md#occupancy-input-the-theta-neighbourhood-fieldscontextpy.
 
 f_ω's positional encoding γ takes θ̂(x) alone; the 36 neighbour inputs enter its trunk as they
 are (``encode_neighbours=False``): encoding them too makes the first layers 351 wide and the
-occupancy fit 1.4–1.8× slower for no measured gain (L3 seed 11: CD vis. 1.083 vs 1.065 mm with
-all inputs encoded; L4 seed 12: 1.247 vs 1.23, HD95 0.69 vs 0.73, MAD 0.26 vs 0.28).
+occupancy fit slower for no measured gain (same section of docs/decisions.md).
 """
 
 from __future__ import annotations
@@ -55,7 +52,7 @@ STENCIL_DIRECTIONS = (
 class ThetaContextConfig:
     """Stencil radii (mm) of f_ω's input; ``()`` is the paper's θ(x) alone.
     ``encode_neighbours``: whether f_ω's positional encoding γ takes the neighbours' θ too
-    (9× wider input, 1.4× slower training) or θ(x) alone, the neighbours entering raw."""
+    (9× wider input, slower training) or θ(x) alone, the neighbours entering raw."""
 
     radii_mm: tuple[float, ...] = (1.0, 2.0)
     encode_neighbours: bool = False

@@ -13,10 +13,11 @@ For a box far from a cube the planes span the data's box, not the whole cube: ax
 [−e_a, e_a] of the unit cube (``axis_extent``, e = 1 on the box's longest axis) with nodes at
 the same spacing on every axis, so plane P^{xy} has n_y × n_x nodes, n_a = round((R − 1)·e_a)
 + 1. They are used where the square planes would hold more than :data:`PER_AXIS_SAVING` times
-their values: a long bone's recording (the 40 cm fibula, 10 cm across) then needs 20 M values
-instead of 66 M and a fit step 0.12 s instead of 0.45 s (the planes' gradient and Adam's update
-dominate it); a compact box (a vertebra) keeps square planes, whose one batched read is
-faster. Fields fitted before (no ``axis_extent``) have square planes.
+their values: a long bone's recording then needs far fewer values and a faster fit step (the
+planes' gradient and Adam's update dominate it); a compact box (a vertebra) keeps square
+planes, whose one batched read is faster (figures in
+docs/decisions.md#grid-field-per-axis-planes-fieldsgridpy). Fields fitted before (no
+``axis_extent``) have square planes.
 A dense 3D grid at that cell size would need (2·half_extent/cell)³ voxels (≈ 2·10⁸ for the l2
 sweep), which does not fit a CPU budget; planes need 3·R² per level.
 
@@ -26,10 +27,10 @@ memorise each training frame's speckle and render a noisy texture between frames
 (1.0) was chosen among {1e-3, 1e-2, 0.1, 1, 10} by the held-out frames of the default
 simulated phantom (best SSIM; bone edges stay sharp), never on the l2 benchmark frames.
 Defaults (8 features per plane at the finest level, 4 at the coarser one, 2 levels ÷4, a
-16-wide one-layer decoder) were chosen for step time (profiled on 2 threads: grid_sample's
-backward, then the decoder, dominate), checking on the simulated phantom's held-out frames
-that the fit stays comparable (18.6 dB / SSIM 0.243 vs 18.6 dB / 0.250 with 8 + 8 features and
-a 32-wide decoder; one level, or 4 features everywhere, fitted worse).
+16-wide one-layer decoder) were chosen for step time (grid_sample's backward, then the
+decoder, dominate it), checking on the simulated phantom's held-out frames that the fit stays
+comparable to a larger grid and decoder while smaller ones fit worse (figures in
+docs/decisions.md#grid-field-default-size-fieldsgridpy).
 """
 
 from __future__ import annotations
@@ -49,8 +50,8 @@ from ultron.fields.properties import HeadConfig, initial_raw_bias, n_raw_channel
 MAX_RESOLUTION = 2048
 #: Per-axis planes replace the square ones when the square ones would hold more than this many
 #: times their values (a box far from a cube, e.g. a long bone's recording); for a compact box
-#: one batched read of square planes is faster (L3: 0.039 vs 0.059 s per step at 1.4 vs 0.9 M
-#: values; the fibula's 0.45 vs 0.12 s at 66 vs 20 M).
+#: one batched read of square planes is faster (timings in
+#: docs/decisions.md#grid-field-per-axis-planes-fieldsgridpy).
 PER_AXIS_SAVING = 2.0
 #: Side of the random window on which the smoothness prior is evaluated each step.
 TV_WINDOW = 96

@@ -41,11 +41,10 @@ class HeadConfig:
     - an initial attenuation such that T at the bottom of a 70 mm frame starts near 0.5
       (``initial_attenuation_per_mm`` 0.01), so α starts where its gradient is informative.
 
-    Measured on the tuning phantoms (L3 seed 1, L4 seed 2; never the benchmark's seed 0), over
-    labelled pixels whose true transmission is < 0.1, the paper's heads leave the field's T at
-    a median 0.91 (the shadow is explained by φ ≈ 0.02); with φ_min = 0.1 it falls to 0.07.
-    It is not the default because, on L3 seed 1, UltrON(10 %) on such a field scored a worse
-    visible CD (2.67 vs 1.98 mm): the θ it gives separates bone from gel less well (README).
+    On the tuning phantoms the paper's heads leave T high in the shadow (explaining it by
+    φ → 0) and the floor brings it near 0. It is not the default because UltrON(10 %) on such a
+    field scored a worse visible CD: the θ it gives separates bone from gel less well. Figures
+    in docs/decisions.md#field-heads-scattering-floor-fieldspropertiespy.
     """
 
     scattering_floor: float = 0.0

@@ -23,12 +23,12 @@ the smallest radius that closes the gaps a sparse label fraction leaves between 
 inventing bone far from any annotation.
 
 Why (issue 17): the previous baseline filled holes with a Gaussian-weighted average of the 0/1
-labels (σ = r/2 ≈ 3.5 mm at 10 % labels); across a ≈ 2 mm band of bone labels with 0s above and
-below, that average never reached 0.5, so no hole became bone, and the constrained smoothing
-then erased most of the one-voxel-thick sheets the labelled frames left (a 360 mm² mesh on the
-L4 s12 tuning dataset). ``reconstruct`` also meshed the band's closed surface, floor and walls
-included; it now keeps the surface some frame faces
-(:func:`ultron.methods.evidence.faced_observation`).
+labels (σ = r/2); across a ≈ 2 mm band of bone labels with 0s above and below, that average
+never reached 0.5, so no hole became bone, and the constrained smoothing then erased most of
+the one-voxel-thick sheets the labelled frames left (figures in
+docs/decisions.md#label-compounding-hole-filling-meshcompoundingpy). ``reconstruct`` also
+meshed the band's closed surface, floor and walls included; it now keeps the surface some
+frame faces (:func:`ultron.methods.evidence.faced_observation`).
 """
 
 from __future__ import annotations

@@ -43,9 +43,10 @@ def meshing_voxel_mm(
 
         v = max(s, (region_mm3 / max_voxels)^(1/3)).
 
-    A long bone's recording (a 40 cm fibula at 0.27 mm pixels: ≈ 90 M voxels of field of view)
-    is then meshed in seconds to a minute and well under 2 GB, where a grid at the pixel spacing
-    takes minutes and > 10 GB; a small region keeps the pixel spacing."""
+    A long bone's recording is then meshed far faster and in far less memory than on a grid at
+    the pixel spacing (figures in
+    docs/decisions.md#meshing-grid-voxel-size-and-field-of-view-volume-meshgridpy); a small
+    region keeps the pixel spacing."""
     if voxel_mm:
         return voxel_mm
     spacing = min(probe.lateral_spacing_mm, probe.axial_spacing_mm)
@@ -274,7 +275,8 @@ def field_of_view_volume_mm3(
     """The volume (mm³) the frames' slabs cover together: their :func:`field_of_view_mask` on a
     grid of ``voxel_mm`` (larger where the field of view's box would hold more than
     :data:`MAX_REGION_VOXELS` of them) over that box, voxels counted × voxel volume (exact to
-    about a voxel at the slabs' borders; cheap: a 985-frame sweep takes about a second)."""
+    about a voxel at the slabs' borders; cheap even for a long sweep, see
+    docs/decisions.md#meshing-grid-voxel-size-and-field-of-view-volume-meshgridpy)."""
     bounds = field_of_view_bounds_mm(as_pose_tensor(probe_to_world), probe).numpy()
     box_mm3 = float(np.prod(np.maximum(bounds[1] - bounds[0], voxel_mm)))
     voxel_mm = max(voxel_mm, (box_mm3 / MAX_REGION_VOXELS) ** (1.0 / 3.0))

@@ -1,10 +1,11 @@
 """Constrained smoothing of a binary volume's 0.5 level set (Lempitsky, CVPR 2010).
 
 This is PyMCubes' ``smooth_constrained`` (the method ``mcubes.smooth`` picks for volumes under
-500³) with its sparse system assembled by vectorised numpy instead of a Python loop over voxels:
-on the demo's 235 × 196 × 131 crop PyMCubes spends ≈ 200 s and ≈ 6 GB building the matrix in a
-``lil_matrix``. The energy, constraints, band, Jacobi iteration and stopping rule are PyMCubes'
-own, and ``tests/test_mesh.py`` checks that both give the same embedding.
+500³) with its sparse system assembled by vectorised numpy instead of PyMCubes' Python loop over
+voxels into a ``lil_matrix``, which is slow and memory-hungry on the demo's crop (figures in
+docs/decisions.md#constrained-smoothing-pymcubes-matrix-meshsmoothingpy). The energy,
+constraints, band, Jacobi iteration and stopping rule are PyMCubes' own, and
+``tests/test_mesh.py`` checks that both give the same embedding.
 
 Energy: with u the embedding on the band B = {|d| ≤ band_radius} around the 0.5 level set (d the
 signed Euclidean distance, positive inside, ±0.5 at the border voxels) and D_a the second

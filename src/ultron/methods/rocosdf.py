@@ -24,15 +24,13 @@ shells around the labelled band, not solids.
 Presets (:data:`PRESETS`; ``RoCoSDFConfig.preset(name)`` returns a copy):
 
 * ``paper``: the code's settings — 8 × 256, batch 5000, 10k iterations per stage with 1k
-  warm-up, 200k + 150k stage-2 samples (two-cube grid candidates), 256³ over [−1, 1]³. On 2
-  CPU cores a stage-1 step takes ≈ 0.2 s and a stage-3 step ≈ 0.09 s: ≈ 85 min per case.
+  warm-up, 200k + 150k stage-2 samples (two-cube grid candidates), 256³ over [−1, 1]³. Slow on
+  a CPU (step times in docs/decisions.md#rocosdf-presets-methodsrocosdfpy).
 * ``fast`` (default): 6 × 128 (skip at 4), batch 2048, 2000 iterations per stage with 200
   warm-up, 100k + 75k stage-2 samples (candidates in the data's box), 128 samples along the
-  data box's longest side. Chosen by measurement on simulated L3 (seed 1, 100% labels):
-  1500, 2000 and 2500 iterations gave the same accuracy (MAD 1.57–1.59 mm), a stage-1 field
-  with 6 × 128 at 2000 iterations was as accurate as 8 × 256 / batch 5000 at 1000, and stage 3
-  with the 8 × 256 network, batch 5000 or 4000 iterations changed MAD by < 0.02 mm. On the
-  default L3 (seed 0, 100% labels) it takes ≈ 190 s on 2 cores (UNSR on one view ≈ 85 s).
+  data box's longest side. Chosen by measurement on simulated L3: more iterations, the paper's
+  larger network or batch did not make it more accurate, and it takes minutes on 2 cores
+  (figures in docs/decisions.md#rocosdf-presets-methodsrocosdfpy).
 """
 
 from __future__ import annotations

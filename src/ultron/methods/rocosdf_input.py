@@ -19,9 +19,9 @@ filling is done between frames: each voxel holds what was observed.
 RoCoSDF (two views) refuses a view whose bone points lie in one plane (:func:`check_views_fusable`):
 from a single frame (or frames at one position) the view's SDF is a thin shell around a planar
 curve, the fused f_csg has a zero level only where the two shells cross, and stage 2's
-near-surface sampling then accepts 40–55 of 200,000 candidates per round (≈ 2,600 on the
-60-frame L3 at 10 % labels; 0 with one frame per sweep): it would run all 200 rounds (≈ 3.6 s
-each on one busy core: ≈ 12 min) after stage 1's usual minutes, measured on one-frame L3.
+near-surface sampling then accepts almost none of its candidates per round: it would run all
+its rounds, for many minutes, after stage 1's (figures in
+docs/decisions.md#rocosdf-one-plane-views-methodsrocosdf_inputpy).
 
 Normalisation (:func:`cloud_normalisation`, a :class:`~ultron.data.geometry.UnitCube`): ONE
 transform for all views, u = (x − c)/s with c the centre of the union's bounding box and s its

@@ -9,10 +9,9 @@ T's edges or at one of its vertices. libigl's ``AABB.squared_distance`` finds th
 exactly (a bounding-volume hierarchy pruned with lower bounds, then the closed-form closest
 point of each remaining triangle; up to floating-point rounding, ≈ 1e-12 mm) in C++.
 
-It replaced a hand-written numpy search (KD-trees of triangle clusters): on the demo's L3
-reference (320k faces), 100k points took 3.8 s there and 1.1 s through libigl, with the same
-distances to 1e-14 mm (``benchmarks/distances.py`` measures it and checks against an
-independent brute force).
+It replaced a hand-written numpy search (KD-trees of triangle clusters) because it is faster
+with the same distances (``benchmarks/distances.py`` measures it and checks against an
+independent brute force; figures in docs/decisions.md#surface-distances-libigl-metricsdistancepy).
 """
 
 from __future__ import annotations

@@ -1,7 +1,8 @@
 """Whole-pipeline presets: one name sets the field fit, UltrON, ON and RoCoSDF together.
 
-- ``fast`` (the default): this project's settings, measured on tuning seeds (each
-  component's defaults; RoCoSDF's ``fast`` preset). Minutes on 2 CPU cores.
+- ``fast`` (the default): this project's settings, chosen on tuning seeds (each
+  component's defaults, whose figures docs/decisions.md gathers; RoCoSDF's ``fast`` preset).
+  Minutes on 2 CPU cores.
 - ``paper``: the configuration of the UltrON paper (``ultron-paper.tex``, METHOD.md): the
   Ultra-NeRF field as published (8 × 128 MLP, 75k iterations,
   :func:`~ultron.train.field_config.field_preset` ``"paper"``); f_ω on θ(x) alone

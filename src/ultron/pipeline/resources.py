@@ -9,10 +9,13 @@ refuses such a run at once with a one-line error saying which input made it so:
 1. outlier poses (:func:`ultron.data.outliers.check_pose_outliers`), named by frame;
 2. the meshing grid (:func:`ultron.methods.ultron_method.scan_grid`'s rule: the field of
    view's bounding box, padded by 2 voxels, at ``voxel_mm`` or the finer pixel spacing) at
-   :data:`MESH_BYTES_PER_VOXEL` bytes per voxel — the coarse-to-fine evaluation's float32
-   volumes, the masks, marching cubes and the constrained smoothing's arrays; ≈ 0.4 GB for the
-   demo's 6 M voxels, whose meshing stage measured 0.77 GB peak RSS including the process —
-   against the memory limit;
+   :data:`MESH_BYTES_PER_FOV_VOXEL` bytes per voxel of the tiles the field of view reaches,
+   :data:`VOLUME_BYTES_PER_VOXEL` per voxel of the occupancy volume and
+   :data:`MESH_FIXED_BYTES` — the coarse-to-fine evaluation's float32
+   volumes, the masks, marching cubes and the constrained smoothing's arrays (the demo's
+   estimate beside its measured peak:
+   docs/decisions.md#resource-guards-memory-estimates-pipelineresourcespy) — against the
+   memory limit;
 3. for a field that will be fitted (:func:`field_fit_memory`): the grid backend's planes
    (finest cell = pixel spacing at the fit resolution; at most ``fields.grid.MAX_RESOLUTION``
    nodes per side) at :data:`FIELD_BYTES_PER_VALUE` bytes per plane value (weight, gradient,
@@ -20,7 +23,7 @@ refuses such a run at once with a one-line error saying which input made it so:
    prior's maps, plus the largest sweep's float32 copy while resampling), the larger of a
    training step's and a no-gradient render chunk's working memory (samples ×
    :data:`FIELD_TRAIN_BYTES_PER_SAMPLE` / :data:`FIELD_RENDER_BYTES_PER_SAMPLE`) and
-   :data:`FIELD_FIXED_BYTES`. The process itself (Python, torch: ≈ 0.4 GB) is not counted.
+   :data:`FIELD_FIXED_BYTES`. The process itself (Python, torch) is not counted.
 
 The memory limit is ``--max-memory`` (GiB) where given, else this machine's memory (physical
 memory, or the cgroup's limit where lower).
@@ -65,15 +68,15 @@ MAX_COUNTED_VOXELS = 1e13
 #: Bytes per value of the field's planes while fitting: float32 weight, gradient, Adam m and v.
 FIELD_BYTES_PER_VALUE = 16
 #: A field fit's working memory per rendered sample, bytes, per backend: a training step keeps
-#: the autograd tape of its patches' samples (frames_per_batch × patch_width × rows); peak RSS
-#: grew by ≈ 0.86 kB (grid) and ≈ 8.7 kB (the paper's 8 × 128 MLP) per sample with the batch
-#: (L3 phantom, 128 × 96 frames, torch 2 on CPU). Rounded up.
+#: the autograd tape of its patches' samples (frames_per_batch × patch_width × rows). The peak
+#: RSS's measured growth per sample, rounded up (how it was measured:
+#: docs/decisions.md#resource-guards-memory-estimates-pipelineresourcespy).
 FIELD_TRAIN_BYTES_PER_SAMPLE = {"grid": 1024, "mlp": 10 * 1024}
 #: … and the no-gradient renders of the held-out checks and θ statistics (RENDER_CHUNK_FRAMES
-#: whole frames at once): ≈ 0.37 kB (grid) and ≈ 2.0 kB (MLP) per sample measured.
+#: whole frames at once), measured the same way and rounded up.
 FIELD_RENDER_BYTES_PER_SAMPLE = {"grid": 512, "mlp": 2560}
-#: A field fit's working memory independent of its size (optimiser, allocator): ≈ 65 MiB
-#: measured above the import baseline for a one-frame-batch fit of a 4-frame dataset.
+#: A field fit's working memory independent of its size (optimiser, allocator), from its
+#: measurement above the import baseline (docs/decisions.md, same section).
 FIELD_FIXED_BYTES = 64 * 1024**2
 _GIB = 1024**3
 

@@ -33,22 +33,19 @@ class FieldTrainConfig:
     ``scattering_warmup_iters``: for that many first steps (at most half the run) φ is held at
     its initial value, so the dark regions of the images can only be explained by a loss of
     transmission (α or β); then φ is released (above the heads' floor). On the tuning phantoms
-    (L3 seed 1, L4 seed 2) 500 steps of 3000 raised the share of deep-shadow pixels (true
-    T < 0.1) whose fitted T is < 0.3 from 0.80 to 0.85 (L3) at an unchanged held-out SSIM.
+    this put more of the deep shadow into T at an unchanged held-out SSIM (figures in
+    docs/decisions.md#field-fit-scattering-warm-up-trainfield_configpy).
     ``confidence_prior_weight`` / ``_margin``: weight w and margin m of the one-sided prior
     w · mean[max(0, T − C − m)²] (:func:`~ultron.train.losses.confidence_transmission_prior`),
     C the ultrasound confidence map of each training frame (Karamalis et al. 2012, computed once
     per fit at the fitting resolution). With Ultra-NeRF's heads alone the field explains the
     dark region under bone by φ → 0 and leaves T ≈ 1 there, so the attenuation-compensated loss
     compensates nothing; the prior tells the field where the image itself says no signal
-    arrives. Chosen (w = 1, m = 0.3, set once, not swept) on tuning datasets no benchmark uses
-    (L3 seed 11, L4 seed 12): over all labelled pixels the share of deep-shadow pixels (true
-    T < 0.1) with fitted T < 0.3 rose from 0.07 / 0.00 to 0.78 / 0.69 (ROC AUC shadowed vs lit
-    0.936 / 0.933 → 0.977 / 0.961; median |T − T_true| 0.015 / 0.007 → 0.180 / 0.216, lit
-    pixels' T falling to a median 0.81 / 0.77), held-out PSNR 18.59 → 18.94 dB on L3 s11, and
-    UltrON(10 %)'s visible CD fell from 1.08 / 1.25 to 0.64 / 0.64 mm (w/o loss 0.94 / 0.93:
-    the compensated loss now matters), at a coarser accuracy (MAD 0.32 / 0.26 → 0.64 / 0.62,
-    HD95 0.68 / 0.69 → 2.44 / 2.80 mm). ``paper`` and ``shadow`` presets leave it off.
+    arrives. Chosen (w = 1, m = 0.3, set once, not swept) on tuning datasets no benchmark uses:
+    it moved the deep shadow into T and lowered UltrON(10 %)'s visible CD (the compensated loss
+    now matters), at a coarser accuracy (MAD, HD95); figures in
+    docs/decisions.md#field-fit-confidence-prior-trainfield_configpy. ``paper`` and ``shadow``
+    presets leave it off.
     See :func:`field_preset` for the paper's configuration.
     """
 

@@ -1,8 +1,8 @@
 """The fit shape ``"auto"`` (the default of :class:`~ultron.train.field_config.
 FieldTrainConfig`): the frames' own size, or coarser where their pixels are finer than half the
-speckle grain they carry (:mod:`ultron.data.resolution` measures it). Fitted there, the PLUS
-spine phantom's 0.08 mm frames converge; at their own size the field collapsed to a black image
-(docs/real-sweeps.md).
+speckle grain they carry (:mod:`ultron.data.resolution` measures it), because frames finer
+than their speckle can make the fit fail, as the PLUS spine phantom's did at their own size
+(docs/decisions.md#speckle-resolution-dataresolutionpy-trainfit_shapepy).
 """
 
 from __future__ import annotations

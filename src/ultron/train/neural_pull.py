@@ -31,9 +31,9 @@ points drawn without replacement from the union of a 70³ grid over [−0.5, 0.5
 over [−1, 1]³. Each query's target is its nearest input point (KD-tree).
 
 Farthest-point sampling is a vectorised O(N·k) loop (:func:`farthest_point_sampling`): one
-min-distance update and one argmax over all N points per chosen point, in float64 numpy;
-15k samples take ≈ 0.5 s from 2·10⁴ points and ≈ 2 s from 10⁵ points on one core, so no
-voxel pre-filtering is needed at this data's size.
+min-distance update and one argmax over all N points per chosen point, in float64 numpy; fast
+enough at this data's size that no voxel pre-filtering is needed (timings in
+docs/decisions.md#neural-pull-farthest-point-sampling-trainneural_pullpy).
 
 Stage 2 (:func:`fuse_and_resample`): f_csg(x) = max_v f_v(x) (intersection of the views'
 insides). Samples: ``grid_samples`` points drawn from the union of two ``grid_resolution``³

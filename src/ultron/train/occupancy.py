@@ -20,11 +20,9 @@ mesh is cut at — is where bone is as likely as not. ``positive_weight=None`` g
 equal total weight instead (positives weighted by n_neg / n_pos, capped at
 ``max_positive_weight``: a "balanced" BCE, which the ON baseline keeps). Balancing moves the
 0.5 level to a posterior of 1 / (1 + w): with w = 20, every point that is bone with 5 %
-probability is meshed. Measured on tuning data only (L3 seed 11, UltrON reading θ and its 1 mm
-neighbours, held-out labelled frames, pixels with f ≥ 0.5): balanced precision 0.24 / recall
-0.77 and 2.8 % of the lit background called bone; w = 2: 0.60 / 0.57 / 0.41 %; w = 1:
-0.68 / 0.49 / 0.23 %. Meshed, the unweighted loss gives MAD 0.30 mm and HD95 0.67 mm (module
-:mod:`ultron.fields.context` has the figures).
+probability is meshed. On tuning data, balancing called far more of the lit background bone
+and lost precision for its extra recall, so the unweighted loss is the default; figures in
+docs/decisions.md#occupancy-class-balance-trainoccupancypy.
 
 Optimisation: Adam (lr 1e-4) with an exponential decay that reaches ``final_lr_factor``× the
 initial rate at the last iteration, shuffled minibatches drawn with a seeded generator.
@@ -47,14 +45,12 @@ from ultron.train.loop import Progress, run_training
 LOSSES = ("ultron", "bce")
 #: How the compensated loss treats background labels: scaled by T (``weighted``, the paper's
 #: BCE(T·f, y)) or kept at full weight where T ≥ ``observed_transmission`` and dropped
-#: elsewhere (``observed``, the default). Measured on tuning datasets only (L3 seed 11 with
-#: occupancy seeds 0 and 1, L4 seed 12, L2 seed 11; fields with the confidence prior, 10 %
-#: labels, observed surface), weighted → observed: CD vis. 0.642 → 0.563, 0.580 → 0.587,
-#: 0.639 → 0.610, 0.780 → 0.635 mm; MAD 0.64 → 0.52, 0.51 → 0.37, 0.62 → 0.49, 0.87 → 0.60;
-#: HD95 2.44 → 2.44, 1.78 → 1.20, 2.80 → 1.81, 2.97 → 2.52; the price: Comp. vis. 0.66 → 0.71
-#: mm on average and F-score at 1 mm 0.35 → 0.33. The T-weighted negatives let f grow towards
-#: the probe and sideways wherever the field's T is below 1 in lit gel (it is ≈ 0.65 just
-#: above bone with the confidence prior); with hard observed negatives that gel is free space.
+#: elsewhere (``observed``, the default). The T-weighted negatives let f grow towards the probe
+#: and sideways wherever the field's T is below 1 in lit gel (as it is just above bone with the
+#: confidence prior); with hard observed negatives that gel is free space. Chosen on tuning
+#: datasets because it lowered MAD, and HD95 and the visible CD on most runs, at a small cost
+#: in visible completeness and F-score; figures in
+#: docs/decisions.md#occupancy-observed-negatives-trainoccupancypy.
 NEGATIVES = ("weighted", "observed")
 #: T above which a background label is observed free space: the observed-surface criterion's
 #: and the simulated annotator's threshold (:mod:`ultron.mesh.observed`), not tuned.

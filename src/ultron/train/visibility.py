@@ -242,9 +242,9 @@ def confidence_maps(
     report: Callable[[int, int], None] | None = None,
 ) -> np.ndarray:
     """:func:`confidence_map` of every frame (N, H, W) → float32 (N, H, W), ``workers`` frames
-    at a time on threads (the sparse solve, ≈ 0.3 s for a 30 k-pixel frame, releases the GIL:
-    2 threads take half the time; the maps are the same); ``report`` is told (done, N) as
-    frames finish, in order."""
+    at a time on threads (the sparse solve releases the GIL, so the threads run in parallel;
+    the maps are the same; timings in docs/decisions.md#confidence-maps-threads-trainvisibilitypy);
+    ``report`` is told (done, N) as frames finish, in order."""
     from concurrent.futures import ThreadPoolExecutor
 
     cfg = config or ConfidenceConfig()
