@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 
 from common import add_arguments, prepare, print_results, print_targets, run_all
+from ultron.methods.registry import METHODS
 
 RUNS = (
     ("UltrON (10%)", "ultron", 0.10),
@@ -39,9 +40,7 @@ def main() -> None:
     runs = [r for r in RUNS if r[1] not in skip]
     dataset_dir, field_dir, field_seconds = prepare(args)
     sdf = {"rocosdf_preset": args.preset}
-    requests = {
-        label: sdf for label, method, _ in runs if method in ("rocosdf", "unsr-row", "unsr-col")
-    }
+    requests = {label: sdf for label, method, _ in runs if not METHODS[method].scan_grid}
     results = run_all(args, runs, dataset_dir, field_dir, requests)
     print(f"RoCoSDF / UNSR preset: {args.preset}")
     print_results(args, results, dataset_dir, field_dir, field_seconds)

@@ -43,7 +43,8 @@ from ultron.metrics.surface import MetricsConfig
 from ultron.phantom import SimulationConfig, simulate_dataset
 from ultron.pipeline.presets import pipeline_preset
 from ultron.pipeline.run import ReconstructionRequest, reconstruct
-from ultron.train.field_fit import _prepare, make_optimizer, training_step
+from ultron.train.field_fit import _prepare, make_optimizer, training_objective
+from ultron.train.loop import descend
 from ultron.train.occupancy import OccupancyTrainConfig, OccupancyTrainingData, fit_occupancy
 
 
@@ -75,7 +76,7 @@ def field_step_seconds(dataset: SweepDataset, preset: str, device: torch.device,
     render = config.render.rescaled(dataset.probe, frames.probe)
 
     def step() -> None:
-        training_step(module, optimizer, frames, cube, render, config, generator)
+        descend([optimizer], training_objective(module, frames, cube, render, config, generator)[0])
 
     return timed(device, step, steps)
 

@@ -35,7 +35,8 @@ from ultron.data.dataset import SweepDataset
 from ultron.data.geometry import UnitCube, field_of_view_bounds_mm
 from ultron.fields import FieldConfig, build_field
 from ultron.train import FieldTrainConfig, FrameSet, fit_field
-from ultron.train.field_fit import make_optimizer, training_step
+from ultron.train.field_fit import make_optimizer, training_objective
+from ultron.train.loop import descend
 
 
 def peak_rss_gb() -> float:
@@ -53,7 +54,8 @@ def step_timer(backend: str, frames: FrameSet, cube: UnitCube, config: FieldTrai
 
     def run() -> float:
         started = time.perf_counter()
-        training_step(module, optimizer, frames, cube, config.render, step_config, generator)
+        loss = training_objective(module, frames, cube, config.render, step_config, generator)[0]
+        descend([optimizer], loss)
         return time.perf_counter() - started
 
     return run
@@ -77,6 +79,8 @@ def main() -> None:
         overrides["patch_width"] = args.patch_width
     config = FieldTrainConfig(fit_shape=shape, **overrides)
     frames = FrameSet.from_dataset(dataset, shape, config.holdout_every)
+    if config.confidence_prior_weight > 0:  # the default prior reads the confidence maps
+        frames = frames.with_confidence()
     print(
         f"dataset {args.dataset}: {frames.images.shape[0]} frames resampled to {shape[0]}x{shape[1]}"
         f" (native {dataset.probe.height_px}x{dataset.probe.width_px}); torch threads"

@@ -37,19 +37,22 @@ import sys
 import time
 from pathlib import Path
 
+from ultron.methods.catalog import FIELD_METHODS
+
 GIB = 1024**3
 #: A reconstruction at another meshing voxel: ``reconstruct`` with the CLI's own request.
 FINE_RECONSTRUCT = """
 import sys
 from dataclasses import replace
 from ultron.cli.reconstruct_cmds import _request
+from ultron.methods.catalog import FIELD_METHODS
 from ultron.pipeline.run import reconstruct
 dataset, field, out, method, fraction, seed, iters, points, voxel = sys.argv[1:]
 request = _request(method, float(fraction), int(seed), int(iters), int(points))
 voxel = float(voxel)
 request = replace(request, ultron=replace(request.ultron, voxel_mm=voxel),
                   compounding=replace(request.compounding, voxel_mm=voxel))
-reconstruct(dataset, request, out, field_dir=field if method == "ultron" else None)
+reconstruct(dataset, request, out, field_dir=field if method in FIELD_METHODS else None)
 """
 
 
@@ -102,7 +105,7 @@ def reconstruct_command(dataset: Path, field: Path, out: Path, method: str, args
         "--label-fraction", str(args.label_fraction), "--seed", str(args.seed),
         "--points", str(args.points),
     ]  # fmt: skip
-    if method == "ultron":
+    if method in FIELD_METHODS:
         command += ["--field", str(field), "--occupancy-iters", str(args.occupancy_iters)]
     return command
 

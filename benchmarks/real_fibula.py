@@ -42,10 +42,10 @@ import time
 from pathlib import Path
 
 from long_sweep import GIB, run_stage
+from ultron.methods.catalog import FIELD_METHODS
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "ultrabones-fibula"
 METHODS = ("compounding", "ultron", "ultron-noloss", "on", "rocosdf")
-FIELD_METHODS = ("ultron", "ultron-noloss")
 #: Depth tolerance of the auto-label scores: 1 mm in rows of 0.2696 mm, rounded down.
 TOLERANCE_MM = 1.0
 

@@ -12,8 +12,22 @@ import torch
 from ultron.data.dataset import ProbeGeometry, Sweep, SweepDataset
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
+#: Under pytest-xdist (the README's test command runs ``-n auto``) the cores are shared out
+#: between the workers: torch gets this worker's share of threads, not every core.
+if workers := int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "0")):
+    torch.set_num_threads(max(1, (os.cpu_count() or 1) // workers))
 SHARED = Path(os.environ.get("ULTRON_SHARED", REPO_ROOT.parent / "shared"))
 L2_SAMPLE = SHARED / "data" / "ultranerf-synthetic-l2"
+
+
+@pytest.fixture(scope="session", autouse=True)
+def private_field_cache(tmp_path_factory):
+    """Fields the tests fit into the cache go to this session's temporary directory: never the
+    user's ``~/.cache/ultron``, never another xdist worker's."""
+    patch = pytest.MonkeyPatch()
+    patch.setenv("ULTRON_CACHE", str(tmp_path_factory.mktemp("field-cache")))
+    yield
+    patch.undo()
 
 
 @pytest.fixture

@@ -285,3 +285,18 @@ def test_new_dataset_directory_is_not_private(tmp_path: Path, tiny_dataset: Swee
         os.umask(previous)
     assert stat.S_IMODE((tmp_path / "ds").stat().st_mode) == 0o755  # not mkdtemp's 0700
     assert stat.S_IMODE((tmp_path / "ds" / "row" / "images.npy").stat().st_mode) == 0o644
+
+
+def test_memoized_measures_once_per_dataset_object():
+    dataset = SweepDataset(ProbeGeometry(6.0, 8.0, 8, 6), [make_sweep()])
+    calls = []
+
+    def measure(d: SweepDataset) -> int:
+        calls.append(d)
+        return len(calls)
+
+    assert dataset.memoized("m", measure) == 1 and dataset.memoized("m", measure) == 1
+    assert dataset.memoized("other", measure) == 2  # another key, another measurement
+    copy = replace(dataset, metadata={"x": 1})  # a new object remembers nothing
+    assert copy.memoized("m", measure) == 3 and calls == [dataset, dataset, copy]
+    assert copy == replace(dataset, metadata={"x": 1})  # the memo takes no part in equality

@@ -26,8 +26,9 @@ from ultron.errors import UltronInputError
 from ultron.fields.factory import build_field
 from ultron.render.renderer import RenderConfig, render_field
 from ultron.train.field_config import FieldTrainConfig
-from ultron.train.field_fit import training_step
+from ultron.train.field_fit import training_objective
 from ultron.train.frames import FrameSet
+from ultron.train.loop import descend
 from ultron.train.occupancy import OccupancyTrainConfig, observed_negatives_bce
 
 NO_CUDA = not torch.cuda.is_available()
@@ -118,7 +119,10 @@ def test_training_step_runs_on_the_field_device(tiny_l3, prior):
     optimizer = torch.optim.Adam(module.parameters(), lr=config.lr)  # fused has no meta kernel
     generator = torch.Generator().manual_seed(0)
     with StrictDevices():
-        loss, mse = training_step(module, optimizer, frames, cube, config.render, config, generator)
+        total, loss, mse = training_objective(
+            module, frames, cube, config.render, config, generator
+        )
+        descend([optimizer], total)
     assert loss.device == META and mse.device == META
 
 

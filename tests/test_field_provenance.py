@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from torch.optim.optimizer import register_optimizer_step_pre_hook
 from typer.testing import CliRunner
 
 from field_configs import quick_field_config
@@ -22,7 +23,6 @@ from ultron.metrics.surface import MetricsConfig
 from ultron.models.field_dir import check_field_dataset
 from ultron.pipeline import run as run_module
 from ultron.pipeline.run import ReconstructionRequest, load_or_fit_field, reconstruct
-from ultron.train import field_fit
 from ultron.train.field_fit import FieldTrainConfig, fit_field, learning_rate_at
 
 PROBE = ProbeGeometry(width_mm=8.0, depth_mm=9.0, height_px=24, width_px=16)
@@ -109,22 +109,20 @@ def test_cli_fit_field_other_dataset_and_no_resume(tmp_path: Path) -> None:
 
 
 # ----------------------------------------------------------------- learning-rate schedule
-def _record_rates(monkeypatch) -> list[float]:
-    """The learning rate every training step actually runs with, in order."""
-    rates: list[float] = []
-    original = field_fit.training_step
+@pytest.fixture
+def rates() -> list[float]:
+    """The learning rate every optimiser step actually runs with, in order (a global
+    step pre-hook of torch's optimisers, removed after the test)."""
+    seen: list[float] = []
+    handle = register_optimizer_step_pre_hook(
+        lambda optimizer, args, kwargs: seen.append(optimizer.param_groups[0]["lr"])
+    )
+    yield seen
+    handle.remove()
 
-    def recording(module, optimizer, *args, **kwargs):
-        rates.append(optimizer.param_groups[0]["lr"])
-        return original(module, optimizer, *args, **kwargs)
 
-    monkeypatch.setattr(field_fit, "training_step", recording)
-    return rates
-
-
-def test_raised_iters_follow_the_new_totals_schedule(tmp_path: Path, monkeypatch) -> None:
+def test_raised_iters_follow_the_new_totals_schedule(tmp_path: Path, rates: list[float]) -> None:
     data = make_dataset(0)
-    rates = _record_rates(monkeypatch)
     logged: dict[str, dict[int, float]] = {"fresh": {}, "resumed": {}}
 
     def log_into(name: str):

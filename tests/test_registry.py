@@ -2,12 +2,19 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
+from dataclasses import replace
+
 import pytest
 from typer.testing import CliRunner
 
 from ultron.cli.main import app
 from ultron.errors import UltronInputError
 from ultron.mesh.compounding import CompoundingConfig
+from ultron.methods.catalog import CATALOG
+from ultron.methods.catalog import FIELD_METHODS as CATALOG_FIELD
+from ultron.methods.catalog import METHOD_NAMES as CATALOG_NAMES
 from ultron.methods.on_method import ONConfig
 from ultron.methods.registry import FIELD_METHODS, METHODS, MethodInputs, get_method
 from ultron.methods.rocosdf import RoCoSDFConfig
@@ -57,9 +64,35 @@ def test_a_field_method_without_a_field_is_a_clear_error(name, tiny_dataset):
 def test_reconstruct_help_lists_every_registered_method():
     result = CliRunner().invoke(app, ["reconstruct", "--help"], terminal_width=300)
     assert result.exit_code == 0
-    text = " ".join(result.output.split())
-    for name in METHODS:
-        assert name in text, name
+    text = " ".join(result.output.replace("│", " ").split())
+    *first, last = METHODS
+    assert f"{', '.join(first)} or {last}." in text
+
+
+def test_the_catalog_lists_the_registry_without_loading_it():
+    assert CATALOG_NAMES == tuple(METHODS) and FIELD_METHODS == CATALOG_FIELD
+    assert tuple(i.name for i in CATALOG if i.needs_field) == FIELD_METHODS
+    assert all(METHODS[i.name].needs_field is i.needs_field for i in CATALOG)
+    code = "import sys, ultron.methods.catalog; print('torch' in sys.modules)"
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert result.stdout.strip() == "False", result.stderr
+
+
+def test_each_method_owns_its_meshing_voxel_and_loss():
+    request = ReconstructionRequest(
+        ultron=UltronConfig(voxel_mm=0.7),
+        compounding=CompoundingConfig(voxel_mm=0.3),
+        on=replace(ONConfig(), meshing=replace(ONConfig().meshing, voxel_mm=0.9)),
+    )
+    voxels = {name: METHODS[name].meshing_voxel(request) for name in METHODS}
+    assert voxels == {
+        "ultron": 0.7, "ultron-noloss": 0.7, "compounding": 0.3, "on": 0.9,
+        "rocosdf": 0.7, "unsr-row": 0.7, "unsr-col": 0.7,
+    }  # fmt: skip
+    assert {n: METHODS[n].loss for n in FIELD_METHODS} == {
+        "ultron": "ultron",
+        "ultron-noloss": "bce",
+    }
 
 
 def test_benchmark_plans_fields_from_the_registry(tmp_path):

@@ -29,6 +29,7 @@ from ultron.device import resolve_device
 from ultron.errors import argument_error
 from ultron.methods.on_method import ONConfig
 from ultron.methods.registry import get_method
+from ultron.methods.request import ROCOSDF_PRESETS, ReconstructionRequest
 from ultron.methods.ultron_method import UltronConfig
 from ultron.metrics.surface import METRIC_NAMES, MetricsConfig
 from ultron.phantom.annotation import AnnotationConfig
@@ -36,7 +37,6 @@ from ultron.phantom.dataset import SimulationConfig
 from ultron.phantom.protocols import TrackingNoise
 from ultron.phantom.shapes import BENCHMARK_PHANTOMS
 from ultron.pipeline.presets import pipeline_preset
-from ultron.pipeline.run import ROCOSDF_PRESETS, ReconstructionRequest
 from ultron.train.field_fit import FieldTrainConfig
 from ultron.train.occupancy import OccupancyTrainConfig
 
@@ -55,7 +55,10 @@ SOURCE_PHANTOM, TARGET_PHANTOM = "L3", "L2"  # Table 2: train on L3, apply to L2
 
 @dataclass(frozen=True)
 class Row:
-    """A table row: how each of its cells is computed (``method`` "finetune" for Table 2)."""
+    """A table row: how each of its cells is computed. A row with ``finetune_iters`` (Table 2)
+    fine-tunes the model trained on the source phantom for that many iterations (0: applies it
+    as it is) on ``label_fraction`` of the target's frames; ``method`` names the registered
+    method the model was trained with."""
 
     name: str
     slug: str
@@ -81,10 +84,19 @@ TABLE1_ROWS = (
     ),
 )
 ROW = {row.name: row for row in TABLE1_ROWS}
-ULTRON_10, ROCOSDF_100 = ROW["UltrON (10%)"], ROW["RoCoSDF (100%)"]
+ULTRON_10, ULTRON_5, NOLOSS_10 = (
+    ROW["UltrON (10%)"],
+    ROW["UltrON (5%)"],
+    ROW["UltrON w/o loss (10%)"],
+)
+ON_100, ROCOSDF_100, COMPOUNDING_10 = (
+    ROW["ON (100%)"],
+    ROW["RoCoSDF (100%)"],
+    ROW["compounding (10%)"],
+)
 TABLE2_ROWS = (
-    Row("w/o fine-tuning", "finetune-direct", "finetune", 0.01, 0),
-    Row("1% + 100 iter", "finetune-1pct-100", "finetune", 0.01, 100),
+    Row("w/o fine-tuning", "finetune-direct", ULTRON_10.method, 0.01, 0),
+    Row("1% + 100 iter", "finetune-1pct-100", ULTRON_10.method, 0.01, 100),
     Row("full training", ULTRON_10.slug, ULTRON_10.method, ULTRON_10.label_fraction),
 )
 ROBUSTNESS_METHODS = (ULTRON_10, ROCOSDF_100)
@@ -445,12 +457,12 @@ class _Planner:
         sim_id, field_id = self.dataset(spec)
         config, out = self.config, str(self.out / "runs" / spec.name / row.slug)
         dataset_dir, field_dir = str(spec.dataset_dir(self.out)), str(spec.field_dir(self.out))
-        if row.method == "finetune":
+        if row.finetune_iters is not None:
             if model_task is None:
                 raise argument_error("model_task", "a fine-tuning row needs its model's task")
             model_dir = self.plan.tasks[model_task].job.out
             job: Any = FinetuneJob(
-                model_dir, dataset_dir, field_dir, row.label_fraction, int(row.finetune_iters or 0),
+                model_dir, dataset_dir, field_dir, row.label_fraction, row.finetune_iters,
                 spec.seed, out, config.ultron, config.metrics, config.device,
             )  # fmt: skip
             deps: tuple[str, ...] = (field_id, model_task)

@@ -20,8 +20,11 @@ import numpy as np
 from ultron.benchmark.paper import PAPER_METRICS, paper_figures, paper_means
 from ultron.benchmark.plan import (
     ANNOTATION,
+    COMPOUNDING_10,
     DEFAULT,
     METRICS,
+    NOLOSS_10,
+    ON_100,
     POSE,
     ROBUSTNESS,
     ROBUSTNESS_METHODS,
@@ -32,6 +35,7 @@ from ultron.benchmark.plan import (
     TABLE2,
     TABLE2_ROWS,
     TARGET_PHANTOM,
+    ULTRON_5,
     ULTRON_10,
     CellEntry,
     robustness_row,
@@ -185,8 +189,8 @@ def _relative(ours: float, theirs: float) -> str:
 def table1_targets(rows: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
     """The paper's Table 1 claims, checked on the measured CD means, then
     :func:`visible_targets`."""
-    u10, u5 = ULTRON_10.name, "UltrON (5%)"
-    noloss, on, roco = "UltrON w/o loss (10%)", "ON (100%)", ROCOSDF_100.name
+    u10, u5 = ULTRON_10.name, ULTRON_5.name
+    noloss, on, roco = NOLOSS_10.name, ON_100.name, ROCOSDF_100.name
     cd = {row["row"]: _figure(rows, row["row"]) for row in rows}
     ours = cd.get(u10)
     others = {k: v for k, v in cd.items() if k != u10 and v is not None}
@@ -236,11 +240,11 @@ def visible_targets(rows: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
     """Issue 15's claims on what the sweeps could see: UltrON (10%)'s CD vis. below
     compounding (10%)'s, ≥ 26 % below ON (100%)'s and RoCoSDF (100%)'s, ≥ 10 % below its
     ablation's, and its (one-sided) HD95 ≤ 3 mm."""
-    u10, noloss = ULTRON_10.name, "UltrON w/o loss (10%)"
+    u10, noloss = ULTRON_10.name, NOLOSS_10.name
     ours = _figure(rows, u10, "cd_visible")
     checks = (
-        ("compounding (10%)", 0.0),
-        ("ON (100%)", CD_MARGIN_TARGET),
+        (COMPOUNDING_10.name, 0.0),
+        (ON_100.name, CD_MARGIN_TARGET),
         (ROCOSDF_100.name, CD_MARGIN_TARGET),
         (noloss, LOSS_GAIN_TARGET),
     )

@@ -22,6 +22,7 @@ from ultron.cli.common import (
     user_errors,
     warning_line,
 )
+from ultron.methods.catalog import method_help
 
 MESH_COORDINATES = ("lps", "ras")  # ultron.mesh.export.MESH_COORDINATES (lazy import)
 MeshCoordinates = Annotated[
@@ -66,9 +67,7 @@ OccupancyIters = Annotated[
 ]
 Method = Annotated[
     str,
-    typer.Option(
-        "--method", help="ultron, ultron-noloss, compounding, on, rocosdf, unsr-row or unsr-col."
-    ),
+    typer.Option("--method", help=method_help()),
 ]
 Preset = Annotated[
     str,

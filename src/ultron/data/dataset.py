@@ -26,16 +26,15 @@ of simulated data, for diagnosis only (never read by a reconstruction):
 
 from __future__ import annotations
 
-import functools
 import hashlib
 import json
 import os
 import re
 import shutil
-from collections.abc import Collection
+from collections.abc import Callable, Collection
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -53,6 +52,8 @@ from ultron.data.validation import (
     validate_transmission,
 )
 from ultron.errors import UltronInputError, argument_error, read_json_file
+
+_T = TypeVar("_T")
 
 FORMAT = "ultron-sweeps/1"
 SWEEP_KINDS = ("row", "column", "tilted", "other")
@@ -176,6 +177,7 @@ class SweepDataset:
     reference: Path | None = None
     metadata: dict[str, Any] = field(default_factory=dict)
     reference_visible_path: Path | None = None
+    _memo: dict[str, Any] = field(default_factory=dict, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         if not self.sweeps:
@@ -206,15 +208,14 @@ class SweepDataset:
             "sweep", f"no sweep {name!r}; available: {[s.name for s in self.sweeps]}"
         )
 
-    @functools.cached_property
-    def resolved_shape(self) -> tuple[int, int] | None:
-        """The frame shape that samples this dataset's speckle (None: its own), measured once
-        per dataset object — the field fit, the pre-flight checks and the meshing voxel all ask
-        (:func:`ultron.data.resolution.measure_resolved_shape`; a dataset's frames are not
-        changed after construction, :func:`dataclasses.replace` makes a new one)."""
-        from ultron.data.resolution import measure_resolved_shape
-
-        return measure_resolved_shape(self)
+    def memoized(self, key: str, compute: Callable[[SweepDataset], _T]) -> _T:
+        """``compute(self)``, computed once per dataset object under ``key``: measurements of
+        the frames that several stages ask for (the speckle's resolved shape: the field fit,
+        the pre-flight checks and the meshing voxel). A dataset's frames are not changed after
+        construction; :func:`dataclasses.replace` makes a new object with nothing memoized."""
+        if key not in self._memo:
+            self._memo[key] = compute(self)
+        return self._memo[key]
 
     def all_poses(self) -> np.ndarray:
         """Every frame's probe-to-world pose, sweeps concatenated in order, (N_total, 4, 4)."""

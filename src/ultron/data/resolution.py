@@ -71,10 +71,10 @@ def _full_width_at_half(correlation: np.ndarray) -> float:
 
 def resolved_shape(dataset: SweepDataset) -> tuple[int, int] | None:
     """The frame shape that samples ``dataset``'s speckle (module doc), measured once per
-    dataset object (:attr:`SweepDataset.resolved_shape`)."""
+    dataset object (:meth:`SweepDataset.memoized`)."""
     if not isinstance(dataset, SweepDataset):
         raise argument_error("dataset", "expected a SweepDataset")
-    return dataset.resolved_shape
+    return dataset.memoized("resolved_shape", measure_resolved_shape)
 
 
 def measure_resolved_shape(dataset: SweepDataset) -> tuple[int, int] | None:

@@ -2,9 +2,11 @@
 
 ``METHODS`` maps a method's name (``reconstruct --method``) to a :class:`Method`: whether it
 needs a fitted acoustic field, the class of its settings (held by the
-:class:`~ultron.pipeline.run.ReconstructionRequest`), and ``fit(dataset, inputs)`` →
-:class:`~ultron.methods.ultron_method.Reconstruction`. The CLI, the benchmark and the reports
-read it instead of keeping their own lists:
+:class:`~ultron.methods.request.ReconstructionRequest`), the voxel it meshes at, and
+``fit(dataset, inputs)`` → :class:`~ultron.methods.ultron_method.Reconstruction`. The names
+and which need a field come from :mod:`ultron.methods.catalog` (readable
+without torch, for the CLI); this module checks at import that both list the same methods.
+The pipeline, the benchmark and the reports read them instead of keeping their own lists:
 
 =================  ====================================================  ============
 name               module                                                needs field
@@ -24,7 +26,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from types import MappingProxyType
-from typing import TYPE_CHECKING, Any, Protocol
+from typing import Any, Protocol
 
 import torch
 
@@ -33,14 +35,13 @@ from ultron.data.labels import select_label_frames
 from ultron.device import CPU
 from ultron.errors import argument_error
 from ultron.mesh.compounding import CompoundingConfig
+from ultron.methods.catalog import FIELD_METHODS, METHOD_NAMES
 from ultron.methods.compounding_method import reconstruct_compounding
 from ultron.methods.on_method import ONConfig, reconstruct_on
+from ultron.methods.request import ReconstructionRequest, check_method_name
 from ultron.methods.rocosdf import RoCoSDFConfig, reconstruct_rocosdf
 from ultron.methods.ultron_method import Reconstruction, UltronConfig, reconstruct_ultron
 from ultron.timing import StageTimer
-
-if TYPE_CHECKING:
-    from ultron.pipeline.run import ReconstructionRequest
 
 
 @dataclass(frozen=True)
@@ -68,6 +69,11 @@ class Method(Protocol):
     scan_grid: bool
     config_class: type
 
+    def meshing_voxel(self, request: ReconstructionRequest) -> float | None:
+        """The voxel, mm, ``request`` asks this method to mesh at (None: its default, the
+        finer pixel spacing); the run checks the grid's memory with it before any work."""
+        ...
+
     def fit(self, dataset: SweepDataset, inputs: MethodInputs) -> Reconstruction: ...
 
 
@@ -76,16 +82,25 @@ class MethodBase:
     """The defaults of a :class:`Method`: no field, meshed on the scan grid."""
 
     name: str
-    needs_field: bool = False
     scan_grid: bool = True
     config_class: type = object
+
+    @property
+    def needs_field(self) -> bool:
+        """Whether it reads a fitted acoustic field (:mod:`ultron.methods.catalog`)."""
+        return self.name in FIELD_METHODS
+
+    def meshing_voxel(self, request: ReconstructionRequest) -> float | None:
+        """UltrON's meshing voxel: the voxel of every method meshed like UltrON."""
+        return request.ultron.voxel_mm
 
 
 @dataclass(frozen=True)
 class UltronMethod(MethodBase):
-    """UltrON (``ultron``) or its ablation without the compensated loss (``ultron-noloss``)."""
+    """UltrON (``ultron``, ``loss`` "ultron": the attenuation-compensated loss) or its ablation
+    (``ultron-noloss``, ``loss`` "bce")."""
 
-    needs_field: bool = True
+    loss: str = "ultron"
     config_class: type = UltronConfig
 
     def fit(self, dataset: SweepDataset, inputs: MethodInputs) -> Reconstruction:
@@ -94,7 +109,7 @@ class UltronMethod(MethodBase):
         request = inputs.request
         config = replace(request.ultron, label_fraction=request.label_fraction, seed=request.seed)
         return reconstruct_ultron(
-            dataset, inputs.fitted, self.name, config, inputs.timer, inputs.truth, inputs.device
+            dataset, inputs.fitted, self.loss, config, inputs.timer, inputs.truth, inputs.device
         )
 
 
@@ -103,6 +118,9 @@ class CompoundingMethod(MethodBase):
     """Label compounding, meshed with UltrON's extraction and observed-surface settings."""
 
     config_class: type = CompoundingConfig
+
+    def meshing_voxel(self, request: ReconstructionRequest) -> float | None:
+        return request.compounding.voxel_mm
 
     def fit(self, dataset: SweepDataset, inputs: MethodInputs) -> Reconstruction:
         r = inputs.request
@@ -117,6 +135,9 @@ class ONMethod(MethodBase):
     """The coordinate occupancy network."""
 
     config_class: type = ONConfig
+
+    def meshing_voxel(self, request: ReconstructionRequest) -> float | None:
+        return request.on.meshing.voxel_mm
 
     def fit(self, dataset: SweepDataset, inputs: MethodInputs) -> Reconstruction:
         r = inputs.request
@@ -146,8 +167,8 @@ METHODS: Mapping[str, Method] = MappingProxyType(
     {
         method.name: method
         for method in (
-            UltronMethod("ultron"),
-            UltronMethod("ultron-noloss"),
+            UltronMethod("ultron", loss="ultron"),
+            UltronMethod("ultron-noloss", loss="bce"),
             CompoundingMethod("compounding"),
             ONMethod("on"),
             SDFMethod("rocosdf", views=("row", "column")),
@@ -156,15 +177,13 @@ METHODS: Mapping[str, Method] = MappingProxyType(
         )
     }
 )
-#: The methods that read a fitted acoustic field.
-FIELD_METHODS = tuple(name for name, method in METHODS.items() if method.needs_field)
+if tuple(METHODS) != METHOD_NAMES:  # the catalog and the registry list the same methods
+    raise RuntimeError(f"registry {tuple(METHODS)} differs from the catalog {METHOD_NAMES}")
 
 
 def get_method(name: str) -> Method:
     """The registered method ``name``; an unknown one is an error naming ``method``."""
-    if name not in METHODS:
-        raise argument_error("method", f"expected one of {tuple(METHODS)}, got {name!r}")
-    return METHODS[name]
+    return METHODS[check_method_name(name)]
 
 
 __all__ = ["FIELD_METHODS", "METHODS", "Method", "MethodInputs", "get_method"]

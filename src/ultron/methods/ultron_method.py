@@ -48,7 +48,12 @@ from ultron.mesh.grid import GridSpec, field_of_view_volume_mm3, meshing_voxel_m
 from ultron.mesh.observed import ObservedSurfaceConfig, SurfaceObservation, observe_surface
 from ultron.mesh.tiles import evaluate_tiles, field_of_view_tiles, tile_for_factor
 from ultron.timing import StageTimer
-from ultron.train.occupancy import OccupancyTrainConfig, OccupancyTrainingData, fit_occupancy
+from ultron.train.occupancy import (
+    LOSSES,
+    OccupancyTrainConfig,
+    OccupancyTrainingData,
+    fit_occupancy,
+)
 from ultron.train.visibility import (
     VisibilityConfig,
     field_theta_transmission,
@@ -56,8 +61,6 @@ from ultron.train.visibility import (
     pixel_transmission,
     transmission_summary,
 )
-
-METHOD_LOSSES = {"ultron": "ultron", "ultron-noloss": "bce"}
 
 
 @dataclass(frozen=True)
@@ -292,20 +295,21 @@ def keep_observed_surface(
 def reconstruct_ultron(
     dataset: SweepDataset,
     fitted,
-    method: str,
+    loss: str,
     config: UltronConfig,
     timer: StageTimer,
     truth: Mapping[str, np.ndarray] | None = None,
     device: torch.device | str | None = None,
 ) -> Reconstruction:
-    """Run stages 2 and 3 of UltrON (``method`` ``ultron`` or ``ultron-noloss``); ``truth``
-    is the oracle's true T per sweep (only for ``config.visibility.source == "oracle"``).
-    f_ω trains and is evaluated on ``device`` (default: the fitted field's)."""
-    if method not in METHOD_LOSSES:
-        raise argument_error("method", f"expected one of {tuple(METHOD_LOSSES)}, got {method!r}")
+    """Run stages 2 and 3 of UltrON with ``loss`` (:data:`ultron.train.occupancy.LOSSES`:
+    "ultron", the attenuation-compensated loss, or "bce", the ablation's); ``truth`` is the
+    oracle's true T per sweep (only for ``config.visibility.source == "oracle"``). f_ω trains
+    and is evaluated on ``device`` (default: the fitted field's)."""
+    if loss not in LOSSES:
+        raise argument_error("loss", f"expected one of {LOSSES}, got {loss!r}")
     occupancy_config = replace(
         config.occupancy,
-        loss=METHOD_LOSSES[method],
+        loss=loss,
         network=config.context.network(config.occupancy.network, len(fitted.channels)),
     )
     with timer.stage("labels"):

@@ -38,11 +38,10 @@ from ultron.device import map_chunks
 from ultron.errors import argument_error
 from ultron.phantom.long_bone import LongBoneShape
 from ultron.phantom.primitives import Ellipsoid, Primitive, SegmentBox, VertebralBody, union_sdf
+from ultron.phantom.volume import SdfVolume
 
 if TYPE_CHECKING:
     import trimesh
-
-    from ultron.phantom.volume import SdfVolume
 
 #: Grid spacing of the SDF volume and the reference mesh, mm, and the gel margin around the bone.
 DEFAULT_VOXEL_MM = 0.3
@@ -272,8 +271,6 @@ class Phantom:
 
     @functools.cached_property
     def _default_volume(self) -> SdfVolume:  # at 0.3 mm, margin 3 mm
-        from ultron.phantom.volume import SdfVolume
-
         return SdfVolume.from_phantom(self, DEFAULT_VOXEL_MM, DEFAULT_MARGIN_MM)
 
     @functools.cached_property
@@ -304,8 +301,6 @@ class Phantom:
     ) -> SdfVolume:
         """The SDF sampled on a regular grid (an :class:`~ultron.phantom.volume.SdfVolume`) over
         the bone grown by ``margin_mm``; the default grid is computed once per phantom."""
-        from ultron.phantom.volume import SdfVolume
-
         if voxel_mm == DEFAULT_VOXEL_MM and margin_mm == DEFAULT_MARGIN_MM:
             return self._default_volume
         return SdfVolume.from_phantom(self, voxel_mm, margin_mm)

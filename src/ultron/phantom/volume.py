@@ -9,7 +9,7 @@ The same grid gives the reference mesh by marching cubes.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 import torch
@@ -24,7 +24,16 @@ from ultron.mesh.marching import marching_cubes
 if TYPE_CHECKING:
     import trimesh
 
-    from ultron.phantom.shapes import Phantom
+
+class SignedDistanceShape(Protocol):
+    """What an SDF grid is sampled from (:class:`ultron.phantom.shapes.Phantom` is one): the
+    signed distance in mm at world points (negative inside) and the (2, 3) box, mm, that holds
+    the shape's primitives."""
+
+    primitive_box_mm: np.ndarray
+
+    def sdf(self, points: torch.Tensor) -> torch.Tensor: ...
+
 
 #: Bytes per voxel of an SDF grid while it is built and meshed (float32 values, the float64
 #: copy marching cubes reads, the band mask): rounded up.
@@ -41,7 +50,9 @@ class SdfVolume:
     voxel_mm: float
 
     @classmethod
-    def from_phantom(cls, phantom: Phantom, voxel_mm: float, margin_mm: float = 3.0) -> SdfVolume:
+    def from_phantom(
+        cls, phantom: SignedDistanceShape, voxel_mm: float, margin_mm: float = 3.0
+    ) -> SdfVolume:
         """Evaluate ``phantom.sdf`` at ``voxel_mm`` over its primitives' box grown by ``margin_mm``.
 
         Narrow band: the SDF is first evaluated on a grid 4× coarser, upsampled trilinearly, and
@@ -133,7 +144,7 @@ class SdfVolume:
 
 
 def _evaluate_grid(
-    phantom: Phantom, lo: np.ndarray, step_mm: float, counts: np.ndarray
+    phantom: SignedDistanceShape, lo: np.ndarray, step_mm: float, counts: np.ndarray
 ) -> torch.Tensor:
     """``phantom.sdf`` on the full grid lo + step·(i, j, k), as a (nz, ny, nx) float32 tensor."""
     axes = [

@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from ultron.device import describe_device, resolve_device
+from ultron.methods.catalog import FINETUNE_METHOD
 from ultron.methods.finetune import FinetuneConfig, check_theta_model, finetune_ultron
 from ultron.pipeline.model_io import NETWORK_FILE, load_network
 from ultron.pipeline.run import load_or_fit_field, prepare_run, write_outputs
@@ -65,7 +66,7 @@ def finetune(
     )
     identity = {
         "command": "finetune",
-        "method": "ultron-finetune",
+        "method": FINETUNE_METHOD,
         "label_fraction": config.label_fraction if config.iters > 0 else 0.0,
         "seed": config.seed,
         "dataset_dir": str(Path(dataset_dir).resolve()),

@@ -24,9 +24,9 @@ from ultron.errors import argument_error
 from ultron.fields.context import ThetaContextConfig
 from ultron.mesh.observed import ObservedSurfaceConfig
 from ultron.methods.on_method import ONConfig
+from ultron.methods.request import ReconstructionRequest
 from ultron.methods.ultron_method import UltronConfig
 from ultron.metrics.surface import MetricsConfig
-from ultron.pipeline.run import ReconstructionRequest
 from ultron.train.field_config import FieldTrainConfig, field_preset
 from ultron.train.occupancy import OccupancyTrainConfig, parse_positive_weight
 from ultron.train.visibility import visibility_config

@@ -30,6 +30,7 @@ from typing import Any
 
 from ultron import __version__, atomic
 from ultron.errors import UltronInputError
+from ultron.methods.catalog import FINETUNE_METHOD
 from ultron.timing import StageTimer, peak_rss_mb
 
 RUN_JSON = "run.json"
@@ -166,7 +167,7 @@ def run_kind(run: Mapping[str, Any]) -> str | None:
     method = run.get("method")
     if not isinstance(method, str):
         return None
-    return "finetune" if method == "ultron-finetune" else "reconstruct"
+    return "finetune" if method == FINETUNE_METHOD else "reconstruct"
 
 
 def _mesh_summary(mesh: Mapping[str, Any], where: str | Path) -> MeshSummary:

@@ -16,7 +16,6 @@ oracle's files, outlier poses and the grids' memory (:mod:`ultron.pipeline.resou
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -25,13 +24,12 @@ from ultron.data.dataset import SweepDataset
 from ultron.data.labels import check_selection_has_bone, select_label_frames
 from ultron.data.units import units_warnings
 from ultron.device import describe_device, resolve_device
-from ultron.errors import argument_error
-from ultron.mesh.compounding import CompoundingConfig
-from ultron.mesh.export import check_mesh_coordinates, load_mesh, save_mesh, save_volume_nifti
+from ultron.mesh.export import load_mesh, save_mesh, save_volume_nifti
+from ultron.methods.catalog import FIELD_METHODS
 from ultron.methods.evidence import evidence_summary, reconstruction_evidence, with_observation
-from ultron.methods.on_method import ONConfig
-from ultron.methods.registry import FIELD_METHODS, MethodInputs, get_method
-from ultron.methods.ultron_method import Reconstruction, UltronConfig
+from ultron.methods.registry import MethodInputs, get_method
+from ultron.methods.request import ReconstructionRequest
+from ultron.methods.ultron_method import Reconstruction
 from ultron.metrics.surface import MetricsConfig, evaluate_meshes
 from ultron.models.field_dir import check_field_dataset
 from ultron.models.fitted import load_field
@@ -48,44 +46,6 @@ from ultron.train.visibility import load_oracle_truth
 
 #: The whole iso-surface with its evidence, written when the observed crop dropped faces.
 EXTRACTED_MESH = "surface_extracted.ply"
-ROCOSDF_PRESETS = ("fast", "paper")
-
-
-@dataclass(frozen=True)
-class ReconstructionRequest:
-    """What to run: the method, its label fraction and seed, and per-stage settings."""
-
-    method: str = "ultron"
-    label_fraction: float = 0.1
-    seed: int = 0
-    ultron: UltronConfig = field(default_factory=UltronConfig)
-    compounding: CompoundingConfig = field(default_factory=CompoundingConfig)
-    on: ONConfig = field(default_factory=ONConfig)
-    rocosdf_preset: str = "fast"
-    metrics: MetricsConfig = field(default_factory=MetricsConfig)
-    mesh_coordinates: str = "lps"
-    #: Where the networks train and are evaluated (:func:`ultron.device.resolve_device`).
-    device: str = "cpu"
-
-    def __post_init__(self) -> None:
-        get_method(self.method)
-        if not 0 < self.label_fraction <= 1:
-            raise argument_error(
-                "label_fraction", f"expected a value in (0, 1], got {self.label_fraction}"
-            )
-        check_mesh_coordinates(self.mesh_coordinates, "mesh_coordinates")
-        resolve_device(self.device, "device")
-        if self.rocosdf_preset not in ROCOSDF_PRESETS:
-            raise argument_error(
-                "preset", f"expected one of {ROCOSDF_PRESETS}, got {self.rocosdf_preset!r}"
-            )
-        source = self.ultron.visibility.source
-        if source != "field" and self.method not in FIELD_METHODS:
-            flag = "--oracle-transmission" if source == "oracle" else f"--visibility {source}"
-            raise argument_error(
-                "visibility", f"{flag} applies to --method ultron or ultron-noloss only, "
-                f"not {self.method!r}",
-            )  # fmt: skip
 
 
 def run_method(
@@ -216,15 +176,6 @@ def prepare_run(
     return dataset, references
 
 
-def _meshing_voxel(request: ReconstructionRequest) -> float | None:
-    """The voxel ``request``'s method meshes at (None: the finer pixel spacing)."""
-    if request.method == "on":
-        return request.on.meshing.voxel_mm
-    if request.method == "compounding":
-        return request.compounding.voxel_mm
-    return request.ultron.voxel_mm
-
-
 def reconstruct(
     dataset_dir: str | Path,
     request: ReconstructionRequest,
@@ -252,7 +203,7 @@ def reconstruct(
         to_fit = field_config or FieldTrainConfig()
     with timer.stage("load"):
         dataset, references = prepare_run(
-            out_dir, "reconstruct", dataset_dir, (field_dir,), _meshing_voxel(request),
+            out_dir, "reconstruct", dataset_dir, (field_dir,), get_method(request.method).meshing_voxel(request),
             get_method(request.method).scan_grid, None, max_memory_gib,
         )  # fmt: skip
         # labels without bone: refused before minutes of field fit and training

@@ -11,7 +11,7 @@ Reads ``bench_dir/benchmark.json``::
 and writes the tables, the targets, the cells' status, ONE mesh-vs-reference figure per
 distinct row (method) from its first successful cell (``<figure data-kind="mesh"
 data-method="ROW">``), example frames with θ / T maps of the first cell that used an acoustic
-field, the label masks of one UltrON cell, and the cells' loss curves in one figure.
+field, the label masks of one cell (one whose method read the field first), and the cells' loss curves in one figure.
 """
 
 from __future__ import annotations
@@ -22,6 +22,7 @@ from typing import Any
 
 from ultron.data.dataset import SweepDataset
 from ultron.errors import UltronError, UltronInputError
+from ultron.methods.catalog import FIELD_RUN_METHODS
 from ultron.models.fitted import load_field
 from ultron.pipeline.record import RunRecord
 from ultron.report.html import (
@@ -209,14 +210,11 @@ def _frames_html(ok: list[Cell], loader: _Loader) -> tuple[str, Path | None]:
 
 
 def _masks_html(ok: list[Cell], loader: _Loader) -> str:
-    def is_ultron(cell: Cell) -> bool:
-        return loader.run(cell).method == "ultron"
-
     with_selection = [c for c in ok if isinstance(loader.run(c).details.get("selection"), dict)]
-    cell = next((c for c in with_selection if is_ultron(c)), None)
-    cell = cell or next((c for c in with_selection if "ultron" in c.row.lower()), None)
+    on_field = (c for c in with_selection if loader.run(c).method in FIELD_RUN_METHODS)
+    cell = next(on_field, None) or next(iter(with_selection), None)
     if cell is None:
-        return note("No successful UltrON cell with a recorded label selection.")
+        return note("No successful cell with a recorded label selection.")
     attrs = {"data-method": cell.row, "data-cell": cell.id}
     return guarded(
         lambda: masks_html(loader.dataset(cell), loader.run(cell).details["selection"], attrs),

@@ -95,17 +95,17 @@ def sample_patches(
     return frames.train_index[pick], start[:, None] + torch.arange(patch)
 
 
-def training_step(
+def training_objective(
     module: AcousticField,
-    optimizer: torch.optim.Optimizer,
     frames: FrameSet,
     cube: UnitCube,
     render_config: RenderConfig,
     config: FieldTrainConfig,
     generator: torch.Generator,
     hold_scattering: bool = False,
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """One optimisation step on a batch of random patches; returns (image loss, MSE), detached.
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The loss of a batch of random patches to minimise (image loss, the field's
+    regularisation and the configured priors), the image loss and the MSE.
 
     The batch is drawn from ``generator`` (the fit's CPU generator) and rendered on the
     module's device, where ``frames.images`` must be (:meth:`FrameSet.to`).
@@ -142,10 +142,7 @@ def training_step(
         total = total + config.scattering_tv_weight * weighted_scattering_tv(
             rendered.properties.scattering, rendered.properties.reflection
         )
-    optimizer.zero_grad(set_to_none=True)
-    total.backward()
-    optimizer.step()
-    return loss.detach(), mse.detach()
+    return total, loss, mse
 
 
 def make_optimizer(module: AcousticField, lr: float) -> torch.optim.Optimizer:
@@ -360,17 +357,17 @@ class _FieldRun:
             self.module, self.resolved, self.cube, self.frames.probe, self.render_config
         )
 
-    def update(self, k: int) -> dict[str, float | torch.Tensor]:
-        """Update k (0-based); ``lr`` is the rate of the next one."""
+    def objective(self, k: int) -> tuple[torch.Tensor, dict[str, float | torch.Tensor]]:
+        """Update k's loss (0-based) and its scalars; ``lr`` is the rate of the next update."""
         self.module.train()
         hold = k < self.config.effective_scattering_warmup
-        loss, mse = training_step(
-            self.module, self.optimizer, self.frames, self.cube, self.render_config,
-            self.config, self.generator, hold,
+        total, loss, mse = training_objective(
+            self.module, self.frames, self.cube, self.render_config, self.config,
+            self.generator, hold,
         )  # fmt: skip
-        mse_value = max(float(mse), 1e-12)
-        return {"loss": loss, "psnr": 10 * math.log10(1 / mse_value),
-                "lr": learning_rate_at(self.config, k + 1)}  # fmt: skip
+        mse_value = max(float(mse.detach()), 1e-12)
+        return total, {"loss": loss.detach(), "psnr": 10 * math.log10(1 / mse_value),
+                       "lr": learning_rate_at(self.config, k + 1)}  # fmt: skip
 
     def held_out_check(self, entry: dict[str, Any]) -> bool:
         """Add the held-out PSNR / SSIM at the check's updates; True there (always logged)."""
@@ -456,7 +453,7 @@ def fit_field(
     run = _FieldRun(out, config, frames, cube, module, resolved, optimizer, generator,
                     render_config, dataset_sha256, device, log)  # fmt: skip
     run_training(
-        run.update, config.iterations, name="field", log_every=config.log_every, start=step,
+        run.objective, config.iterations, name="field", log_every=config.log_every, start=step,
         learning_rate=lambda k: learning_rate_at(config, k), optimizers=[optimizer],
         progress=progress, every_update=True, on_entry=run.held_out_check,
         after_update=run.checkpoint, log=log,
@@ -500,5 +497,5 @@ __all__ = [
     "make_optimizer",
     "sample_patches",
     "theta_statistics",
-    "training_step",
+    "training_objective",
 ]

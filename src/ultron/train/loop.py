@@ -1,14 +1,16 @@
 """The one training loop of every fit (acoustic field, occupancy, RoCoSDF's SDFs).
 
-:func:`run_training` performs updates ``start … iterations − 1`` of a fit: before update k
-(0-based) it sets every parameter group's learning rate to ``learning_rate(k)`` (when the fit
-schedules it so; a fit may instead step a torch scheduler inside its update), calls
-``update(k)`` — the fit's own batch, loss, backward pass and optimiser step, returning its
-scalars (tensors or floats, ``loss`` among them) — and, at the *reported* updates, makes an
-entry ``{"step": n, **scalars, "seconds": s}`` with n = k + 1 the updates done and s the
-seconds since the loop began. The scalars become Python floats only then, so an accelerator
-is not synchronised at every update. An entry's ``loss`` must be finite
-(:class:`FloatingPointError` naming the fit and the update otherwise).
+:func:`run_training` performs updates ``start … iterations − 1`` of a fit. Update k (0-based)
+calls ``objective(k)`` — the fit's own batch and loss — which returns the loss to minimise and
+the scalars to report (tensors or floats, ``loss`` among them); the loop then takes the step
+(:func:`descend`: zero the gradients, back-propagate, step every optimiser) and advances the
+learning-rate schedule. ``learning_rate(k)``, when given, is the rate of every parameter group
+at update k, applied through :class:`torch.optim.lr_scheduler.LambdaLR` (a function of k
+alone, so a run resumed at ``start`` takes exactly the rates of an uninterrupted one). At the
+*reported* updates the loop makes an entry ``{"step": n, **scalars, "seconds": s}`` with
+n = k + 1 the updates done and s the seconds since the loop began. The scalars become Python
+floats only then, so an accelerator is not synchronised at every update. An entry's ``loss``
+must be finite (:class:`FloatingPointError` naming the fit and the update otherwise).
 
 Reported updates: every one when ``every_update`` (a progress bar that moves each step),
 else the first, every ``log_every``-th and the last. The log keeps the first, every
@@ -16,14 +18,14 @@ else the first, every ``log_every``-th and the last. The log keeps the first, ev
 a held-out check) marks by returning True; ``after_update`` runs after every update (e.g. a
 checkpoint). ``progress``, the one progress signature of every fit, receives
 ``{"iterations": N, **stage, **entry}`` for each reported update. Random draws belong to the
-fit: its ``update`` draws from its own seeded generators, never from torch's global state.
+fit: its ``objective`` draws from its own seeded generators, never from torch's global state.
 """
 
 from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from typing import Any
 
 import torch
@@ -32,13 +34,35 @@ from ultron.errors import argument_error
 
 #: The progress callback of every fit: one dict per reported update (module doc).
 Progress = Callable[[dict[str, Any]], None]
+#: Update k's loss to minimise and the scalars to report (module doc).
+Objective = Callable[[int], tuple[torch.Tensor, Mapping[str, torch.Tensor | float]]]
 
 
-def set_learning_rate(optimizers: Iterable[torch.optim.Optimizer], rate: float) -> None:
-    """Set the learning rate of every parameter group of ``optimizers`` to ``rate``."""
+def descend(optimizers: Sequence[torch.optim.Optimizer], loss: torch.Tensor) -> None:
+    """One gradient step on ``loss``: every optimiser's gradients set to None, ∂loss/∂θ
+    back-propagated, every optimiser stepped."""
+    for optimizer in optimizers:
+        optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    for optimizer in optimizers:
+        optimizer.step()
+
+
+def rate_schedules(
+    optimizers: Sequence[torch.optim.Optimizer], learning_rate: Callable[[int], float], start: int
+) -> list[torch.optim.lr_scheduler.LambdaLR]:
+    """One :class:`~torch.optim.lr_scheduler.LambdaLR` per optimiser giving every parameter
+    group the rate ``learning_rate(k)`` at update k, positioned at update ``start``. Its base
+    rate is set to 1 (LambdaLR's rate is base · λ(k), exactly λ(k) then), so the schedule does
+    not depend on the rate a resumed optimiser's state carries."""
+    schedules = []
     for optimizer in optimizers:
         for group in optimizer.param_groups:
-            group["lr"] = rate
+            group["initial_lr"] = 1.0
+        schedules.append(
+            torch.optim.lr_scheduler.LambdaLR(optimizer, learning_rate, last_epoch=start - 1)
+        )
+    return schedules
 
 
 def is_log_step(done: int, iterations: int, log_every: int) -> bool:
@@ -48,14 +72,14 @@ def is_log_step(done: int, iterations: int, log_every: int) -> bool:
 
 
 def run_training(
-    update: Callable[[int], Mapping[str, torch.Tensor | float]],
+    objective: Objective,
     iterations: int,
     *,
     name: str,
     log_every: int,
+    optimizers: Iterable[torch.optim.Optimizer],
     start: int = 0,
     learning_rate: Callable[[int], float] | None = None,
-    optimizers: Iterable[torch.optim.Optimizer] = (),
     progress: Progress | None = None,
     every_update: bool = False,
     on_entry: Callable[[dict[str, Any]], bool] | None = None,
@@ -72,13 +96,17 @@ def run_training(
     if isinstance(log_every, bool) or not isinstance(log_every, int) or log_every < 1:
         raise argument_error("log_every", f"expected an integer ≥ 1, got {log_every!r}")
     optimizers = list(optimizers)
+    if not optimizers:
+        raise argument_error("optimizers", "expected at least one optimiser to step")
+    schedules = [] if learning_rate is None else rate_schedules(optimizers, learning_rate, start)
     extra = dict(stage or {})
     log = [] if log is None else log
     started = time.perf_counter()
     for k in range(start, iterations):
-        if learning_rate is not None:
-            set_learning_rate(optimizers, learning_rate(k))
-        scalars = update(k)
+        loss, scalars = objective(k)
+        descend(optimizers, loss)
+        for schedule in schedules:
+            schedule.step()
         done = k + 1
         keep = is_log_step(done, iterations, log_every)
         if keep or every_update:

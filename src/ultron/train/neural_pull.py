@@ -76,14 +76,14 @@ import torch.nn.functional as F
 from ultron.device import map_chunks, resolve_device
 from ultron.errors import argument_error
 from ultron.fields.sdf import SDFDiscriminator, SDFNetwork, SDFNetworkConfig
-from ultron.train.loop import Progress, run_training
+from ultron.train.loop import Objective, Progress, descend, run_training
 from ultron.train.sdf_queries import (  # noqa: F401  (re-exported: the stage-1 data API)
     QuerySet,
-    _as_points,
-    _numpy_rng,
+    as_points,
     farthest_point_sampling,
     make_queries,
     neighbour_sigma,
+    numpy_rng,
     subsample_points,
     two_cube_grid_points,
 )
@@ -290,7 +290,7 @@ def fit_view_sdf(
     where the returned network stays."""
     start = time.perf_counter()
     device = resolve_device(device, "device")
-    data = make_queries(points_unit, config, _numpy_rng(generator))
+    data = make_queries(points_unit, config, numpy_rng(generator))
     queries_all, targets_all = data.queries.to(device), data.targets.to(device)
     network = SDFNetwork(config.network, generator).to(device)
     discriminator = SDFDiscriminator(config.discriminator_hidden, generator).to(device)
@@ -300,7 +300,7 @@ def fit_view_sdf(
     batch = min(config.batch_size, n_queries)
     real = torch.zeros(1, device=device)
 
-    def update(step: int) -> dict[str, torch.Tensor]:
+    def objective(step: int) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         index = torch.randint(0, n_queries, (batch,), generator=generator).to(device)
         queries, targets = queries_all[index], targets_all[index]
         sdf, grad = network.sdf_and_gradient(queries, create_graph=True)
@@ -311,24 +311,19 @@ def fit_view_sdf(
         # D(0) on a batch of zeros is one value repeated: evaluating it once gives the same
         # loss and gradients at a fraction of the cost
         d_loss = discriminator_loss(discriminator(real), discriminator(sdf.detach()))
-        d_optimiser.zero_grad(set_to_none=True)
-        d_loss.backward()
-        d_optimiser.step()
+        descend([d_optimiser], d_loss)  # the adversary's own step, before the generator's
 
         # the generator term needs ∂D/∂f only: D's own weight gradients are not computed
         discriminator.requires_grad_(False)
         g_loss = generator_loss(discriminator(sdf))
         discriminator.requires_grad_(True)
         loss = l_pull + config.scc_weight * l_scc + config.adversarial_weight * g_loss
-        optimiser.zero_grad(set_to_none=True)
-        loss.backward()
-        optimiser.step()
         scalars = {"loss": loss, "pull": l_pull, "scc": l_scc, "generator": g_loss,
                    "discriminator": d_loss}  # fmt: skip
-        return {k: v.detach() for k, v in scalars.items()}
+        return loss, {k: v.detach() for k, v in scalars.items()}
 
     network.train()
-    entries = _train(update, config, optimiser, progress, f"stage1_{name}", f"{name} SDF")
+    entries = _train(objective, config, optimiser, progress, f"stage1_{name}", f"{name} SDF")
     network.eval()
     log = {"iterations": config.iterations, "n_points_used": int(data.points.shape[0]),
            "n_queries": int(n_queries), "final_losses": _final_losses(entries),
@@ -337,7 +332,7 @@ def fit_view_sdf(
 
 
 def _train(
-    update: Callable[[int], dict[str, torch.Tensor]],
+    objective: Objective,
     config: ViewFitConfig | RefineConfig,
     optimiser: torch.optim.Optimizer,
     progress: Progress | None,
@@ -351,7 +346,7 @@ def _train(
         return warmup_cosine_lr(step, config.iterations, config.warmup, config.lr)
 
     return run_training(
-        update, config.iterations, name=name, log_every=LOG_EVERY, progress=progress,
+        objective, config.iterations, name=name, log_every=LOG_EVERY, progress=progress,
         learning_rate=learning_rate, optimizers=[optimiser], stage={"stage": stage},
     )  # fmt: skip
 
@@ -407,7 +402,7 @@ def fuse_and_resample(
             raise argument_error(
                 "candidate_bounds", f"expected a (2, 3) [min, max] box, got {candidate_bounds!r}"
             )
-    rng = _numpy_rng(generator)
+    rng = numpy_rng(generator)
 
     def f_csg(points: torch.Tensor) -> torch.Tensor:
         return csg_intersection([evaluate_sdf(fn, points, device=device) for fn in sdf_fns])
@@ -458,17 +453,14 @@ def fit_refined_sdf(
     optimiser = torch.optim.Adam(network.parameters(), lr=config.lr)
     batch = min(config.batch_size, n)
 
-    def update(step: int) -> dict[str, torch.Tensor]:
+    def objective(step: int) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         index = torch.randint(0, n, (batch,), generator=generator).to(device)
         pred = network(points[index])
         loss = refine_loss(pred, targets[index], config.zero_weight)
-        optimiser.zero_grad(set_to_none=True)
-        loss.backward()
-        optimiser.step()
-        return {"loss": loss.detach()}
+        return loss, {"loss": loss.detach()}
 
     network.train()
-    entries = _train(update, config, optimiser, progress, "stage3", "refined SDF")
+    entries = _train(objective, config, optimiser, progress, "stage3", "refined SDF")
     network.eval()
     log = {"iterations": config.iterations, "n_samples": int(n),
            "final_losses": _final_losses(entries),

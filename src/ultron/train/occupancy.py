@@ -246,27 +246,23 @@ def fit_occupancy(
     parameters = trainable(network) if trainable else list(network.parameters())
     optimiser = torch.optim.Adam(parameters, lr=config.lr)
     gamma = config.final_lr_factor ** (1.0 / max(config.iters, 1))
-    scheduler = torch.optim.lr_scheduler.ExponentialLR(optimiser, gamma)
     labels = data.labels.to(device, torch.float32)
     pos_weight = positive_class_weight(labels, config)
     batches = _minibatches(labels.shape[0], config.batch_size, generator)
 
-    def update(step: int) -> dict[str, torch.Tensor]:
+    def objective(step: int) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         batch = next(batches).to(device)
         y = labels[batch]
         weight = torch.where(y > 0.5, pos_weight, 1.0)
         f = network.occupancy(inputs[batch])
         loss = _loss(f, transmission[batch], y, weight, config)
-        optimiser.zero_grad(set_to_none=True)
-        loss.backward()
-        optimiser.step()
-        scheduler.step()
-        return {"loss": loss.detach()}
+        return loss, {"loss": loss.detach()}
 
     network.train()
     log = run_training(
-        update, config.iters, name="occupancy", log_every=LOG_EVERY, progress=progress
-    )
+        objective, config.iters, name="occupancy", log_every=LOG_EVERY, progress=progress,
+        optimizers=[optimiser], learning_rate=lambda k: config.lr * gamma**k,
+    )  # fmt: skip
     network.eval()
     return network, log
 

@@ -11,15 +11,23 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import numpy as np
 import torch
 
 from ultron.errors import argument_error
 
-if TYPE_CHECKING:
-    from ultron.train.neural_pull import ViewFitConfig
+
+class QueryConfig(Protocol):
+    """The settings :func:`make_queries` reads (:class:`ultron.train.neural_pull.ViewFitConfig`
+    has them)."""
+
+    max_points: int
+    fps_sizes: tuple[int, ...]
+    sigma_neighbour: int
+    queries_per_point: int
+    grid_queries: int
 
 
 def farthest_point_sampling(points: np.ndarray, n_samples: int, start: int = 0) -> np.ndarray:
@@ -102,12 +110,12 @@ class QuerySet:
 
 
 def make_queries(
-    points_unit: np.ndarray, config: ViewFitConfig, rng: np.random.Generator
+    points_unit: np.ndarray, config: QueryConfig, rng: np.random.Generator
 ) -> QuerySet:
     """Queries and targets for one view's cloud (see module doc)."""
     from scipy.spatial import cKDTree
 
-    points = _as_points(points_unit, "points_unit")
+    points = as_points(points_unit, "points_unit")
     points = subsample_points(points, config.max_points, config.fps_sizes)
     sigma = neighbour_sigma(points, config.sigma_neighbour)
     noise = rng.standard_normal((len(points), config.queries_per_point, 3))
@@ -122,7 +130,7 @@ def make_queries(
     )
 
 
-def _as_points(points: np.ndarray, name: str) -> np.ndarray:
+def as_points(points: np.ndarray, name: str) -> np.ndarray:
     array = np.asarray(points, dtype=np.float64)
     if array.ndim != 2 or array.shape[1] != 3 or len(array) < 2 or not np.isfinite(array).all():
         raise argument_error(
@@ -131,6 +139,7 @@ def _as_points(points: np.ndarray, name: str) -> np.ndarray:
     return array
 
 
-def _numpy_rng(generator: torch.Generator) -> np.random.Generator:
+def numpy_rng(generator: torch.Generator) -> np.random.Generator:
+    """A numpy generator seeded from one draw of the torch ``generator`` (one seed, both libraries)."""
     seed = int(torch.randint(0, 2**62, (1,), generator=generator))
     return np.random.default_rng(seed)
