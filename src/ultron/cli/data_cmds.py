@@ -2,12 +2,18 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 
 from ultron.cli.common import check_range, console, user_errors
+
+if TYPE_CHECKING:
+    from ultron.data.dataset import ProbeGeometry
+    from ultron.data.outliers import PoseOutlier
+    from ultron.data.plus_import import PlusImportReport
 
 
 @user_errors
@@ -42,38 +48,27 @@ def import_ultranerf(
     ] = False,
 ) -> None:
     """Import an Ultra-NeRF sweep into an ultron-sweeps/1 dataset (repeat to add sweeps)."""
-    from ultron.data.importers import (
-        MAX_ORTHONORMALIZE_TOLERANCE,
-        add_sweep_to_dataset,
-        read_ultranerf,
-    )
-    from ultron.outputs import check_output_dir
+    from ultron.data.importers import MAX_ORTHONORMALIZE_TOLERANCE
+    from ultron.pipeline.sweep_import import import_ultranerf_sweep
 
     check_range("--width-mm", width_mm, 0.0, low_open=True)
     check_range("--depth-mm", depth_mm, 0.0, low_open=True)
     tolerance_max = MAX_ORTHONORMALIZE_TOLERANCE
     check_range("--orthonormalize-tol", orthonormalize_tol, 0.0, tolerance_max, high_open=True)
-    check_output_dir(out)
-
-    name = sweep_name or _safe_name(src)
-    sweep, probe, report = read_ultranerf(src, width_mm, depth_mm, name, kind, orthonormalize_tol)
-    dataset = add_sweep_to_dataset(out, sweep, probe, replace=replace)
+    imported = import_ultranerf_sweep(
+        src, out, width_mm, depth_mm, sweep_name=sweep_name, kind=kind,
+        orthonormalize_tolerance=orthonormalize_tol, replace=replace,
+    )  # fmt: skip
+    report = imported.report
     console.print(
         f"imported {report.n_frames} frames of {report.image_shape[0]}×{report.image_shape[1]}"
-        f" as sweep {name!r} ({kind}) into {out} ({len(dataset.sweeps)} sweep(s))"
+        f" as sweep {imported.name!r} ({kind}) into {out} ({imported.n_sweeps} sweep(s))"
     )
     if report.n_poses_beyond_tolerance:
         console.print(
             f"re-orthonormalised the rotation blocks: {report.n_poses_beyond_tolerance} poses"
             f" deviated by more than the format's 1e-3 (largest {report.max_rotation_deviation:.2e})"
         )
-
-
-def _safe_name(src: Path) -> str:
-    import re
-
-    name = re.sub(r"[^A-Za-z0-9_.-]", "_", src.resolve().name).lstrip("._-")
-    return name or "sweep"
 
 
 @user_errors
@@ -115,35 +110,25 @@ def import_plus(
     ] = False,
 ) -> None:
     """Import a tracked PLUS / 3D Slicer recording as a sweep (repeat to add sweeps)."""
-    from ultron.data.dataset import SWEEP_KINDS
-    from ultron.data.importers import add_sweep_to_dataset
-    from ultron.data.plus import sequence_stem
-    from ultron.data.plus_import import read_plus
-    from ultron.errors import argument_error
-    from ultron.outputs import check_output_dir
+    from ultron.pipeline.sweep_import import import_plus_sweep
 
     check_range("--downsample", downsample, 1.0)
-    if kind not in SWEEP_KINDS:
-        raise argument_error("--kind", f"{kind!r} is not one of {', '.join(SWEEP_KINDS)}")
-    check_output_dir(out)
-    name = sweep_name or _safe_name(Path(sequence_stem(sequence)))
-    sweep, probe, report = read_plus(
-        sequence, config, to=to, name=name, kind=kind, downsample=downsample
-    )
-    dataset = add_sweep_to_dataset(
-        out, sweep, probe, replace=replace, sweep_metadata=report.metadata
-    )
-    for line in _plus_summary(report, probe):
+    imported = import_plus_sweep(
+        sequence, config, out, to=to, sweep_name=sweep_name, kind=kind, downsample=downsample,
+        replace=replace,
+    )  # fmt: skip
+    report = imported.report
+    for line in _plus_summary(report, imported.probe):
         console.print(line, highlight=False, soft_wrap=True)
     console.print(
         f"imported {report.n_frames} frames of {report.image_shape[0]}×{report.image_shape[1]}"
-        f" as sweep {name!r} ({kind}) into {out} ({len(dataset.sweeps)} sweep(s))",
+        f" as sweep {imported.name!r} ({kind}) into {out} ({imported.n_sweeps} sweep(s))",
         highlight=False,
         soft_wrap=True,
     )
 
 
-def _plus_summary(report, probe) -> list[str]:
+def _plus_summary(report: PlusImportReport, probe: ProbeGeometry) -> list[str]:
     """The lines ``import-plus`` prints about the orientation, calibration, frames and world."""
     fit = report.fit
     flips = [axis for axis, flip in zip(("columns", "rows"), report.flips, strict=True) if flip]
@@ -186,11 +171,10 @@ def info(
     """Summarise a dataset: sweeps, frames, image size, pixel spacing, labels, extent."""
     from rich.table import Table
 
-    from ultron.data.dataset import SweepDataset
-    from ultron.data.geometry import field_of_view_bounds_mm
+    from ultron.pipeline.dataset_info import dataset_info
 
-    data = SweepDataset.load(dataset)
-    probe = data.probe
+    summary = dataset_info(dataset)
+    data, probe = summary.dataset, summary.dataset.probe
     table = Table(title=f"{dataset}")
     for column in ("sweep", "kind", "frames", "labelled frames"):
         table.add_column(
@@ -200,16 +184,16 @@ def info(
         labelled = "—" if sweep.labels is None else str(len(sweep.labelled_frames))
         table.add_row(sweep.name, sweep.kind, str(sweep.n_frames), labelled)
     console.print(table)
-    bounds = field_of_view_bounds_mm([s.probe_to_world for s in data.sweeps], probe).tolist()
-    n_labelled = sum(len(s.labelled_frames) for s in data.sweeps)
     lines = [
-        f"sweeps: {len(data.sweeps)}   frames: {data.n_frames}   labelled frames: {n_labelled}",
+        f"sweeps: {len(data.sweeps)}   frames: {data.n_frames}   labelled frames:"
+        f" {summary.n_labelled}",
         f"image size: {probe.height_px} rows (depth) × {probe.width_px} columns (scanlines)",
         f"probe: {probe.width_mm:g} mm wide × {probe.depth_mm:g} mm deep",
         f"pixel spacing: {probe.lateral_spacing_mm:.4f} mm lateral × {probe.axial_spacing_mm:.4f} mm axial",
         "bounding box (mm): "
         + "  ".join(
-            f"{axis} [{lo:.2f}, {hi:.2f}]" for axis, lo, hi in zip("xyz", *bounds, strict=True)
+            f"{axis} [{lo:.2f}, {hi:.2f}]"
+            for axis, lo, hi in zip("xyz", *summary.bounds_mm, strict=True)
         ),
         f"reference: {data.reference.name if data.reference else 'none'}"
         + (
@@ -220,27 +204,14 @@ def info(
     ]
     for line in lines:
         console.print(line, highlight=False)
-    _warn_outliers(data)
-    _warn_units(data)
-
-
-def _warn_units(data) -> None:
-    """A warning per implausible length (:mod:`ultron.data.units`: poses or reference not in
-    millimetres, a reference away from the scanned region)."""
-    from ultron.data.units import units_warnings
-    from ultron.mesh.export import load_mesh
-
-    vertices = None if data.reference is None else load_mesh(data.reference).vertices
-    for line in units_warnings(data, vertices):
+    _warn_outliers(summary.outliers)
+    for line in summary.units_warnings():
         console.print(f"warning: {line}", highlight=False)
 
 
-def _warn_outliers(data) -> None:
-    """Print a warning per outlier pose (:mod:`ultron.data.outliers`; at most 10, then a count):
-    reconstruct, finetune and fit-field refuse such a dataset."""
-    from ultron.data.outliers import pose_outliers
-
-    outliers = pose_outliers(data)
+def _warn_outliers(outliers: Sequence[PoseOutlier]) -> None:
+    """Print a warning per outlier pose (at most 10, then a count): reconstruct, finetune and
+    fit-field refuse such a dataset."""
     for outlier in outliers[:10]:
         console.print(f"warning: outlier pose: {outlier.describe()}", highlight=False)
     if len(outliers) > 10:

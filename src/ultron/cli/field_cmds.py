@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated
+from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
@@ -21,13 +21,10 @@ from ultron.cli.common import (
     user_errors,
 )
 from ultron.errors import argument_error
-from ultron.models.field_dir import check_field_out
-from ultron.outputs import check_output_file
 
 if TYPE_CHECKING:
-    import numpy as np
-
-    from ultron.models.fitted import FitProgress, FittedField
+    from ultron.models.fitted import FitProgress
+    from ultron.pipeline.field import FieldFitResult
 
 
 def _parse_shape(text: str) -> tuple[int, int] | str:
@@ -166,16 +163,11 @@ def fit_field_command(
     check_count("--checkpoint-every", checkpoint_every)
     check_range("--max-memory", max_memory, 0.0, low_open=True)
     apply_threads(threads)
-    check_field_out(out, dataset)
     device = check_device(device)
 
-    from ultron.data.dataset import SweepDataset
-    from ultron.pipeline.resources import check_run_resources
-    from ultron.train import field_preset, fit_field
-    from ultron.train.field_fit import check_resumable
-    from ultron.train.fit_shape import resolve_fit_shape
+    from ultron.pipeline.field import fit_field_dir
+    from ultron.train import field_preset
 
-    data = SweepDataset.load(dataset)
     changes = {
         "backend": backend,
         "iterations": iters,
@@ -193,15 +185,16 @@ def fit_field_command(
         train_scatterers=train_scatterers,
         check_every=check_every,
     )
-    config = resolve_fit_shape(config, data)
-    if not no_resume:  # a checkpoint of another dataset or configuration: error before the bar
-        check_resumable(out, config, data.content_hash())
-    check_run_resources(data, dataset, mesh=False, field_config=config, max_memory_gib=max_memory)
-    with fit_progress("fit-field") as progress:
-        fitted = fit_field(
-            data, config, out, progress=progress, resume=not no_resume, device=device
-        )
-    _print_fitted(fitted, out, device)
+    result = fit_field_dir(
+        dataset,
+        out,
+        config,
+        resume=not no_resume,
+        device=device,
+        max_memory_gib=max_memory,
+        progress=lambda: fit_progress("fit-field"),
+    )
+    _print_fitted(result, device)
 
 
 def _check_holdout(holdout_every: int) -> None:
@@ -212,8 +205,9 @@ def _check_holdout(holdout_every: int) -> None:
         )
 
 
-def _print_fitted(fitted: FittedField, out: Path, device: str) -> None:
+def _print_fitted(result: FieldFitResult, device: str) -> None:
     """The files fit-field wrote and the fitted θ's statistics."""
+    fitted, out = result.fitted, result.out
     stats = fitted.theta_stats
     console.print(
         f"wrote {out}: field.json, checkpoint.pt, theta_stats.json, train_log.jsonl"
@@ -227,17 +221,14 @@ def _print_fitted(fitted: FittedField, out: Path, device: str) -> None:
             for c, m, s in zip(stats.channels, stats.mean, stats.std, strict=True)
         )
         console.print(f"θ statistics: {summary}", highlight=False)
-    _print_transmission_check(out)
+    if result.transmission_check is not None:
+        _print_transmission_check(out, result.transmission_check)
 
 
-def _print_transmission_check(out: Path) -> None:
+def _print_transmission_check(out: Path, check: dict[str, Any]) -> None:
     """On a simulated dataset: the fitted T against the simulator's (transmission_check.json)."""
-    from ultron.models.field_dir import TRANSMISSION_CHECK, read_transmission_check
-
-    check = read_transmission_check(out)
-    if check is None:
-        return
     from ultron.metrics.transmission import TARGET_RELATIONS, TARGETS
+    from ultron.models.field_dir import TRANSMISSION_CHECK
 
     verdict = {True: "met", False: "missed", None: "n/a"}
     met = check.get("met", {})
@@ -296,61 +287,28 @@ def render_command(
     check_seed("--seed", seed)
     device = check_device(device)
 
-    import numpy as np
+    from ultron.pipeline.field import render_frames
 
-    from ultron import atomic
-    from ultron.data.dataset import SweepDataset
-    from ultron.models import load_field
-    from ultron.models.field_dir import check_field_dataset
-
-    if (poses is None) == (dataset is None):
-        raise argument_error("--poses/--dataset", "give exactly one of --poses or --dataset")
-    if out.suffix != ".npy":
-        raise argument_error("--out", f"expected a .npy file name, got {out}")
-    extras = (".theta.npy", ".transmission.npy", ".maps.json") if maps else ()
-    for target in (out, *(out.with_suffix(suffix) for suffix in extras)):
-        check_output_file(target, "--out")
-    pose_array = _read_poses(poses, sweep) if poses is not None else None
-    fitted = load_field(field_dir, device)
-    if pose_array is None:
-        if sweep is None:
-            raise argument_error("--sweep", "required with --dataset")
-        data = SweepDataset.load(dataset)
-        fitted.check_probe(data.probe, str(dataset))
-        check_field_dataset(field_dir, data.content_hash(), str(dataset), allow_other_field)
-        pose_array = data.sweep(sweep).probe_to_world
-    if maps:
-        result = fitted.render_maps(pose_array, seed=seed, expected=expected)
-        images = result.bmode
-        atomic.save_npy(out.with_suffix(".theta.npy"), result.theta)
-        atomic.save_npy(out.with_suffix(".transmission.npy"), result.transmission)
-        atomic.write_json(out.with_suffix(".maps.json"), {"theta_channels": list(result.channels)})
-    else:
-        images = fitted.render(pose_array, seed=seed, expected=expected)
-    atomic.save_npy(out, np.asarray(images, dtype=np.float32))
-    _warn_unfinished(field_dir, fitted.fit_progress)
+    result = render_frames(
+        field_dir,
+        out,
+        poses=poses,
+        dataset=dataset,
+        sweep=sweep,
+        maps=maps,
+        seed=seed,
+        expected=expected,
+        allow_other_field=allow_other_field,
+        device=device,
+    )
+    _warn_unfinished(field_dir, result.fit_progress)
+    height, width = result.frame_shape
     what = "expected" if expected else f"seed {seed}"
     console.print(
-        f"rendered {images.shape[0]} frames of {images.shape[1]}×{images.shape[2]} ({what}) to {out}"
-        + (f" (+ θ {list(fitted.channels)} and T maps)" if maps else ""),
+        f"rendered {result.frames} frames of {height}×{width} ({what}) to {out}"
+        + (f" (+ θ {list(result.channels)} and T maps)" if maps else ""),
         highlight=False,
     )
-
-
-def _read_poses(poses: Path, sweep: str | None) -> np.ndarray:
-    """``--poses``' (N, 4, 4) probe-to-world poses (one (4, 4) pose: N = 1), checked like a
-    dataset's: rigid and finite, no outlier frame (:mod:`ultron.data.outliers`)."""
-    from ultron.data.outliers import check_pose_array_outliers
-    from ultron.data.validation import load_npy, validate_poses
-
-    if sweep is not None:
-        raise argument_error("--sweep", "only valid with --dataset")
-    pose_array = load_npy(poses, "poses")
-    if pose_array.ndim == 2:
-        pose_array = pose_array[None]
-    validate_poses(pose_array, poses, "poses")
-    check_pose_array_outliers(pose_array, poses)
-    return pose_array
 
 
 def _warn_unfinished(field_dir: Path, progress: FitProgress | None) -> None:

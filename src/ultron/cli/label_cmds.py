@@ -44,20 +44,16 @@ def label(
 ) -> None:
     """Write bone labels (1 bone, 0 background, 255 unsure) into a dataset's sweeps."""
     apply_threads(threads)
-    from ultron.data.auto_label_dataset import (
-        MAX_LISTED,
-        QUALITY_FILE,
-        auto_label_dataset,
-        check_labelling,
-    )
+    from ultron.data.auto_label_dataset import MAX_LISTED, QUALITY_FILE
     from ultron.errors import argument_error
+    from ultron.pipeline.labels import label_dataset
 
     if not auto:
         raise argument_error("--auto", "only automatic labelling exists: pass --auto")
-    names = sweep_names(sweeps)
-    check_labelling(dataset, names, replace, option="--sweeps")  # refuse before any work
-    with stage_progress("labelling", unit="frames", width=24) as report:
-        summaries = auto_label_dataset(dataset, names, replace=replace, progress=report)
+    summaries = label_dataset(
+        dataset, sweep_names(sweeps), replace=replace, option="--sweeps",
+        progress=lambda: stage_progress("labelling", unit="frames", width=24),
+    )  # fmt: skip
     for s in summaries:
         console.print(
             f"{s.name}: {s.frames} frames, bone {100 * s.bone:.2f} %, background"

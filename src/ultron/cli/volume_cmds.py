@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
 
@@ -19,19 +18,7 @@ from ultron.cli.common import (
 )
 
 if TYPE_CHECKING:
-    from ultron.mesh.image_compounding import CompoundedImage, ImageCompoundingConfig
-
-_NIFTI_SUFFIXES = (".nii", ".nii.gz")
-
-
-def _check_out(out: Path) -> None:
-    """``--out`` must be a .nii / .nii.gz file name this process can write."""
-    from ultron.errors import UltronInputError
-    from ultron.outputs import check_output_file
-
-    if not out.name.endswith(_NIFTI_SUFFIXES) or out.name in _NIFTI_SUFFIXES:
-        raise UltronInputError(out, "--out", "expected a NIfTI file name ending in .nii or .nii.gz")
-    check_output_file(out)
+    from ultron.pipeline.compound import CompoundSummary
 
 
 @user_errors
@@ -81,48 +68,23 @@ def compound(
     volume where it shows the meshes.
     """
     apply_threads(threads)
-    from ultron.data.dataset import SweepDataset
-    from ultron.data.outliers import check_pose_outliers
-    from ultron.mesh.image_compounding import (
-        ImageCompoundingConfig,
-        check_volume_memory,
-        compound_images,
-        compounding_grid,
-        save_compounded,
-        select_sweeps,
-    )
+    from ultron.mesh.image_compounding import ImageCompoundingConfig
     from ultron.mesh.splat import INTERPOLATIONS, REDUCTIONS, SplatConfig
-    from ultron.pipeline.resources import memory_limit
+    from ultron.pipeline.compound import compound_volume
 
     check_range("--spacing", spacing, 0.0, low_open=True)
     check_range("--fill-holes", fill_holes, 0)
     check_choice("--interpolation", interpolation, INTERPOLATIONS)
     check_choice("--reduce", reduce, REDUCTIONS)
     config = ImageCompoundingConfig(spacing, SplatConfig(interpolation, reduce), fill_holes)
-    names = sweep_names(sweeps)
-    _check_out(out)
-    data = SweepDataset.load(dataset)
-    chosen = select_sweeps(data, names)
-    check_pose_outliers(data, dataset)
-    grid = compounding_grid(data, chosen, spacing)
-    check_volume_memory(grid, *memory_limit())
-    start = time.perf_counter()
-    result = compound_images(data, config, [s.name for s in chosen], grid)
-    save_compounded(result, out)
-    frames = sum(s.n_frames for s in chosen)
-    for line in _summary(result, config, frames, len(chosen), out, time.perf_counter() - start):
+    summary = compound_volume(dataset, out, config, sweep_names(sweeps))
+    for line in _summary(summary):
         console.print(line, highlight=False, soft_wrap=True)
 
 
-def _summary(
-    result: CompoundedImage,
-    config: ImageCompoundingConfig,
-    n_frames: int,
-    n_sweeps: int,
-    out: Path,
-    seconds: float,
-) -> list[str]:
+def _summary(summary: CompoundSummary) -> list[str]:
     """The lines ``compound`` prints: settings, grid, filled shares, output."""
+    result, config = summary.result, summary.config
     grid, n = result.grid, result.volume.size
     filled, holes = int(result.filled.sum()), int(result.hole_filled.sum())
     origin = ", ".join(f"{o:.3f}" for o in grid.origin_mm)
@@ -130,12 +92,12 @@ def _summary(
         f"stick hole filling ≤ {config.fill_holes} voxels" if config.fill_holes else "no filling"
     )
     return [
-        f"compounded {n_frames} frames of {n_sweeps} sweep(s): {config.splat.interpolation},"
-        f" {config.splat.reduce}, {filling}",
+        f"compounded {summary.n_frames} frames of {summary.n_sweeps} sweep(s):"
+        f" {config.splat.interpolation}, {config.splat.reduce}, {filling}",
         f"grid: {' × '.join(map(str, grid.shape))} voxels of {grid.voxel_mm:g} mm, origin"
         f" ({origin}) mm (world, LPS); NIfTI affine in RAS",
         f"filled by pixels: {filled / n:.1%} of the voxels; by hole filling: {holes / n:.1%}",
-        f"wrote {out} in {seconds:.1f} s",
+        f"wrote {summary.out} in {summary.seconds:.1f} s",
     ]
 
 

@@ -169,16 +169,37 @@ def auto_label_dataset(
     replace: bool = False,
     config: AutoLabelConfig | None = None,
     progress: Progress | None = None,
+    option: str = "sweeps",
 ) -> list[SweepLabelSummary]:
     """Label the chosen ``sweeps`` (default: all) of the dataset at ``root`` automatically
     (:func:`~ultron.data.auto_labels.auto_label_frames`) and write them (module docstring):
     every sweep is labelled first, then the labels are written, ``dataset.json`` last. Returns
-    one summary per sweep, in the order given."""
+    one summary per sweep, in the order given. An unknown sweep is an error naming ``option``
+    (the argument that chose the sweeps)."""
+    _checked_config(config)
+    dataset, names = check_labelling(root, sweeps, replace, option)
+    return label_checked_sweeps(root, dataset, names, config, progress)
+
+
+def _checked_config(config: AutoLabelConfig | None) -> AutoLabelConfig:
     cfg = config or AutoLabelConfig()
     if not isinstance(cfg, AutoLabelConfig):
         raise argument_error("config", f"expected an AutoLabelConfig, got {type(cfg).__name__}")
+    return cfg
+
+
+def label_checked_sweeps(
+    root: str | Path,
+    dataset: SweepDataset,
+    names: Sequence[str],
+    config: AutoLabelConfig | None = None,
+    progress: Progress | None = None,
+) -> list[SweepLabelSummary]:
+    """:func:`auto_label_dataset`'s work once :func:`check_labelling` has passed: ``dataset``
+    and ``names`` are what it returned for ``root``. A caller that checks first (to refuse bad
+    input before it shows any progress) thus reads the dataset once."""
+    cfg = _checked_config(config)
     root = Path(root)
-    dataset, names = check_labelling(root, sweeps, replace)
     computed: dict[str, tuple[np.ndarray, list[FrameQuality]]] = {}
     summaries = []
     for name in names:  # every sweep is labelled before anything is written

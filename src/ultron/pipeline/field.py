@@ -1,0 +1,184 @@
+"""Stage 1 as a library: fit an acoustic field into FIELD_DIR and render frames from one.
+
+:func:`fit_field_dir` is ``ultron fit-field`` and :func:`render_frames` is ``ultron render``
+without the command line: they check every input before any work (naming the CLI's options,
+so that a command prints their errors as they are), do the work, write the files and return
+what a caller reports. The command line only parses options, calls one of them and prints.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from contextlib import AbstractContextManager, nullcontext
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ultron import atomic
+from ultron.data.dataset import SweepDataset
+from ultron.data.outliers import check_pose_array_outliers
+from ultron.data.validation import load_npy, validate_poses
+from ultron.errors import argument_error
+from ultron.models.field_dir import (
+    check_field_dataset,
+    check_field_out,
+    read_transmission_check,
+)
+from ultron.models.fitted import FitProgress, FittedField, load_field
+from ultron.outputs import check_output_file
+from ultron.pipeline.resources import check_run_resources
+from ultron.train.field_config import FieldTrainConfig
+from ultron.train.field_fit import check_resumable, fit_field
+from ultron.train.fit_shape import resolve_fit_shape
+from ultron.train.loop import Progress
+
+#: The files ``render_frames(..., maps=True)`` writes beside OUT (OUT's ``.npy`` replaced).
+MAP_SUFFIXES = (".theta.npy", ".transmission.npy", ".maps.json")
+
+
+@dataclass(frozen=True)
+class FieldFitResult:
+    """What :func:`fit_field_dir` did: the fitted field, where it went and, on a simulated
+    dataset, the fitted T against the simulator's (``transmission_check.json``, else None)."""
+
+    fitted: FittedField
+    out: Path
+    transmission_check: dict[str, Any] | None
+
+
+@dataclass(frozen=True)
+class RenderResult:
+    """What :func:`render_frames` wrote: ``frames`` B-mode frames of ``frame_shape`` (H, W)
+    into ``paths`` (OUT first, then the maps' files), the field's θ ``channels`` and how far
+    its fit got (``fit_progress``; None where unknown), so that an unfinished field is told."""
+
+    frames: int
+    frame_shape: tuple[int, int]
+    channels: tuple[str, ...]
+    paths: tuple[Path, ...]
+    fit_progress: FitProgress | None
+
+
+def fit_field_dir(
+    dataset_dir: str | Path,
+    out: str | Path,
+    config: FieldTrainConfig,
+    *,
+    resume: bool = True,
+    device: str = "cpu",
+    max_memory_gib: float | None = None,
+    progress: Callable[[], AbstractContextManager[Progress | None]] | None = None,
+) -> FieldFitResult:
+    """Fit a field with ``config`` to the dataset in ``dataset_dir`` and write FIELD_DIR
+    ``out`` (:func:`ultron.train.field_fit.fit_field`), resuming a checkpoint there unless
+    not ``resume`` (then a previous fit's files are removed first).
+
+    Everything that can fail cheaply fails before the fit starts, so that a mistake costs no
+    minutes: ``out`` (new, empty or an earlier fit's, not the dataset), the dataset, a
+    checkpoint of another dataset or configuration, and the memory the fit would take
+    against ``max_memory_gib`` (default: what the machine has). ``config.fit_shape="auto"`` is
+    resolved on the dataset first, so that a resumed fit compares like with like.
+    ``progress()`` wraps the fit alone and gives the callback of its per-step dicts (e.g. a
+    progress bar's, opened only once the checks passed)."""
+    if not isinstance(config, FieldTrainConfig):
+        raise argument_error("config", f"expected a FieldTrainConfig, got {type(config).__name__}")
+    out = Path(out)
+    check_field_out(out, dataset_dir)
+    data = SweepDataset.load(dataset_dir)
+    config = resolve_fit_shape(config, data)
+    if resume:
+        check_resumable(out, config, data.content_hash())
+    check_run_resources(
+        data, Path(dataset_dir), mesh=False, field_config=config, max_memory_gib=max_memory_gib
+    )
+    with (progress or nullcontext)() as update:
+        fitted = fit_field(data, config, out, progress=update, resume=resume, device=device)
+    return FieldFitResult(fitted, out, read_transmission_check(out))
+
+
+def render_frames(
+    field_dir: str | Path,
+    out: str | Path,
+    *,
+    poses: str | Path | None = None,
+    dataset: str | Path | None = None,
+    sweep: str | None = None,
+    maps: bool = False,
+    seed: int = 0,
+    expected: bool = False,
+    allow_other_field: bool = False,
+    device: str = "cpu",
+) -> RenderResult:
+    """Render B-mode frames from FIELD_DIR ``field_dir`` at the field's probe geometry and
+    write them to ``out`` (.npy, (N, H, W) float32 in [0, 1]), atomically.
+
+    The poses come from exactly one of ``poses`` (a (N, 4, 4) or (4, 4) probe-to-world .npy,
+    mm, checked like a dataset's) or ``dataset`` with ``sweep`` (that sweep's poses; the
+    dataset's probe must be the field's, and the field fitted on it unless
+    ``allow_other_field``). Scatterers are drawn with ``seed``, or replaced by their
+    expectation when ``expected``. With ``maps`` θ (N, H, W, C), T (N, H, W) and the channel
+    names go beside ``out`` (:data:`MAP_SUFFIXES`). Every output is checked before the field
+    is loaded, so a bad path costs no rendering."""
+    if (poses is None) == (dataset is None):
+        raise argument_error("--poses/--dataset", "give exactly one of --poses or --dataset")
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+        raise argument_error("--seed", f"expected an integer ≥ 0, got {seed!r}")
+    out = Path(out)
+    if out.suffix != ".npy":
+        raise argument_error("--out", f"expected a .npy file name, got {out}")
+    paths = (out, *(out.with_suffix(suffix) for suffix in MAP_SUFFIXES)) if maps else (out,)
+    for target in paths:
+        check_output_file(target, "--out")
+    pose_array = read_pose_file(poses, sweep) if poses is not None else None
+    fitted = load_field(field_dir, device)
+    if pose_array is None:
+        pose_array = _dataset_poses(fitted, field_dir, dataset, sweep, allow_other_field)
+    if maps:
+        result = fitted.render_maps(pose_array, seed=seed, expected=expected)
+        images = result.bmode
+        atomic.save_npy(paths[1], result.theta)
+        atomic.save_npy(paths[2], result.transmission)
+        atomic.write_json(paths[3], {"theta_channels": list(result.channels)})
+    else:
+        images = fitted.render(pose_array, seed=seed, expected=expected)
+    atomic.save_npy(out, np.asarray(images, dtype=np.float32))
+    return RenderResult(
+        frames=int(images.shape[0]),
+        frame_shape=(int(images.shape[1]), int(images.shape[2])),
+        channels=tuple(fitted.channels),
+        paths=paths,
+        fit_progress=fitted.fit_progress,
+    )
+
+
+def read_pose_file(poses: str | Path, sweep: str | None = None) -> np.ndarray:
+    """``poses``' (N, 4, 4) probe-to-world poses (one (4, 4) pose: N = 1), checked like a
+    dataset's: rigid and finite, no outlier frame (:mod:`ultron.data.outliers`). ``sweep``
+    must be None: a sweep name only selects poses of a dataset."""
+    if sweep is not None:
+        raise argument_error("--sweep", "only valid with --dataset")
+    poses = Path(poses)
+    pose_array = load_npy(poses, "poses")
+    if pose_array.ndim == 2:
+        pose_array = pose_array[None]
+    validate_poses(pose_array, poses, "poses")
+    check_pose_array_outliers(pose_array, poses)
+    return pose_array
+
+
+def _dataset_poses(
+    fitted: FittedField,
+    field_dir: str | Path,
+    dataset: str | Path,
+    sweep: str | None,
+    allow_other_field: bool,
+) -> np.ndarray:
+    """Sweep ``sweep``'s poses of ``dataset``, once its probe and content match the field."""
+    if sweep is None:
+        raise argument_error("--sweep", "required with --dataset")
+    data = SweepDataset.load(dataset)
+    fitted.check_probe(data.probe, str(dataset))
+    check_field_dataset(field_dir, data.content_hash(), str(dataset), allow_other_field)
+    return data.sweep(sweep).probe_to_world

@@ -1,0 +1,106 @@
+"""``import-ultranerf`` and ``import-plus``: one recorded sweep added to an ``ultron-sweeps/1``
+dataset directory (created, or extended by a new sweep).
+
+The readers are :func:`ultron.data.importers.read_ultranerf` and
+:func:`ultron.data.plus_import.read_plus`, the writer
+:func:`ultron.data.importers.add_sweep_to_dataset`; this module runs them in the order that
+refuses bad input before any work: the output folder is checked before the recording is read,
+so a long read cannot end in an unwritable ``--out``.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Generic, TypeVar
+
+from ultron.data.dataset import SWEEP_KINDS, ProbeGeometry
+from ultron.data.importers import (
+    DEFAULT_ORTHONORMALIZE_TOLERANCE,
+    ImportReport,
+    add_sweep_to_dataset,
+    read_ultranerf,
+)
+from ultron.data.plus import sequence_stem
+from ultron.data.plus_import import PlusImportReport, read_plus
+from ultron.errors import argument_error
+from ultron.outputs import check_output_dir
+
+#: The reader's report: :class:`ImportReport` (Ultra-NeRF) or :class:`PlusImportReport`.
+ReportT = TypeVar("ReportT", ImportReport, PlusImportReport)
+
+
+@dataclass(frozen=True)
+class ImportedSweep(Generic[ReportT]):
+    """What an import added: the sweep's name, its probe geometry as read, how many sweeps the
+    dataset holds now, and the reader's report (frames read, repairs made)."""
+
+    name: str
+    probe: ProbeGeometry
+    n_sweeps: int
+    report: ReportT
+
+
+def safe_sweep_name(path: str | Path) -> str:
+    """A valid sweep name from ``path``'s last component (made absolute first, so ``.`` names
+    the current folder): characters other than letters, digits, ``_``, ``.`` and ``-``
+    become ``_`` and leading ``._-`` are dropped, since a sweep name starts with a letter or
+    digit; ``sweep`` if nothing is left."""
+    name = re.sub(r"[^A-Za-z0-9_.-]", "_", Path(path).resolve().name).lstrip("._-")
+    return name or "sweep"
+
+
+def import_ultranerf_sweep(
+    src: str | Path,
+    out: str | Path,
+    width_mm: float,
+    depth_mm: float,
+    *,
+    sweep_name: str | None = None,
+    kind: str = "other",
+    orthonormalize_tolerance: float = DEFAULT_ORTHONORMALIZE_TOLERANCE,
+    replace: bool = False,
+) -> ImportedSweep[ImportReport]:
+    """Add the Ultra-NeRF sweep folder ``src`` (frames and poses, the probe ``width_mm`` wide
+    and ``depth_mm`` deep) to the dataset at ``out`` as ``sweep_name`` (default: a name made
+    from ``src``'s folder name, :func:`safe_sweep_name`); ``replace`` replaces a sweep of that
+    name. Rotation blocks deviating by at most ``orthonormalize_tolerance`` are repaired
+    (:func:`~ultron.data.importers.read_ultranerf`). ``out`` is checked first (``--out``)."""
+    check_output_dir(out)
+    name = sweep_name or safe_sweep_name(src)
+    sweep, probe, report = read_ultranerf(
+        src, width_mm, depth_mm, name, kind, orthonormalize_tolerance
+    )
+    dataset = add_sweep_to_dataset(out, sweep, probe, replace=replace)
+    return ImportedSweep(name, probe, len(dataset.sweeps), report)
+
+
+def import_plus_sweep(
+    sequence: str | Path,
+    config: str | Path,
+    out: str | Path,
+    *,
+    to: str = "Reference",
+    sweep_name: str | None = None,
+    kind: str = "other",
+    downsample: float = 1.0,
+    replace: bool = False,
+) -> ImportedSweep[PlusImportReport]:
+    """Add the tracked PLUS / 3D Slicer recording ``sequence``, calibrated by the PLUS
+    configuration ``config``, to the dataset at ``out`` as ``sweep_name`` (default: a name made
+    from the file's stem) in the world frame ``to``, its frames shrunk by ``downsample``
+    (:func:`~ultron.data.plus_import.read_plus`); ``replace`` replaces a sweep of that name.
+    The import's provenance is kept in ``dataset.json``. ``kind`` (``--kind``) and ``out``
+    (``--out``) are checked before the recording is read."""
+    if kind not in SWEEP_KINDS:
+        raise argument_error("--kind", f"{kind!r} is not one of {', '.join(SWEEP_KINDS)}")
+    check_output_dir(out)
+    name = sweep_name or safe_sweep_name(sequence_stem(sequence))
+    sweep, probe, report = read_plus(
+        sequence, config, to=to, name=name, kind=kind, downsample=downsample
+    )
+    dataset = add_sweep_to_dataset(
+        out, sweep, probe, replace=replace, sweep_metadata=report.metadata
+    )
+    return ImportedSweep(name, probe, len(dataset.sweeps), report)
