@@ -18,7 +18,7 @@ from ultron.data.dataset import ProbeGeometry, Sweep, SweepDataset
 from ultron.data.geometry import frame_pixels_world
 from ultron.errors import UltronInputError
 from ultron.mesh.grid import GridSpec
-from ultron.mesh.holes import fill_holes_nearest, fill_holes_stick
+from ultron.mesh.holes import STICK_DIRECTIONS, fill_holes_nearest, fill_holes_stick
 from ultron.mesh.image_compounding import (
     ImageCompoundingConfig,
     compound_images,
@@ -85,6 +85,9 @@ def test_stick_hole_filling_by_hand():
     # PLUS's own weights lean towards the +x end: ((r + 1)·v₊ + f·v₋) / (f + r + 1)
     plus, _ = fill_holes_stick(volume, filled, 9, plus_weights=True)
     assert plus[1, 1, 1] == pytest.approx((2 * 50 + 3 * 10) / 5)
+    # a stick of exactly the limit fills, its middle voxel 2 steps from either end included
+    out, new = fill_holes_stick(volume, filled, 5)
+    assert new[1:4].all() and np.allclose(out[:5, 1, 1], [10, 20, 30, 40, 50])
     # a stick of 5 voxels (4 steps + 1) is longer than a limit of 4: nothing filled
     out, new = fill_holes_stick(volume, filled, 4)
     assert not new.any() and np.array_equal(out, volume)
@@ -98,6 +101,47 @@ def test_stick_ties_are_averaged():
         volume[index], filled[index] = value, True
     out, new = fill_holes_stick(volume, filled, 3)
     assert new[1, 1, 1] and out[1, 1, 1] == pytest.approx((20 + 50) / 2)
+
+
+def _stick_fill_by_walking(volume, filled, length):
+    """The stick filler as PLUS states it: from every hole walk each of the 13 directions both
+    ways to the first filled voxel; the shortest usable stick (ties averaged) interpolates."""
+    out, new = volume.astype(np.float64).copy(), np.zeros(volume.shape, bool)
+    for v in zip(*np.nonzero(~filled), strict=True):
+        found = []
+        for d in STICK_DIRECTIONS:
+            ends = []
+            for sign in (1, -1):
+                for j in range(1, length):
+                    p = tuple(c + sign * j * s for c, s in zip(v, d, strict=True))
+                    if not all(0 <= c < n for c, n in zip(p, volume.shape, strict=True)):
+                        break
+                    if filled[p]:
+                        ends.append((j, float(volume[p])))
+                        break
+            if len(ends) == 2 and ends[0][0] + ends[1][0] + 1 <= length:
+                (f, ahead), (r, behind) = ends
+                found.append(
+                    ((f + r + 1) * np.sqrt(np.dot(d, d)), (r * ahead + f * behind) / (f + r))
+                )
+        if found:
+            shortest = min(s for s, _ in found)
+            tied = [value for s, value in found if np.isclose(s, shortest, rtol=1e-6)]
+            out[v], new[v] = np.mean(tied), True
+    return out, new
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_stick_hole_filling_equals_walking_every_stick(seed):
+    rng = np.random.default_rng(seed)
+    shape = tuple(int(n) for n in rng.integers(5, 11, size=3))
+    filled = rng.random(shape) < 0.08
+    volume = np.where(filled, rng.random(shape) * 100, 0).astype(np.float32)
+    length = int(rng.integers(3, 9))
+    out, new = fill_holes_stick(volume, filled, length)
+    expected, expected_new = _stick_fill_by_walking(volume, filled, length)
+    assert new.any() and np.array_equal(new, expected_new)
+    np.testing.assert_allclose(out, expected, rtol=1e-5, atol=1e-4)
 
 
 def test_nearest_hole_filling():

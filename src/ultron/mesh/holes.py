@@ -15,10 +15,13 @@ leans half a voxel towards the +d end. A voxel with no usable stick stays a hole
 
 Instead of walking every stick from every voxel, the distance to the nearest filled voxel along
 ±d is computed for all voxels at once by one sweep per direction through the volume's slices
-(each slice from the previous one, shifted by d): O(voxels) per direction, whatever L.
+(each slice from the previous one, shifted by d): O(voxels) per direction, whatever L. The
+sticks are then compared only at the holes a stick can reach: the nearer end of a usable stick
+lies min(f, r) ≤ (f + r)/2 ≤ (L − 1)/2 steps from the hole, so a hole with no filled voxel
+within Chebyshev distance ⌊(L − 1)/2⌋ (one separable maximum filter) keeps its hole.
 
-Memory: about 28 bytes per voxel of working arrays (float32 steps and values along +d and −d,
-the best stick so far) besides the volume.
+Memory: about 20 bytes per voxel of working arrays (float32 steps and values along +d and −d)
+besides the volume, and 16 bytes per reachable hole.
 """
 
 from __future__ import annotations
@@ -36,14 +39,9 @@ STICK_DIRECTIONS = (
 )  # fmt: skip
 
 
-def _shifted(plane: np.ndarray, db: int, dc: int, fill: float) -> np.ndarray:
-    """out[y, z] = plane[y − db, z − dc], ``fill`` where that lies outside."""
-    out = np.full_like(plane, fill)
-    ny, nz = plane.shape
-    out[max(db, 0) : ny + min(db, 0), max(dc, 0) : nz + min(dc, 0)] = plane[
-        max(-db, 0) : ny + min(-db, 0), max(-dc, 0) : nz + min(-dc, 0)
-    ]
-    return out
+def _overlap(n: int, shift: int) -> tuple[slice, slice]:
+    """(destination, source) slices of an axis of ``n`` voxels for out[i] = in[i − shift]."""
+    return slice(max(shift, 0), n + min(shift, 0)), slice(max(-shift, 0), n + min(-shift, 0))
 
 
 def nearest_back(
@@ -51,24 +49,29 @@ def nearest_back(
 ) -> tuple[np.ndarray, np.ndarray]:
     """For every voxel v, the smallest j ≥ 1 with v − j·d filled (inf if none) and that
     voxel's value (0 if none), float32 volumes: one sweep through the slices along d's first
-    non-zero axis, each slice from the previous one."""
+    non-zero axis, each slice from the previous one shifted by d's other components."""
     d = np.asarray(direction, dtype=np.int64)
     axis = int(np.flatnonzero(d)[0])
     others = [a for a in range(3) if a != axis]
-    db, dc = (int(d[a]) for a in others)
     order = range(volume.shape[axis]) if d[axis] > 0 else range(volume.shape[axis] - 1, -1, -1)
     vol = np.moveaxis(volume, axis, 0)
     fil = np.moveaxis(filled, axis, 0)
-    steps = np.full(vol.shape, np.inf, dtype=np.float32)
-    values = np.zeros(vol.shape, dtype=np.float32)
+    (dst_b, src_b), (dst_c, src_c) = (_overlap(vol.shape[i + 1], int(d[a])) for i, a in
+                                      enumerate(others))  # fmt: skip
+    steps = np.full(vol.shape, np.inf, dtype=np.float32)  # the border no shift reaches stays
+    values = np.zeros(vol.shape, dtype=np.float32)  # "none": inf steps, value 0
+    step = np.empty(vol.shape[1:], dtype=np.float32)
+    value = np.empty(vol.shape[1:], dtype=np.float32)
     previous = None
     for x in order:
         if previous is not None:
             hit = fil[previous]
-            s = np.where(hit, 1.0, steps[previous] + 1.0).astype(np.float32)
-            v = np.where(hit, vol[previous], values[previous]).astype(np.float32)
-            steps[x] = _shifted(s, db, dc, np.inf)
-            values[x] = _shifted(v, db, dc, 0.0)
+            np.add(steps[previous], 1.0, out=step)
+            step[hit] = 1.0
+            value[...] = values[previous]
+            value[hit] = vol[previous][hit]
+            steps[x][dst_b, dst_c] = step[src_b, src_c]
+            values[x][dst_b, dst_c] = value[src_b, src_c]
         previous = x
     return np.moveaxis(steps, 0, axis), np.moveaxis(values, 0, axis)
 
@@ -87,15 +90,17 @@ def fill_holes_stick(
     filled = np.asarray(filled, dtype=bool)
     if volume.ndim != 3 or filled.shape != volume.shape:
         raise argument_error("filled", f"expected the volume's 3D shape {volume.shape}")
-    holes = ~filled
-    best = np.full(volume.shape, np.inf, dtype=np.float32)
-    total = np.zeros(volume.shape, dtype=np.float32)
-    count = np.zeros(volume.shape, dtype=np.float32)
+    at = reachable_holes(filled, length)
+    best = np.full(len(at[0]), np.inf, dtype=np.float32)
+    total = np.zeros(len(at[0]), dtype=np.float32)
+    count = np.zeros(len(at[0]), dtype=np.float32)
     for direction in STICK_DIRECTIONS:
-        back_steps, back_value = nearest_back(volume, filled, direction)
-        fwd_steps, fwd_value = nearest_back(volume, filled, tuple(-c for c in direction))
+        back_steps, back_value = (a[at] for a in nearest_back(volume, filled, direction))
+        fwd_steps, fwd_value = (
+            a[at] for a in nearest_back(volume, filled, tuple(-c for c in direction))
+        )
         span = fwd_steps + back_steps
-        usable = holes & (span + 1 <= length)
+        usable = span + 1 <= length
         with np.errstate(invalid="ignore", divide="ignore"):
             if plus_weights:
                 value = ((back_steps + 1) * fwd_value + fwd_steps * back_value) / (span + 1)
@@ -108,10 +113,23 @@ def fill_holes_stick(
         best = np.where(shorter, stick, best)
         total = np.where(shorter, value, np.where(tied, total + value, total))
         count = np.where(shorter, 1.0, np.where(tied, count + 1.0, count)).astype(np.float32)
-    new = holes & (count > 0)
+    found = count > 0
+    new = np.zeros(volume.shape, dtype=bool)
+    new[tuple(axis[found] for axis in at)] = True
     out = volume.copy()
-    out[new] = total[new] / count[new]
+    out[new] = total[found] / count[found]  # both in C order: ``at`` is sorted
     return out, new
+
+
+def reachable_holes(filled: np.ndarray, length: int) -> tuple[np.ndarray, ...]:
+    """Indices (C order) of the holes of ``filled`` that a stick of at most ``length`` voxels
+    can reach: those with a filled voxel within Chebyshev distance ⌊(length − 1)/2⌋ (module
+    doc)."""
+    from scipy import ndimage
+
+    reach = (length - 1) // 2
+    near = ndimage.maximum_filter(filled.view(np.uint8), size=2 * reach + 1, mode="constant")
+    return np.nonzero(~filled & (near > 0))
 
 
 def fill_holes_nearest(
