@@ -26,7 +26,13 @@ from ultron.benchmark import (
     run_benchmark,
     run_tasks,
 )
-from ultron.benchmark.plan import CellEntry, SimulateJob, robustness_row
+from ultron.benchmark.plan import (
+    CellEntry,
+    FinetuneJob,
+    ReconstructJob,
+    SimulateJob,
+    robustness_row,
+)
 from ultron.benchmark.tables import (
     aggregate,
     table1_targets,
@@ -92,6 +98,7 @@ def tiny_config(**changes) -> BenchmarkConfig:
         "ultron": ultron,
         "on": replace(on, meshing=ultron),
         "metrics": MetricsConfig(n_points=2000, repeats=1),
+        "cell_reports": False,  # each run's report.html: tests/test_report.py
     }  # fmt: skip
     settings.update(changes)
     return BenchmarkConfig(**settings)
@@ -105,10 +112,10 @@ def failing_finetune(monkeypatch, fail_iters: int | None) -> None:
     the benchmark's runner calls it)."""
     from ultron.benchmark import runner as module
 
-    def finetune(model_dir, dataset_dir, config, out_dir, field_dir=None) -> dict:
+    def finetune(model_dir, dataset_dir, config, out_dir, **options) -> dict:
         if config.iters == fail_iters:
             raise RuntimeError("fine-tuning exploded")
-        return REAL_FINETUNE(model_dir, dataset_dir, config, out_dir, field_dir=field_dir)
+        return REAL_FINETUNE(model_dir, dataset_dir, config, out_dir, **options)
 
     monkeypatch.setattr(module, "finetune", finetune)
 
@@ -184,7 +191,9 @@ def test_end_to_end_resume_and_failed_cells(bench_dir: Path, monkeypatch, tiny_r
     out = bench_dir
     failing_finetune(monkeypatch, 100)
     lines: list[str] = []
-    first = run_benchmark(tiny_config(), out, log=lines.append)
+    # the HTML report is written once, by the resumed run below (tests/test_report.py checks it)
+    first = run_benchmark(tiny_config(), out, log=lines.append, report_html=False)
+    assert not (out / "report.html").exists()
     assert any("L2, not in --phantoms" in line for line in lines)
 
     payload = json.loads((out / BENCHMARK_JSON).read_text())
@@ -252,6 +261,8 @@ def test_end_to_end_resume_and_failed_cells(bench_dir: Path, monkeypatch, tiny_r
     check_file.unlink()  # as a field fitted before the check existed: recomputed, not refitted
     second = run_benchmark(tiny_config(), out)
     assert json.loads(check_file.read_text()) == written
+    assert '<figure data-kind="mesh"' in (out / "report.html").read_text()
+    assert not list((out / "runs").rglob("report.html"))  # cell_reports=False
     rerun = ["run:L2-s0/finetune-1pct-100", *(AUTO_ULTRON_TASK for _ in auto_failed)]
     assert sorted(second.executed + second.failed) == sorted(rerun)
     assert second.executed[:1] == rerun[:1]
@@ -384,6 +395,12 @@ def test_plan_shares_runs_and_builds_robustness_datasets(tmp_path: Path):
     assert quiet.tables == ["table1"] and "skipped" in quiet.notes[0]
     quick = plan_benchmark(quick_config(), tmp_path)
     assert {t.split(":")[1].split("/")[0] for t in quick.tasks} == {"L3-s0", "L2-s0"}
+    # every cell writes its report.html unless the benchmark says not to
+    runs = [t.job for t in quick.tasks.values() if isinstance(t.job, ReconstructJob | FinetuneJob)]
+    assert runs and all(job.report for job in runs)
+    quiet = plan_benchmark(quick_config(cell_reports=False), tmp_path)
+    assert not any(getattr(t.job, "report", False) for t in quiet.tasks.values())
+    assert quick_config(cell_reports=False).settings() == quick_config().settings()
 
 
 def toy_worker(task: Task) -> dict:

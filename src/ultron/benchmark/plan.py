@@ -149,6 +149,10 @@ class BenchmarkConfig:
     #: Where every task's networks compute (not a setting of the results' identity: a DIR
     #: resumed on another device keeps its finished cells).
     device: str = "cpu"
+    #: Whether every cell's run directory gets its own report.html (as ``reconstruct``
+    #: writes it; seconds of figures per cell). The benchmark's report.html shows every row
+    #: either way; not a setting of the results' identity.
+    cell_reports: bool = True
     simulation: SimulationConfig = field(default_factory=_benchmark_simulation)
     field_fit: FieldTrainConfig = field(default_factory=FieldTrainConfig)
     ultron: UltronConfig = field(default_factory=UltronConfig)
@@ -315,6 +319,8 @@ class ReconstructJob:
     field_dir: str | None
     #: The field was fitted on another copy of the same images and poses (auto labels).
     allow_other_field: bool = False
+    #: Write the run's report.html (:attr:`BenchmarkConfig.cell_reports`).
+    report: bool = True
 
 
 @dataclass(frozen=True)
@@ -329,6 +335,7 @@ class FinetuneJob:
     meshing: UltronConfig
     metrics: MetricsConfig
     device: str = "cpu"
+    report: bool = True
 
 
 @dataclass(frozen=True)
@@ -463,7 +470,7 @@ class _Planner:
             model_dir = self.plan.tasks[model_task].job.out
             job: Any = FinetuneJob(
                 model_dir, dataset_dir, field_dir, row.label_fraction, row.finetune_iters,
-                spec.seed, out, config.ultron, config.metrics, config.device,
+                spec.seed, out, config.ultron, config.metrics, config.device, config.cell_reports,
             )  # fmt: skip
             deps: tuple[str, ...] = (field_id, model_task)
         else:
@@ -485,6 +492,7 @@ class _Planner:
             job = ReconstructJob(
                 dataset_dir, request, out, field_dir if needs_field else None,
                 allow_other_field=needs_field and row.labels == "auto",
+                report=config.cell_reports,
             )  # fmt: skip
             deps = (field_id, data_id) if needs_field else (data_id,)
         self.plan.tasks[task_id] = Task(task_id, deps, job)

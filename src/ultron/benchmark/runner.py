@@ -180,6 +180,7 @@ def reconstruct_cell(job: ReconstructJob) -> bool:
         job.out,
         field_dir=job.field_dir,
         allow_other_field=job.allow_other_field,
+        report=job.report,
     )
     return False
 
@@ -197,7 +198,9 @@ def finetune_cell(job: FinetuneJob) -> bool:
         metrics=job.metrics,
         device=job.device,
     )
-    finetune(job.model_dir, job.dataset_dir, config, job.out, field_dir=job.field_dir)
+    finetune(
+        job.model_dir, job.dataset_dir, config, job.out, field_dir=job.field_dir, report=job.report
+    )
     return False
 
 

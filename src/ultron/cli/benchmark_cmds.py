@@ -64,6 +64,13 @@ NoGeneralisation = Annotated[
     bool,
     typer.Option("--no-generalisation", help="Skip Table 2 (train on L3, apply to L2)."),
 ]
+NoCellReports = Annotated[
+    bool,
+    typer.Option(
+        "--no-cell-reports",
+        help="Skip each cell's own report.html (DIR/report.html still shows every row).",
+    ),
+]
 BenchPreset = Annotated[
     str,
     typer.Option(
@@ -100,6 +107,7 @@ def benchmark(
     threads: TaskThreads = None,
     robustness: Robustness = False,
     no_generalisation: NoGeneralisation = False,
+    no_cell_reports: NoCellReports = False,
     preset: BenchPreset = "fast",
     executor: Executor = "local",
     address: Address = None,
@@ -125,6 +133,7 @@ def benchmark(
         "threads": threads,
         "robustness": robustness,
         "generalisation": not no_generalisation,
+        "cell_reports": not no_cell_reports,
         "device": device,
     }
     if seeds is not None:
