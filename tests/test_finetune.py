@@ -72,7 +72,7 @@ def shapes(tmp_path_factory) -> dict[str, Path]:
         ),
         metrics=FAST_METRICS,
     )
-    reconstruct(l3, request, root / "model", field_dir=l3_field)
+    reconstruct(l3, request, root / "model", field_dir=l3_field, report=False)
     return {"model": root / "model", "new": l3, "field": l3_field, "l3": l3}
 
 
@@ -128,7 +128,7 @@ def test_freezing_keeps_last_two_layers_bit_identical(shapes):
 def test_iters_zero_equals_direct_application(shapes, tmp_path):
     config = _config(iters=0)
     summary = finetune(shapes["model"], shapes["new"], config, tmp_path / "direct",
-                       field_dir=shapes["field"])  # fmt: skip
+                       field_dir=shapes["field"], report=False)  # fmt: skip
     network, meta = load_network(shapes["model"])
     dataset, fitted = SweepDataset.load(shapes["new"]), load_field(shapes["field"])
     context = ThetaModel.from_meta(meta).context

@@ -90,13 +90,16 @@ def test_ultron_end_to_end(tiny: Path, tmp_path: Path, monkeypatch):
     ours = summary["metrics"]["mean"]
     assert ours["mad"] < 2.0
     # a second run reuses the cached field
-    again = reconstruct(tiny, request, tmp_path / "again", field_config=field_config)
+    assert (tmp_path / "out" / "report.html").is_file()  # the others skip their report
+    again = reconstruct(tiny, request, tmp_path / "again", field_config=field_config, report=False)
     assert json.loads((tmp_path / "again" / "run.json").read_text())["field_cached"] is True
     assert again["metrics"]["mean"]["mad"] == pytest.approx(ours["mad"])
     others = {}
     for method in ("ultron-noloss", "compounding"):
         other = replace(request, method=method)
-        result = reconstruct(tiny, other, tmp_path / method, field_config=field_config)
+        result = reconstruct(
+            tiny, other, tmp_path / method, field_config=field_config, report=False
+        )
         others[method] = result["metrics"]["mean"]["cd_visible"]
     assert ours["cd_visible"] < others["ultron-noloss"], (ours["cd_visible"], others)
     assert ours["cd_visible"] <= others["compounding"], (ours["cd_visible"], others)
