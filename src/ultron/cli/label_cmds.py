@@ -44,16 +44,20 @@ def label(
 ) -> None:
     """Write bone labels (1 bone, 0 background, 255 unsure) into a dataset's sweeps."""
     apply_threads(threads)
-    from ultron.data.auto_label_dataset import MAX_LISTED, QUALITY_FILE
+    from ultron.data.auto_label_dataset import (
+        MAX_LISTED,
+        QUALITY_FILE,
+        check_labelling,
+        label_checked_sweeps,
+    )
     from ultron.errors import argument_error
-    from ultron.pipeline.labels import label_dataset
 
     if not auto:
         raise argument_error("--auto", "only automatic labelling exists: pass --auto")
-    summaries = label_dataset(
-        dataset, sweep_names(sweeps), replace=replace, option="--sweeps",
-        progress=lambda: stage_progress("labelling", unit="frames", width=24),
-    )  # fmt: skip
+    # refused before the progress bar opens; the checked dataset is the one labelled
+    data, names = check_labelling(dataset, sweep_names(sweeps), replace, option="--sweeps")
+    with stage_progress("labelling", unit="frames", width=24) as report:
+        summaries = label_checked_sweeps(dataset, data, names, progress=report)
     for s in summaries:
         console.print(
             f"{s.name}: {s.frames} frames, bone {100 * s.bone:.2f} %, background"

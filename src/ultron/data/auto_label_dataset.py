@@ -169,15 +169,13 @@ def auto_label_dataset(
     replace: bool = False,
     config: AutoLabelConfig | None = None,
     progress: Progress | None = None,
-    option: str = "sweeps",
 ) -> list[SweepLabelSummary]:
     """Label the chosen ``sweeps`` (default: all) of the dataset at ``root`` automatically
     (:func:`~ultron.data.auto_labels.auto_label_frames`) and write them (module docstring):
     every sweep is labelled first, then the labels are written, ``dataset.json`` last. Returns
-    one summary per sweep, in the order given. An unknown sweep is an error naming ``option``
-    (the argument that chose the sweeps)."""
+    one summary per sweep, in the order given."""
     _checked_config(config)
-    dataset, names = check_labelling(root, sweeps, replace, option)
+    dataset, names = check_labelling(root, sweeps, replace)
     return label_checked_sweeps(root, dataset, names, config, progress)
 
 

@@ -186,4 +186,4 @@ def get_method(name: str) -> Method:
     return METHODS[check_method_name(name)]
 
 
-__all__ = ["FIELD_METHODS", "METHODS", "Method", "MethodInputs", "get_method"]
+__all__ = ["METHODS", "Method", "MethodInputs", "get_method"]

@@ -15,11 +15,11 @@ from pathlib import Path
 
 from ultron.data.dataset import SweepDataset
 from ultron.errors import UltronInputError, argument_error
+from ultron.methods.catalog import FIELD_RUN_METHODS
 from ultron.models.fitted import load_field
 from ultron.pipeline.record import RunRecord
 from ultron.report.html import Section, build_html, write_html
 from ultron.report.sections import (
-    FIELD_METHODS,
     evidence_html,
     existing_dir,
     final_loss_rows,
@@ -54,7 +54,7 @@ def _load_fitted(run: RunRecord, root: Path):
     """The acoustic field named by run.json ``field_dir`` (or ``None``) and a remark."""
     field_dir = resolve_dir(run.field_dir, root)
     if field_dir is None:
-        if run.method in FIELD_METHODS:
+        if run.method in FIELD_RUN_METHODS:
             return None, "run.json records no field_dir: the field's maps are not shown"
         return None, ""
     try:

@@ -16,7 +16,6 @@ from ultron.data.auto_label_dataset import auto_label_records
 from ultron.data.dataset import SweepDataset
 from ultron.errors import UltronError, UltronInputError, argument_error
 from ultron.mesh.export import load_mesh, load_vertex_properties
-from ultron.methods.catalog import FIELD_RUN_METHODS
 from ultron.report.evidence_figure import surface_evidence_figure
 from ultron.report.figures import (
     frames_figure,
@@ -27,8 +26,6 @@ from ultron.report.figures import (
 from ultron.report.html import image_html, paragraph_html, table_html
 from ultron.report.tables import LABELS, NOT_AVAILABLE, format_mean_std
 
-#: Run methods whose run reads an acoustic field: the catalog's, and fine-tuning's.
-FIELD_METHODS = FIELD_RUN_METHODS
 STAGE_KEYS = ("stage1", "stage2", "stage3")
 
 
