@@ -80,6 +80,32 @@ def test_label_signed_distance_by_hand():
     assert np.all(label_signed_distance(np.zeros((2, 2), np.uint8), (1, 1), 2.0) == -2.0)
 
 
+def test_pixel_values_take_each_pixel_from_its_own_frame():
+    from ultron.data.labels import LabelledPixels
+    from ultron.mesh.compounding import label_signed_distance, pixel_values
+
+    probe = ProbeGeometry(width_mm=6.0, depth_mm=8.0, height_px=8, width_px=6)
+    rng = np.random.default_rng(2)
+    sweeps = []
+    for name in ("row", "column"):
+        labels = np.zeros((4, 8, 6), np.uint8)
+        for k in range(4):  # a bone band at a different depth in every frame
+            labels[k, 2 + k : 4 + k] = 1
+        poses = np.tile(np.eye(4), (4, 1, 1))
+        sweeps.append(Sweep(name, name, np.zeros_like(labels), poses, labels))
+    dataset = SweepDataset(probe, sweeps)
+    n = 300  # pixels of both sweeps and every frame, in no order
+    pixels = LabelledPixels(*(rng.integers(0, hi, n) for hi in (2, 4, 8, 6)), np.zeros(n, np.uint8))
+    config = CompoundingConfig()
+    values = pixel_values(dataset, pixels, config)
+    for i in range(n):
+        labels = sweeps[pixels.sweep_index[i]].labels[pixels.frame[i]]
+        expected = label_signed_distance(labels, (1.0, 1.0), config.clip_mm)
+        assert values[i] == expected[pixels.row[i], pixels.col[i]]
+    empty = LabelledPixels(*(np.zeros(0, np.int64) for _ in range(4)), np.zeros(0, np.uint8))
+    assert pixel_values(dataset, empty, config).shape == (0,)
+
+
 @pytest.fixture(scope="module")
 def band_dataset() -> SweepDataset:
     """Frames in x–y planes every 8 mm in z; a 2 mm band of bone labels at depth 10–12 mm

@@ -260,6 +260,16 @@ def test_api_maps_and_pixel_theta_transmission(tmp_path: Path) -> None:
         fitted.query(points).stack().numpy(), maps.theta, rtol=1e-5, atol=1e-7
     )
 
+    # pixels of many frames in any order, frames rendered a few at a time: each pixel its own
+    rng = np.random.default_rng(4)
+    every = data.all_poses()[:7]
+    whole = fitted.render_maps(every, expected=True)
+    frame, row, col = (rng.integers(0, n, 300) for n in (7, 24, 16))
+    frame[:3] = 6  # the last frame first: unsorted on purpose
+    theta_r, t_r = fitted.pixel_theta_transmission(every, frame, row, col, chunk_frames=2)
+    np.testing.assert_allclose(t_r.numpy(), whole.transmission[frame, row, col], rtol=1e-6)
+    np.testing.assert_allclose(theta_r.numpy(), whole.theta[frame, row, col], rtol=1e-5, atol=1e-7)
+
 
 # ----------------------------------------------------------------- bad inputs
 def test_bad_inputs_give_clear_errors(tmp_path: Path) -> None:

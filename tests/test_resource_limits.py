@@ -98,3 +98,34 @@ def test_work_beyond_the_memory_is_refused_before_it_starts(
     lines = result.stderr.strip().splitlines()
     assert len(lines) == 1 and option in lines[0] and "more than" in lines[0], lines
     assert sorted(p.name for p in tmp_path.iterdir()) == before
+
+
+_REUSE_PROBE = """
+import numpy as np
+from ultron.memory import freed_memory_reused
+def kept() -> int:  # resident pages left by 128 MiB allocated, touched and freed
+    with open("/proc/self/statm") as f:
+        before = int(f.read().split()[1])
+    np.ones(2**24).sum()
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[1]) - before
+outside = kept()
+with freed_memory_reused() as applied:
+    inside = kept()
+print(applied, outside, inside, kept())
+"""
+
+
+@pytest.mark.skipif(
+    __import__("platform").libc_ver()[0] != "glibc", reason="a glibc malloc setting"
+)
+def test_freed_memory_is_kept_for_reuse_only_within_the_block() -> None:
+    out = subprocess.run(
+        [sys.executable, "-c", _REUSE_PROBE], capture_output=True, text=True, check=True
+    ).stdout.split()
+    pages = 2**27 // resource.getpagesize()
+    applied, before, inside, after = out[0], *map(int, out[1:])
+    assert applied == "True"
+    assert before < pages // 10  # glibc hands the freed 128 MiB block back to the kernel
+    assert inside > pages * 9 // 10  # within the block it stays in the heap for reuse
+    assert after < pages // 10  # glibc's limits restored: handed back again

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import math
 import os
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 _GIB = 1024**3
@@ -79,3 +81,44 @@ def check_fits_in_memory(n_bytes: float, where: str | Path, field: str, what: st
         raise UltronInputError(
             where, field, f"{what} would take {n_bytes / _GIB:.3g} GiB, more than {name}"
         )
+
+
+#: glibc ``mallopt`` parameters (malloc.h), the heap kept free for reuse before trimming, and
+#: glibc's own values restored afterwards (DEFAULT_MMAP_MAX, DEFAULT_TRIM_THRESHOLD).
+_M_TRIM_THRESHOLD, _M_MMAP_MAX = -1, -4
+_KEEP_FREE_BYTES = 256 * 2**20
+_GLIBC_MMAP_MAX, _GLIBC_TRIM_BYTES = 65536, 128 * 1024
+
+
+def _mallopt(mmap_max: int, trim_bytes: int) -> bool:
+    """Set glibc malloc's ``M_MMAP_MAX`` and ``M_TRIM_THRESHOLD``; False off glibc."""
+    import ctypes
+    import platform
+
+    if platform.libc_ver()[0] != "glibc":
+        return False
+    try:
+        libc = ctypes.CDLL("libc.so.6")
+        return bool(libc.mallopt(_M_MMAP_MAX, mmap_max)) and bool(
+            libc.mallopt(_M_TRIM_THRESHOLD, trim_bytes)
+        )
+    except (OSError, AttributeError):
+        return False
+
+
+@contextmanager
+def freed_memory_reused() -> Iterator[bool]:
+    """Within the block, glibc's malloc serves every block from its heap and keeps up to
+    256 MiB of freed heap for reuse (``mallopt``: no ``mmap``'d blocks); elsewhere it maps
+    each large block afresh and hands it back to the kernel when freed, so a training step
+    that allocates its gradients anew faults all of it in again (figures:
+    docs/decisions.md#the-allocator-freed-memory-kept-for-reuse-memorypy). The training loop
+    runs in it; glibc's own limits are restored on leaving (freed heap is then returned).
+    Yields whether it applied (False off glibc). A process setting: not for threads that
+    train at the same time."""
+    applied = _mallopt(0, _KEEP_FREE_BYTES)
+    try:
+        yield applied
+    finally:
+        if applied:
+            _mallopt(_GLIBC_MMAP_MAX, _GLIBC_TRIM_BYTES)

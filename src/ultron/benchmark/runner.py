@@ -48,6 +48,7 @@ from ultron.models.field_dir import (
     read_field_json,
 )
 from ultron.models.fitted import load_field
+from ultron.parallel import available_cores
 from ultron.phantom.dataset import simulate_dataset
 from ultron.pipeline.finetune import finetune
 from ultron.pipeline.record import RunRecord
@@ -65,11 +66,7 @@ FIELD_DONE = "done"  # the completion marker of ultron.pipeline.field_cache
 
 def default_threads(jobs: int) -> int:
     """torch threads per task: the machine's cores shared among ``jobs`` workers, ≥ 1."""
-    try:
-        cores = len(os.sched_getaffinity(0))
-    except AttributeError:  # not on Linux
-        cores = os.cpu_count() or 1
-    return max(1, cores // max(1, jobs))
+    return max(1, available_cores() // max(1, jobs))
 
 
 def _normalised(data: Any) -> Any:

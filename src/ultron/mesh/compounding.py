@@ -45,6 +45,7 @@ from ultron.errors import UltronInputError, argument_error
 from ultron.mesh.grid import GridSpec, meshing_voxel_mm
 from ultron.mesh.holes import fill_holes_nearest, fill_holes_stick
 from ultron.mesh.splat import SplatConfig, Splatter
+from ultron.parallel import thread_map
 
 MAX_AUTO_RADIUS_MM = 10.0
 #: Accepted spellings of the interpolation (``trilinear`` is the earlier name of ``linear``).
@@ -133,12 +134,22 @@ def pixel_values(
         return pixels.label.astype(np.float32)
     spacing = (dataset.probe.axial_spacing_mm, dataset.probe.lateral_spacing_mm)
     values = np.empty(len(pixels), dtype=np.float32)
-    for sweep_index, sweep in enumerate(dataset.sweeps):
-        mine = np.flatnonzero(pixels.sweep_index == sweep_index)
-        for frame in np.unique(pixels.frame[mine]):
-            at = mine[pixels.frame[mine] == frame]
-            distance = label_signed_distance(sweep.labels[frame], spacing, config.clip_mm)
-            values[at] = distance[pixels.row[at], pixels.col[at]]
+    if len(pixels) == 0:
+        return values
+    # the pixels grouped by (sweep, frame) once; the frames' distance transforms on threads
+    order = np.lexsort((pixels.frame, pixels.sweep_index))
+    keys = np.stack([pixels.sweep_index[order], pixels.frame[order]], axis=1)
+    starts = np.flatnonzero(np.r_[True, (keys[1:] != keys[:-1]).any(axis=1)])
+    groups = np.split(order, starts[1:])
+
+    def frame_values(at: np.ndarray) -> np.ndarray:
+        sweep = dataset.sweeps[int(pixels.sweep_index[at[0]])]
+        labels = sweep.labels[int(pixels.frame[at[0]])]
+        distance = label_signed_distance(labels, spacing, config.clip_mm)
+        return distance[pixels.row[at], pixels.col[at]]
+
+    for at, found in zip(groups, thread_map(frame_values, groups), strict=True):
+        values[at] = found
     return values
 
 

@@ -29,6 +29,7 @@ from __future__ import annotations
 import numpy as np
 
 from ultron.errors import argument_error
+from ultron.parallel import available_cores, thread_map
 
 #: PLUS's 13 stick directions.
 STICK_DIRECTIONS = (
@@ -94,11 +95,21 @@ def fill_holes_stick(
     best = np.full(len(at[0]), np.inf, dtype=np.float32)
     total = np.zeros(len(at[0]), dtype=np.float32)
     count = np.zeros(len(at[0]), dtype=np.float32)
-    for direction in STICK_DIRECTIONS:
-        back_steps, back_value = (a[at] for a in nearest_back(volume, filled, direction))
-        fwd_steps, fwd_value = (
-            a[at] for a in nearest_back(volume, filled, tuple(-c for c in direction))
-        )
+
+    def sticks(direction: tuple[int, int, int]) -> list[np.ndarray]:
+        """(back steps, back value, forward steps, forward value) at the reachable holes."""
+        back = nearest_back(volume, filled, direction)
+        forward = nearest_back(volume, filled, tuple(-c for c in direction))
+        return [a[at] for a in (*back, *forward)]
+
+    workers = available_cores()  # the sweeps release the GIL; a batch bounds the memory
+    batches = [STICK_DIRECTIONS[i : i + workers] for i in range(0, len(STICK_DIRECTIONS), workers)]
+    swept = (
+        pair
+        for batch in batches
+        for pair in zip(batch, thread_map(sticks, batch, workers), strict=True)
+    )
+    for direction, (back_steps, back_value, fwd_steps, fwd_value) in swept:
         span = fwd_steps + back_steps
         usable = span + 1 <= length
         with np.errstate(invalid="ignore", divide="ignore"):

@@ -424,13 +424,13 @@ def reached_tiles(
     while len(poses) * np.prod(sides / step + 2) > max_samples:
         step *= 2
     reach = step * np.sqrt(3) / 2 / grid.voxel_mm + 2 * factor + 1
-    hit: set[Key] = set()
+    hit = np.zeros(tuple(counts), dtype=bool)  # one flag per tile: no sorting of keys
     for points in slab_points(poses, probe, elevation_half_thickness_mm, step):
         index = grid.world_to_index(points)
         low = np.clip(np.floor((index - reach) / tile), 0, counts - 1).astype(np.int64)
         high = np.clip(np.floor((index + reach) / tile), 0, counts - 1).astype(np.int64)
         for step_keys in itertools.product(range(int((high - low).max()) + 1), repeat=3):
             keys = low + np.asarray(step_keys)
-            keys = np.unique(keys[(keys <= high).all(axis=1)], axis=0)
-            hit.update(map(tuple, keys.tolist()))
-    return hit
+            keys = keys[(keys <= high).all(axis=1)]
+            hit[keys[:, 0], keys[:, 1], keys[:, 2]] = True
+    return set(map(tuple, np.argwhere(hit).tolist()))

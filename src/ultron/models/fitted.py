@@ -297,7 +297,10 @@ class FittedField:
                 raise argument_error(name, f"indices must lie in [0, {bound})")
         theta = torch.zeros(frame_idx.shape[0], len(self.channels))
         transmission = torch.zeros(frame_idx.shape[0])
-        needed = torch.unique(frame_idx)
+        # the pixels in frame order, once: each chunk of frames takes one contiguous run
+        by_frame = torch.argsort(frame_idx, stable=True)
+        sorted_frames = frame_idx[by_frame]
+        needed = torch.unique_consecutive(sorted_frames)
         for start in range(0, needed.shape[0], chunk_frames):
             frames = needed[start : start + chunk_frames]
             rendered = render_field(
@@ -308,12 +311,11 @@ class FittedField:
                 self.render_config,
                 expected=True,
             )
-            local = torch.searchsorted(frames, frame_idx)
-            mask = (local < frames.shape[0]) & (
-                frames[local.clamp(max=frames.shape[0] - 1)] == frame_idx
-            )
-            sel = mask.nonzero().squeeze(1)
-            f, r, c = (i[sel].to(self.device) for i in (local, row_idx, col_idx))
+            lo = int(torch.searchsorted(sorted_frames, frames[0]))
+            hi = int(torch.searchsorted(sorted_frames, frames[-1], right=True))
+            sel = by_frame[lo:hi]
+            local = torch.searchsorted(frames, sorted_frames[lo:hi])
+            f, r, c = (i.to(self.device) for i in (local, row_idx[sel], col_idx[sel]))
             theta[sel] = rendered.properties.stack()[f, r, c].cpu()
             transmission[sel] = rendered.transmission[f, r, c].cpu()
         return theta, transmission

@@ -19,6 +19,8 @@ a held-out check) marks by returning True; ``after_update`` runs after every upd
 checkpoint). ``progress``, the one progress signature of every fit, receives
 ``{"iterations": N, **stage, **entry}`` for each reported update. Random draws belong to the
 fit: its ``objective`` draws from its own seeded generators, never from torch's global state.
+The updates run with freed memory kept for reuse (:func:`ultron.memory.freed_memory_reused`):
+each allocates the same blocks as the one before.
 """
 
 from __future__ import annotations
@@ -31,6 +33,7 @@ from typing import Any
 import torch
 
 from ultron.errors import argument_error
+from ultron.memory import freed_memory_reused
 
 #: The progress callback of every fit: one dict per reported update (module doc).
 Progress = Callable[[dict[str, Any]], None]
@@ -102,23 +105,24 @@ def run_training(
     extra = dict(stage or {})
     log = [] if log is None else log
     started = time.perf_counter()
-    for k in range(start, iterations):
-        loss, scalars = objective(k)
-        descend(optimizers, loss)
-        for schedule in schedules:
-            schedule.step()
-        done = k + 1
-        keep = is_log_step(done, iterations, log_every)
-        if keep or every_update:
-            entry = _entry(scalars, done, started, name)
-            if on_entry is not None and on_entry(entry):
-                keep = True
-            if keep:
-                log.append(entry)
-            if progress is not None:
-                progress({"iterations": iterations, **extra, **entry})
-        if after_update is not None:
-            after_update(done)
+    with freed_memory_reused():  # each update allocates the same blocks again
+        for k in range(start, iterations):
+            loss, scalars = objective(k)
+            descend(optimizers, loss)
+            for schedule in schedules:
+                schedule.step()
+            done = k + 1
+            keep = is_log_step(done, iterations, log_every)
+            if keep or every_update:
+                entry = _entry(scalars, done, started, name)
+                if on_entry is not None and on_entry(entry):
+                    keep = True
+                if keep:
+                    log.append(entry)
+                if progress is not None:
+                    progress({"iterations": iterations, **extra, **entry})
+            if after_update is not None:
+                after_update(done)
     return log
 
 

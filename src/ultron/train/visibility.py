@@ -320,6 +320,10 @@ def load_oracle_truth(
 
 
 # ----------------------------------------------------------------------------- dispatchers
+#: Whole frames whose field T is computed at a time (their pixel indices: 3 × 8 B per pixel).
+_T_CHUNK_FRAMES = 64
+
+
 def _frame_indices(frames: np.ndarray | None, n: int) -> np.ndarray:
     if frames is None:
         return np.arange(n, dtype=np.int64)
@@ -355,11 +359,15 @@ def frame_transmission(
         if fitted is None:
             raise argument_error("fitted", "the 'field' visibility needs a fitted acoustic field")
         fitted.check_probe(dataset.probe)
-        f, r, c = np.meshgrid(index, np.arange(height), np.arange(width), indexing="ij")
-        _, t = fitted.pixel_theta_transmission(
-            sweep.probe_to_world, f.ravel(), r.ravel(), c.ravel(), probe=dataset.probe
-        )
-        return t.numpy().reshape(index.size, height, width).astype(np.float32)
+        out = np.empty((index.size, height, width), dtype=np.float32)
+        for start in range(0, index.size, _T_CHUNK_FRAMES):  # bounds the pixel index arrays
+            chunk = index[start : start + _T_CHUNK_FRAMES]
+            f, r, c = np.meshgrid(chunk, np.arange(height), np.arange(width), indexing="ij")
+            _, t = fitted.pixel_theta_transmission(
+                sweep.probe_to_world, f.ravel(), r.ravel(), c.ravel(), probe=dataset.probe
+            )
+            out[start : start + chunk.size] = t.numpy().reshape(chunk.size, height, width)
+        return out
     if config.source == "confidence":
         maps = [confidence_map(sweep.images[i], config.confidence) for i in index]
         return np.stack(maps) if maps else np.zeros((0, height, width), np.float32)
