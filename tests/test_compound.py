@@ -138,7 +138,15 @@ def test_stick_hole_filling_equals_walking_every_stick(seed):
     filled = rng.random(shape) < 0.08
     volume = np.where(filled, rng.random(shape) * 100, 0).astype(np.float32)
     length = int(rng.integers(3, 9))
-    out, new = fill_holes_stick(volume, filled, length)
+    previous = torch.get_num_threads()
+    try:  # the directions swept one at a time, then one per core on threads: the same volume
+        torch.set_num_threads(1)
+        out, new = fill_holes_stick(volume, filled, length)
+        torch.set_num_threads(3)
+        out_threads, new_threads = fill_holes_stick(volume, filled, length)
+    finally:
+        torch.set_num_threads(previous)
+    assert np.array_equal(out, out_threads) and np.array_equal(new, new_threads)
     expected, expected_new = _stick_fill_by_walking(volume, filled, length)
     assert new.any() and np.array_equal(new, expected_new)
     np.testing.assert_allclose(out, expected, rtol=1e-5, atol=1e-4)

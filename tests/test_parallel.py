@@ -5,9 +5,10 @@ from __future__ import annotations
 import threading
 
 import pytest
+import torch
 
 from ultron.errors import UltronInputError
-from ultron.parallel import available_cores, thread_map
+from ultron.parallel import available_cores, default_workers, thread_map
 
 
 def test_thread_map_keeps_order_and_runs_on_threads():
@@ -29,6 +30,17 @@ def test_thread_map_one_worker_runs_here_and_empty_input():
     assert thread_map(lambda _: threading.get_ident(), [1, 2, 3], workers=1) == [here] * 3
     assert thread_map(lambda x: x, [], workers=3) == []
     assert available_cores() >= 1
+
+
+def test_default_workers_follow_torch_threads():
+    previous = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)  # --threads 1: numpy work on one thread too
+        assert default_workers() == 1
+        torch.set_num_threads(available_cores() + 3)  # never more than the cores
+        assert default_workers() == available_cores()
+    finally:
+        torch.set_num_threads(previous)
 
 
 @pytest.mark.parametrize("workers", [0, -1, 1.5, True, "2"])

@@ -21,13 +21,22 @@ def available_cores() -> int:
         return os.cpu_count() or 1
 
 
+def default_workers() -> int:
+    """Threads for numpy / scipy work: torch's thread count (what ``--threads`` or a benchmark
+    worker's share of the cores set), at most the available cores."""
+    import torch
+
+    return max(1, min(available_cores(), torch.get_num_threads()))
+
+
 def thread_map(
     function: Callable[[T], R], items: Iterable[T], workers: int | None = None
 ) -> list[R]:
-    """``[function(item) for item in items]``, in order, on ``workers`` threads (``None``: one
-    per available core; 1: in this thread). Worth it only where ``function`` releases the GIL."""
+    """``[function(item) for item in items]``, in order, on ``workers`` threads (``None``:
+    :func:`default_workers`; 1: in this thread). Worth it only where ``function`` releases the
+    GIL."""
     if workers is None:
-        workers = available_cores()
+        workers = default_workers()
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
         raise argument_error("workers", f"expected a positive integer or None, got {workers!r}")
     items = list(items)

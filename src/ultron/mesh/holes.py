@@ -29,7 +29,7 @@ from __future__ import annotations
 import numpy as np
 
 from ultron.errors import argument_error
-from ultron.parallel import available_cores, thread_map
+from ultron.parallel import default_workers, thread_map
 
 #: PLUS's 13 stick directions.
 STICK_DIRECTIONS = (
@@ -102,7 +102,7 @@ def fill_holes_stick(
         forward = nearest_back(volume, filled, tuple(-c for c in direction))
         return [a[at] for a in (*back, *forward)]
 
-    workers = available_cores()  # the sweeps release the GIL; a batch bounds the memory
+    workers = default_workers()  # the sweeps release the GIL; a batch bounds the memory
     batches = [STICK_DIRECTIONS[i : i + workers] for i in range(0, len(STICK_DIRECTIONS), workers)]
     swept = (
         pair
