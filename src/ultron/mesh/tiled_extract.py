@@ -183,7 +183,8 @@ def band_distances(
     kept: dict[Key, np.ndarray | bool], layout: TileLayout, box: Box
 ) -> tuple[np.ndarray, np.ndarray]:
     """Keys (sorted) and signed distances of the band voxels (module doc, 2); the tiles'
-    distance transforms run on one thread per core (they release the GIL)."""
+    distance transforms run on threads (:func:`~ultron.parallel.thread_map`: they release the
+    GIL)."""
 
     def tile_band(span: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray] | None:
         lo, hi = span

@@ -56,6 +56,7 @@ from ultron.models.field_dir import (
     write_train_log,
 )
 from ultron.models.fitted import FittedField, ThetaStatistics, probe_to_dict
+from ultron.parallel import default_workers
 from ultron.render.renderer import RenderConfig, render_field
 from ultron.train.field_config import (
     DEFAULT_LR,
@@ -305,14 +306,15 @@ def _prepare(
     dataset: SweepDataset, config: FieldTrainConfig, progress: Progress | None = None
 ) -> tuple[FrameSet, UnitCube, AcousticField, FieldConfig]:
     """The fit's frames (with confidence maps where the prior needs them, as many at a time as
-    torch has threads (``--threads``): a ``progress`` with a ``stage(name, done, total)``
+    :func:`~ultron.parallel.default_workers`: torch's threads (``--threads``), at most the
+    cores: a ``progress`` with a ``stage(name, done, total)``
     method is told as they are computed), unit cube and freshly initialised field (in training
     mode) with its resolved configuration."""
     frames = FrameSet.from_dataset(dataset, config.fit_shape, config.holdout_every)
     if config.confidence_prior_weight > 0:
         stage = getattr(progress, "stage", None)
         report = None if stage is None else (lambda done, n: stage("confidence maps", done, n))
-        frames = frames.with_confidence(report, workers=max(1, torch.get_num_threads()))
+        frames = frames.with_confidence(report, workers=default_workers())
     bounds = field_of_view_bounds_mm(dataset.all_poses(), frames.probe)
     cube = UnitCube.from_bounds(bounds)
     pixel_mm = min(frames.probe.axial_spacing_mm, frames.probe.lateral_spacing_mm)
