@@ -31,14 +31,17 @@ def grid() -> GridSpec:
     return GridSpec.from_bounds(np.array([[-9.0, -11.0, -7.0], [10.0, 8.0, 11.0]]), 0.35)
 
 
-def test_constrained_smoothing_equals_pymcubes():
+@pytest.mark.parametrize(("max_iters", "rel_tol"), [(500, 1e-6), (0, 1e-6), (7, 1e-6), (30, 0.0)])
+def test_constrained_smoothing_equals_pymcubes(max_iters, rel_tol):
+    """Converged (the energy check stops it), no step, stopped by max_iters between two energy
+    checks and on one (rel_tol 0: never converged)."""
     rng = np.random.default_rng(3)
     ijk = np.mgrid[:26, :24, :22]
     binary = ((ijk[0] - 13) ** 2 / 60 + (ijk[1] - 11) ** 2 / 30 + (ijk[2] - 10) ** 2 / 25 < 1) | (
         rng.random((26, 24, 22)) < 0.01
     )
-    ours = smooth_constrained(binary)
-    theirs = mcubes.smooth_constrained(binary)
+    ours = smooth_constrained(binary, max_iters=max_iters, rel_tol=rel_tol)
+    theirs = mcubes.smooth_constrained(binary, max_iters=max_iters, rel_tol=rel_tol)
     np.testing.assert_allclose(ours, theirs, atol=1e-9)
 
 

@@ -337,3 +337,24 @@ def test_a_runs_record_round_trips(tiny_run):
     assert record.method == "compounding" and record.mesh.vertices > 0
     assert record.device["device"] == "cpu" and record.total_s > 0
     assert record.to_dict() == written
+
+
+def test_place_grid_puts_margins_and_gaps_in_inches():
+    """A 10 × 5 in figure, 2 × 3 panels: margins (1, 0.5, 0.8, 0.4) in and gaps (0.6, 0.7) in
+    give panels (10 − 1 − 0.5 − 2·0.6)/3 = 2.4333 in wide and (5 − 0.8 − 0.4 − 0.7)/2 = 1.55 in
+    tall, at the hand-worked positions; with the grid ending at 80 % of the width, the right
+    margin counts from 8 in."""
+    from ultron.report.plotting import new_figure, place_grid
+
+    fig = new_figure(10, 5)
+    axes = [fig.add_subplot(2, 3, k + 1) for k in range(6)]
+    place_grid(fig, 2, 3, (1.0, 0.5, 0.8, 0.4), (0.6, 0.7))
+    boxes = np.array([ax.get_position().bounds for ax in axes]) * [10, 5, 10, 5]  # inches
+    width, height = 7.3 / 3, 1.55
+    np.testing.assert_allclose(boxes[:, 2], width, atol=1e-9)
+    np.testing.assert_allclose(boxes[:, 3], height, atol=1e-9)
+    np.testing.assert_allclose(boxes[:3, 0], [1.0, 1.6 + width, 2.2 + 2 * width], atol=1e-9)
+    np.testing.assert_allclose(boxes[[0, 3], 1], [0.8 + 0.7 + height, 0.8], atol=1e-9)
+    place_grid(fig, 2, 3, (1.0, 0.5, 0.8, 0.4), (0.6, 0.7), right_fraction=0.8)
+    right = max(ax.get_position().x1 for ax in axes) * 10
+    assert right == pytest.approx(8.0 - 0.5, abs=1e-9)

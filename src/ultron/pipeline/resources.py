@@ -145,11 +145,12 @@ def meshing_memory(dataset: SweepDataset, voxel_mm: float | None) -> MeshingMemo
     """The memory of meshing ``dataset`` at ``voxel_mm`` (module doc, 2), before anything is
     allocated. The field of view's tiles are counted when the grid could be allocated at all
     (the grid's voxel count otherwise, Python integers)."""
-    sides, voxel, extent = meshing_grid_shape(dataset, voxel_mm)
+    # the voxel once: with voxel_mm None it rasterises the field of view (≈ 0.7 s on a long sweep)
+    sides, voxel, extent = meshing_grid_shape(dataset, scan_voxel_mm(dataset, voxel_mm))
     n_voxels = float(math.prod(sides))
     fov, volume = n_voxels, n_voxels
     if n_voxels <= MAX_COUNTED_VOXELS:
-        grid = scan_grid(dataset, voxel_mm)
+        grid = scan_grid(dataset, voxel)
         factor = UltronConfig().coarse_factor
         tile = tile_for_factor(factor)
         half = elevation_half_thickness_mm(dataset, voxel)

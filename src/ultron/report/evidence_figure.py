@@ -12,7 +12,7 @@ import numpy as np
 
 from ultron.errors import argument_error
 from ultron.report.figures import VIEWS, _draw_points, _style_axes, _view_limits
-from ultron.report.plotting import figure_png, new_figure
+from ultron.report.plotting import figure_png, new_figure, place_grid, top_title
 
 OBSERVED_RGB = np.array([0.16, 0.44, 0.78])  # blue
 INFERRED_RGB = np.array([0.93, 0.49, 0.13])  # orange
@@ -74,8 +74,8 @@ def surface_evidence_figure(
         _legend_patch(INFERRED_RGB, f"inferred ({100 * (1 - share):.0f} %)"),
     ]
     fig.legend(handles=handles, loc="lower left", fontsize=8, frameon=False, ncol=2)
-    fig.suptitle(title, fontsize=9)
-    fig.tight_layout(rect=(0, 0.04, 0.86, 0.97))
+    top_title(fig, title)
+    place_grid(fig, len(VIEWS), 2, (0.6, 0.15, 0.75, 0.65), (0.65, 0.6), 0.86)
     if scatter is not None:
         cax = fig.add_axes((0.89, 0.12, 0.022, 0.76))
         bar = fig.colorbar(scatter, cax=cax, extend="max")

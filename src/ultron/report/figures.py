@@ -17,7 +17,7 @@ import numpy as np
 from ultron.errors import argument_error
 from ultron.metrics.surface import point_to_surface_distances, sample_surface
 from ultron.report.frame_figures import frames_figure, label_masks_figure
-from ultron.report.plotting import figure_png, new_figure
+from ultron.report.plotting import figure_png, new_figure, place_grid, top_title
 
 __all__ = ["frames_figure", "label_masks_figure", "loss_curves_figure", "mesh_distance_figure"]
 
@@ -102,9 +102,10 @@ def _distance_heading_and_bar(
             f"  —  sampled distance to reference: mean {distances.mean():.2f} mm, "
             f"95th pct {np.percentile(distances, 95):.2f} mm, max {distances.max():.2f} mm"
         )
-    fig.suptitle(heading, fontsize=9)
-    if grid_of_views:
-        fig.tight_layout(rect=(0, 0, 0.86 if scatter is not None else 1.0, 0.97))
+    top_title(fig, heading)
+    if grid_of_views:  # rows: views; columns: reference, reconstruction
+        place_grid(fig, len(VIEWS), 2, (0.6, 0.15, 0.45, 0.65), (0.65, 0.6),
+                   0.86 if scatter is not None else 1.0)  # fmt: skip
     else:
         fig.subplots_adjust(left=0.07, right=0.97, bottom=0.15, top=0.84, wspace=0.25)
     if scatter is not None:
@@ -221,7 +222,7 @@ def loss_curves_figure(curves: Mapping[str, Sequence[Mapping[str, Any]]]) -> byt
         ax.set_title(name, fontsize=9)
         ax.set_xlabel("step", fontsize=8)
         ax.set_ylabel("loss", fontsize=8)
-        ax.tick_params(labelsize=7)
+        ax.tick_params(which="both", labelsize=7)
         ax.grid(True, which="both", alpha=0.3)
-    fig.tight_layout()
+    place_grid(fig, n_rows, n_cols, (0.8, 0.15, 0.5, 0.35), (0.9, 0.7))
     return figure_png(fig)

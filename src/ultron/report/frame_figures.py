@@ -16,7 +16,9 @@ from ultron.report.plotting import (
     figure_png,
     image_extent_mm,
     new_figure,
+    place_grid,
     robust_limits,
+    top_title,
 )
 
 #: Overlay colours (RGBA) of the label classes; background (0) is left untinted.
@@ -93,8 +95,9 @@ def frames_figure(
             title = f"{sweep.name} #{frame}: {name}" if col == 0 else name
             _panel(fig, ax, stack[row], extent, title, cmap, vmin, vmax, bar_label, col == 0)
     if fitted is None:
-        fig.suptitle("recorded frames (no acoustic field available)", fontsize=9)
-    fig.tight_layout()
+        top_title(fig, "recorded frames (no acoustic field available)")
+    top = 0.3 if fitted is not None else 0.5
+    place_grid(fig, n_rows, n_cols, (0.5, 0.55, 0.45, top), (0.8, 0.55))
     return figure_png(fig)
 
 
@@ -200,5 +203,5 @@ def label_masks_figure(
         Patch(facecolor="none", edgecolor="grey", label="background (0): untinted"),
     ]
     fig.legend(handles=handles, loc="lower center", ncol=3, fontsize=7, frameon=False)
-    fig.tight_layout(rect=(0, 0.05, 1, 1))
+    place_grid(fig, n_rows, n_cols, (0.55, 0.15, 0.8, 0.3), (0.35, 0.6))
     return figure_png(fig)
