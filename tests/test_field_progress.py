@@ -228,3 +228,48 @@ def test_cli_prints_a_line_per_stage_and_preparation_into_a_log(tmp_path: Path) 
     assert "fit-field: confidence maps 0/10" in result.output
     assert "fit-field: confidence maps 10/10" in result.output
     assert "fit-field: step 4/4 (100 %)" in result.output
+
+
+def test_stage_lines_print_each_tenth_once_a_gap_has_passed() -> None:
+    """A stage's advance prints at a new tenth only ``min_gap_s`` after the stage's last line:
+    a fast stage prints its start and end alone, a slow one its tenths."""
+    from ultron.cli.common import StageLines, console
+    from ultron.timing import StageTimer
+
+    now = [0.0]
+    lines = StageLines(min_gap_s=5.0, clock=lambda: now[0])
+    timer = StageTimer(announce=lines, advance=lines.advance)
+    timer.advanced(1, 2, "tiles")  # outside a stage: nothing
+    with console.capture() as captured:
+        with timer.stage("fast"):
+            for done in range(1, 11):
+                now[0] += 0.1
+                timer.advanced(done, 10, "tiles")
+        with timer.stage("slow"):
+            for done in range(1, 101):
+                now[0] += 1.0  # 100 s in all: a tenth every 10 s
+                timer.advanced(done, 100, "steps")
+            now[0] += 2.0
+            timer.counter("frames")(3, 4)  # a tenth passed, but 2 s after the last line
+    text = captured.get().splitlines()
+    assert text[0] == "fast …" and text[1].startswith("fast: ") and text[1].endswith(" s")
+    assert text[2] == "slow …" and text[-1].startswith("slow: ") and text[-1].endswith(" s")
+    slow = [t for t in text if t.startswith("slow: ") and t.endswith("%)")]
+    assert slow == [f"slow: {k}/100 steps ({k} %)" for k in range(10, 101, 10)]
+
+
+def test_stage_timer_tells_the_running_stage() -> None:
+    from ultron.timing import StageTimer
+
+    told: list[tuple] = []
+    timer = StageTimer(advance=lambda *e: told.append(e))
+    with timer.stage("outer"):
+        timer.fit_progress({"step": 3, "iterations": 9, "loss": 0.5})
+        timer.fit_progress({"step": 2, "iterations": 9, "stage": "stage1_row"})
+        with timer.stage("inner"):
+            timer.counter("tiles")(1, 2)
+        timer.advanced(4, 9)
+    timer.advanced(5, 9)
+    assert told == [("outer", 3, 9, "steps"), ("outer", 2, 9, "steps of stage1_row"),
+                    ("inner", 1, 2, "tiles"), ("outer", 4, 9, "")]  # fmt: skip
+    assert StageTimer().advanced(1, 2) is None  # without ``advance``: nothing to tell

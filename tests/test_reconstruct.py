@@ -33,6 +33,18 @@ def _check_outputs(out: Path, with_metrics: bool) -> dict:
     return run
 
 
+def _check_advance(events: dict[str, list[tuple]], units: dict[str, str]) -> None:
+    """Each long stage told its advance (issue 31: no minutes of silence): in its unit, never
+    backwards, never past its total; the tiles all visited."""
+    assert set(events) == set(units), events.keys()
+    for stage, unit in units.items():
+        done = [d for d, _, _ in events[stage]]
+        assert {u for _, _, u in events[stage]} == {unit}, stage
+        assert done == sorted(done) and all(0 <= d <= t for d, t, _ in events[stage]), stage
+    if "mesh_evaluate" in events:
+        assert events["mesh_evaluate"][-1][0] == events["mesh_evaluate"][-1][1]
+
+
 def test_compounding_end_to_end(tiny: Path, tmp_path: Path):
     request = ReconstructionRequest(method="compounding", label_fraction=1.0, metrics=FAST_METRICS)
     summary = reconstruct(tiny, request, tmp_path / "out")
@@ -91,16 +103,31 @@ def test_ultron_end_to_end(tiny: Path, tmp_path: Path, monkeypatch):
     assert ours["mad"] < 2.0
     # a second run reuses the cached field
     assert (tmp_path / "out" / "report.html").is_file()  # the others skip their report
-    again = reconstruct(tiny, request, tmp_path / "again", field_config=field_config, report=False)
+    events: dict[str, list[tuple]] = {}
+    again = reconstruct(tiny, request, tmp_path / "again", field_config=field_config, report=False,
+                        advance=lambda *e: events.setdefault(e[0], []).append(e[1:]))  # fmt: skip
     assert json.loads((tmp_path / "again" / "run.json").read_text())["field_cached"] is True
     assert again["metrics"]["mean"]["mad"] == pytest.approx(ours["mad"])
+    _check_advance(
+        events,
+        {
+            "occupancy_fit": "steps",
+            "mesh_evaluate": "tiles",
+            "mesh_extract": "smoothing iterations",
+            "mesh_observed": "frames",
+        },
+    )
+    assert events["occupancy_fit"][-1] == (600, 600, "steps")
+    assert events["mesh_observed"][-1] == (24, 24, "frames")  # every frame's T rendered
     others = {}
     for method in ("ultron-noloss", "compounding"):
-        other = replace(request, method=method)
+        other, events = replace(request, method=method), {}
         result = reconstruct(
-            tiny, other, tmp_path / method, field_config=field_config, report=False
-        )
+            tiny, other, tmp_path / method, field_config=field_config, report=False,
+            advance=lambda *e, got=events: got.setdefault(e[0], []).append(e[1:]),
+        )  # fmt: skip
         others[method] = result["metrics"]["mean"]["cd_visible"]
+    _check_advance(events, {"mesh": "smoothing iterations"})  # compounding's
     assert ours["cd_visible"] < others["ultron-noloss"], (ours["cd_visible"], others)
     assert ours["cd_visible"] <= others["compounding"], (ours["cd_visible"], others)
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import errno
 import functools
 import math
+import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import Annotated, ParamSpec, TypeVar
@@ -271,8 +272,29 @@ def fit_progress(title: str) -> Iterator[Callable[[dict], None]]:
         yield _FitReporter(title, bar, task)
 
 
-def stage_lines(name: str, seconds: float | None) -> None:
-    """A :class:`~ultron.timing.StageTimer` announcer: one line as each stage of a run starts
-    (``mesh_evaluate …``) and one with its time as it ends, so that a log shows what runs."""
-    text = f"{name} …" if seconds is None else f"{name}: {seconds:.1f} s"
-    console.print(text, highlight=False)
+class StageLines:
+    """A :class:`~ultron.timing.StageTimer`'s ``announce`` and ``advance``: one line as each
+    stage of a run starts (``mesh_evaluate …``) and one with its time as it ends, and within a
+    stage a line as it passes each tenth of its work (``mesh_evaluate: 130/260 tiles (50 %)``)
+    once ``min_gap_s`` have passed since the stage's last line, so that a log shows what runs
+    and a stage of minutes is not silent while a short one prints only its start and end."""
+
+    def __init__(self, min_gap_s: float = 5.0, clock: Callable[[], float] = time.monotonic):
+        self.min_gap_s, self.clock = min_gap_s, clock
+        self._last, self._tenth, self._unit = clock(), 0, ""
+
+    def __call__(self, name: str, seconds: float | None) -> None:
+        text = f"{name} …" if seconds is None else f"{name}: {seconds:.1f} s"
+        console.print(text, highlight=False)
+        self._last, self._tenth = self.clock(), 0
+
+    def advance(self, name: str, done: int, total: int, unit: str = "") -> None:
+        if unit != self._unit:  # a new part of the stage (another view's fit) counts afresh
+            self._unit, self._tenth = unit, 0
+        tenth = 10 * done // total if total > 0 else 0
+        now = self.clock()
+        if tenth > self._tenth and now - self._last >= self.min_gap_s:
+            what = f" {unit}" if unit else ""
+            text = f"{name}: {done}/{total}{what} ({100 * done / total:.0f} %)"
+            console.print(text, highlight=False)
+            self._last, self._tenth = now, tenth

@@ -9,6 +9,7 @@ import typer
 
 from ultron.cli.common import (
     DeviceOption,
+    StageLines,
     ThreadsOption,
     apply_threads,
     check_choice,
@@ -18,7 +19,6 @@ from ultron.cli.common import (
     check_seed,
     console,
     fit_progress,
-    stage_lines,
     user_errors,
     warning_line,
 )
@@ -210,6 +210,7 @@ def reconstruct(
         theta_context=theta_context, positive_weight=positive_weight, negatives=negatives,
         mesh_coordinates=mesh_coordinates, device=device,
     )  # fmt: skip
+    lines = StageLines()
     with _field_progress() as update:
         summary = run(
             dataset,
@@ -220,8 +221,9 @@ def reconstruct(
             progress=update,
             allow_other_field=allow_other_field,
             max_memory_gib=max_memory,
-            announce=stage_lines,
+            announce=lines,
             warn=warning_line,
+            advance=lines.advance,
         )
     _print_summary({method: summary})
     console.print(f"outputs in {out}")

@@ -15,6 +15,7 @@ fraction of the largest one's (default 5%).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -54,8 +55,10 @@ def extract_surface(
     grid: GridSpec,
     config: ExtractionConfig | None = None,
     tile: int = DEFAULT_TILE,
+    advance: Callable[[int, int], None] | None = None,
 ):
-    """Mesh the ``occupancy`` volume (values in [0, 1], shape ``grid.shape``) in world mm.
+    """Mesh the ``occupancy`` volume (values in [0, 1], shape ``grid.shape``) in world mm;
+    ``advance`` as in :func:`extract_surface_tiles`.
 
     Returns a ``trimesh.Trimesh`` with outward normals. Raises :class:`NoSurfaceError` when no
     voxel (or every voxel) is occupied, or when nothing survives component filtering. The work
@@ -67,23 +70,27 @@ def extract_surface(
     if volume.shape != grid.shape:
         raise argument_error("occupancy", f"expected shape {grid.shape}, got {volume.shape}")
     return extract_surface_tiles(
-        BinaryTiles.from_volume(volume, config.threshold, tile), grid, config
+        BinaryTiles.from_volume(volume, config.threshold, tile), grid, config, advance
     )
 
 
 def extract_surface_tiles(
-    tiles: BinaryTiles, grid: GridSpec, config: ExtractionConfig | None = None
+    tiles: BinaryTiles,
+    grid: GridSpec,
+    config: ExtractionConfig | None = None,
+    advance: Callable[[int, int], None] | None = None,
 ):
     """:func:`extract_surface` of a volume held binarised in tiles
     (:class:`~ultron.mesh.tiles.BinaryTiles`, at ``config.threshold``): the same mesh as the
-    single-array path, in memory that grows with the surface (:mod:`ultron.mesh.tiled_extract`)."""
+    single-array path, in memory that grows with the surface (:mod:`ultron.mesh.tiled_extract`).
+    ``advance``, when given, is told the smoothing's iterations as they run (done, at most)."""
     config = config or ExtractionConfig()
     if tiles.layout.shape != grid.shape:
         raise argument_error(
             "tiles", f"expected a layout of shape {grid.shape}, got {tiles.layout.shape}"
         )
     _check_occupied(tiles.n_inside, grid.n_voxels, config.threshold, tiles.max_value)
-    vertices, faces = extract_tiles(tiles, config.min_component_fraction, config.smooth)
+    vertices, faces = extract_tiles(tiles, config.min_component_fraction, config.smooth, advance)
     return mesh_on_grid(vertices, faces, grid, config.min_component_fraction)
 
 

@@ -21,6 +21,8 @@ the energy improves by less than ``rel_tol`` per iteration (checked every 10) or
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 from scipy import sparse
 
@@ -97,6 +99,7 @@ def projected_jacobi(
     max_iters: int,
     rel_tol: float,
     weight: float = 0.5,
+    advance: Callable[[int, int], None] | None = None,
 ) -> np.ndarray:
     """x ← clip(w·(−D⁻¹(Q − D)x) + (1 − w)·x, lower, upper), D = diag(Q).
 
@@ -104,7 +107,8 @@ def projected_jacobi(
     same non-zeros as Q), so an iteration reads the matrix once and allocates one vector; the
     result equals the step written out to rounding (≈ 1e-14 on the real fibula's band). The
     energy ½ xᵀQx checked every ``check_each`` steps reuses that step's product y = Jx, since
-    Qx = D(x − y)/w: no second product."""
+    Qx = D(x − y)/w: no second product. ``advance``, when given, is told (iterations done,
+    ``max_iters``) at every energy check."""
     diagonal = q.diagonal()
     step = sparse.diags(-weight / diagonal) @ (q - sparse.diags(diagonal))
     step = (step + sparse.identity(len(diagonal)) * (1 - weight)).tocsr()
@@ -115,6 +119,8 @@ def projected_jacobi(
     for i in range(max_iters + 1):
         y = step @ x
         if i % check_each == 0:  # the energy of x, the iterate after i steps
+            if advance is not None:
+                advance(i, max_iters)
             previous, energy = energy, float(x @ (diagonal * (x - y))) / (2 * weight)
             if previous is not None and (
                 previous <= 0 or (previous - energy) / previous < cumulative_tol

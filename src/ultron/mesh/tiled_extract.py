@@ -25,6 +25,7 @@ same faces (``tests/test_tiled_mesh.py``).
 from __future__ import annotations
 
 import itertools
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -208,14 +209,20 @@ def band_distances(
     return keys_all[order], values_all[order]
 
 
-def smooth_band(keys: np.ndarray, distance: np.ndarray, shape: np.ndarray) -> np.ndarray:
-    """:func:`~ultron.mesh.smoothing.smooth_constrained`'s values on the band (module doc, 3)."""
+def smooth_band(
+    keys: np.ndarray,
+    distance: np.ndarray,
+    shape: np.ndarray,
+    advance: Callable[[int, int], None] | None = None,
+) -> np.ndarray:
+    """:func:`~ultron.mesh.smoothing.smooth_constrained`'s values on the band (module doc, 3);
+    ``advance`` is told the iterations done (:func:`~ultron.mesh.smoothing.projected_jacobi`)."""
     q = band_second_differences(keys, shape)
     upper = np.where(distance < 0, distance, np.inf)
     lower = np.where(distance > 0, distance, -np.inf)
     upper[np.abs(upper) < 1] = 0
     lower[np.abs(lower) < 1] = 0
-    return projected_jacobi(q, distance, lower, upper, MAX_ITERS, REL_TOL)
+    return projected_jacobi(q, distance, lower, upper, MAX_ITERS, REL_TOL, advance=advance)
 
 
 def mesh_tiles(
@@ -246,15 +253,21 @@ def mesh_tiles(
     return merge_blocks(blocks, box.shape)
 
 
-def extract_tiles(tiles: BinaryTiles, min_fraction: float, smooth: bool) -> tuple:
+def extract_tiles(
+    tiles: BinaryTiles,
+    min_fraction: float,
+    smooth: bool,
+    advance: Callable[[int, int], None] | None = None,
+) -> tuple:
     """Steps 1–4 (module doc): (vertices (V, 3) in grid index coordinates, faces (F, 3)).
-    ``tiles`` must hold a set voxel; the mesh may be empty."""
+    ``tiles`` must hold a set voxel; the mesh may be empty. ``advance`` is told the smoothing's
+    iterations (:func:`smooth_band`)."""
     layout = tiles.layout
     kept = kept_components(tiles, min_fraction)
     box = padded_crop(kept, layout)
     band = None
     if smooth:
         keys, distance = band_distances(kept, layout, box)
-        band = (keys, smooth_band(keys, distance, box.shape))
+        band = (keys, smooth_band(keys, distance, box.shape, advance))
     vertices, faces = mesh_tiles(kept, layout, box, band)
     return vertices - CROP_MARGIN + (box.origin + CROP_MARGIN), faces

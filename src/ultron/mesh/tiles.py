@@ -16,7 +16,7 @@ tile entirely inside or outside), which :mod:`ultron.mesh.tiled_extract` meshes.
 from __future__ import annotations
 
 import itertools
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -359,11 +359,13 @@ def evaluate_tiles(
     tile: int = DEFAULT_TILE,
     chunk_points: int = 131_072,
     max_volume_voxels: int = MAX_VOLUME_VOXELS,
+    advance: Callable[[int, int], None] | None = None,
 ) -> TiledEvaluation:
     """:func:`evaluate_tile` on every tile whose coarse nodes reach the field of view
     (``coarse_mask``: tiles of ``tile // factor`` coarse nodes, :func:`field_of_view_tiles`),
     binarised at ``level`` into :class:`BinaryTiles` and pooled into the occupancy volume
-    (:class:`PooledVolume`, :func:`volume_factor` of ``max_volume_voxels``)."""
+    (:class:`PooledVolume`, :func:`volume_factor` of ``max_volume_voxels``). ``advance``, when
+    given, is told the tiles visited so far and their number after each tile."""
     layout = TileLayout(grid.shape, tile)
     seen = [0]
 
@@ -377,10 +379,13 @@ def evaluate_tiles(
         counted, grid.coarsened(factor), coarse_mask, tile // factor, chunk_points
     )
     evaluated, voxels = 0, 0
-    for key in layout.neighbourhood(coarse_mask):
+    keys = layout.neighbourhood(coarse_mask)
+    for done, key in enumerate(keys, start=1):
         values = evaluate_tile(
             counted, grid, key, tile, level, factor, coarse_mask, coarse, chunk_points
         )
+        if advance is not None:
+            advance(done, len(keys))
         if values is None:
             continue
         evaluated += 1

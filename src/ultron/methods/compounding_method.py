@@ -34,7 +34,8 @@ def reconstruct_compounding(
         selection = select_label_frames(dataset, label_fraction, seed)
     with timer.stage("mesh"):
         compounded = compound_labels(dataset, selection, config)
-        mesh = extract_surface(compounded.volume, compounded.grid, extraction)
+        mesh = extract_surface(compounded.volume, compounded.grid, extraction,
+                               advance=timer.counter("smoothing iterations"))  # fmt: skip
     with timer.stage("mesh_observed"):
         observation = faced_observation(mesh, dataset, compounded.grid.voxel_mm, observed)
     info = {

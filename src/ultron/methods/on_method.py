@@ -81,7 +81,7 @@ def reconstruct_on(
         cube = scan_unit_cube(dataset)
         data = on_training_data(dataset, cube, selection)
     with timer.stage("occupancy_fit"):
-        network, log = fit_occupancy(data, occupancy, device=device)
+        network, log = fit_occupancy(data, occupancy, progress=timer.fit_progress, device=device)
 
     def fn(points_mm: torch.Tensor) -> torch.Tensor:
         unit = cube.to_unit(points_mm, dtype=torch.float32)

@@ -158,8 +158,8 @@ class SDFMethod(MethodBase):
             selection = select_label_frames(dataset, request.label_fraction, request.seed)
         return reconstruct_rocosdf(
             dataset, selection, RoCoSDFConfig.preset(request.rocosdf_preset), request.seed,
-            self.views, timer=inputs.timer, dataset_name=inputs.dataset_name,
-            device=inputs.device,
+            self.views, progress=inputs.timer.fit_progress, timer=inputs.timer,
+            dataset_name=inputs.dataset_name, device=inputs.device,
         )  # fmt: skip
 
 

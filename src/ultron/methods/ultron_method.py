@@ -47,7 +47,7 @@ from ultron.mesh.extract import ExtractionConfig, extract_surface_tiles
 from ultron.mesh.grid import GridSpec, field_of_view_volume_mm3, meshing_voxel_mm
 from ultron.mesh.observed import ObservedSurfaceConfig, SurfaceObservation, observe_surface
 from ultron.mesh.tiles import evaluate_tiles, field_of_view_tiles, tile_for_factor
-from ultron.timing import StageTimer
+from ultron.timing import Advanced, StageTimer
 from ultron.train.occupancy import (
     LOSSES,
     OccupancyTrainConfig,
@@ -251,10 +251,12 @@ def mesh_occupancy(
     with timer.stage("mesh_evaluate"):
         evaluated = evaluate_tiles(
             fn, grid, config.extraction.threshold, factor, mask, tile,
-            evaluation_chunk(device, config.chunk_points),
+            evaluation_chunk(device, config.chunk_points), advance=timer.counter("tiles"),
         )  # fmt: skip
     with timer.stage("mesh_extract"):
-        mesh = extract_surface_tiles(evaluated.tiles, grid, config.extraction)
+        mesh = extract_surface_tiles(
+            evaluated.tiles, grid, config.extraction, timer.counter("smoothing iterations")
+        )
     return mesh, evaluated.volume.values, evaluated.volume.grid
 
 
@@ -265,9 +267,11 @@ def keep_observed_surface(
     config: UltronConfig,
     voxel_mm: float,
     truth: Mapping[str, np.ndarray] | None = None,
+    advance: Advanced | None = None,
 ) -> SurfaceObservation:
     """Which vertices of ``mesh`` some frame observed, and the part kept (module docstring,
-    step 5; :func:`~ultron.mesh.observed.observe_surface`).
+    step 5; :func:`~ultron.mesh.observed.observe_surface`). ``advance`` is told the frames
+    whose T is rendered so far, of all frames.
 
     Each frame's T comes from the oracle (diagnostic runs) or the fitted field; the elevational
     slab is the one the field-of-view mask uses (0.75 × the frame gap, ≥ one voxel of the
@@ -277,10 +281,12 @@ def keep_observed_surface(
     maps = None
     if len(mesh.faces):
         visibility = replace(config.visibility, source=source)
-        maps = [
-            frame_transmission(visibility, dataset, sweep.name, fitted=fitted, truth=truth)
-            for sweep in dataset.sweeps
-        ]
+        total, maps = dataset.n_frames, []
+        for sweep in dataset.sweeps:
+            offset = sum(m.shape[0] for m in maps)
+            counted = None if advance is None else (lambda d, _, o=offset: advance(o + d, total))
+            maps.append(frame_transmission(visibility, dataset, sweep.name, fitted=fitted,
+                                           truth=truth, advance=counted))  # fmt: skip
     return observe_surface(
         mesh,
         dataset.all_poses(),
@@ -319,11 +325,15 @@ def reconstruct_ultron(
         )
     with timer.stage("occupancy_fit"):
         device = fitted.device if device is None else device
-        network, log = fit_occupancy(data, occupancy_config, device=device)
+        network, log = fit_occupancy(
+            data, occupancy_config, progress=timer.fit_progress, device=device
+        )
     fn = occupancy_function(fitted, network, config.context)
     mesh, volume, grid = mesh_occupancy(fn, dataset, config, timer, module_device(network))
     with timer.stage("mesh_observed"):
-        observation = keep_observed_surface(mesh, dataset, fitted, config, grid.voxel_mm, truth)
+        observation = keep_observed_surface(
+            mesh, dataset, fitted, config, grid.voxel_mm, truth, timer.counter("frames")
+        )
     info = {
         **observation.info,
         "selection": selection.to_dict(),

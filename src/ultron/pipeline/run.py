@@ -39,7 +39,7 @@ from ultron.pipeline.record import write_run_json
 from ultron.pipeline.resources import check_run_resources
 from ultron.pipeline.rundir import check_run_dir, staged_run_dir
 from ultron.report.run_report import write_run_report
-from ultron.timing import Announce, StageTimer
+from ultron.timing import Advance, Announce, StageTimer
 from ultron.train.field_fit import FieldTrainConfig
 from ultron.train.loop import Progress
 from ultron.train.visibility import load_oracle_truth
@@ -188,6 +188,7 @@ def reconstruct(
     max_memory_gib: float | None = None,
     announce: Announce | None = None,
     warn: Callable[[str], None] | None = None,
+    advance: Advance | None = None,
 ) -> dict[str, Any]:
     """Check everything cheap (:func:`prepare_run`), get the field (given, or fitted and
     cached), run, write DIR (with ``report.html`` unless ``report`` is false). ``warn`` is
@@ -196,8 +197,10 @@ def reconstruct(
     A given ``field_dir`` must have been fitted on this dataset (see
     :func:`load_or_fit_field`) unless ``allow_other_field``; ``max_memory_gib`` caps the
     grids' estimated memory (default: this machine's); ``announce`` is told as each stage
-    starts and ends (:class:`~ultron.timing.StageTimer`)."""
-    timer = StageTimer(announce=announce)
+    starts and ends and ``advance`` how far a long stage has come (the occupancy fit's steps,
+    the meshing's tiles and smoothing iterations, the observed crop's frames:
+    :class:`~ultron.timing.StageTimer`)."""
+    timer = StageTimer(announce=announce, advance=advance)
     to_fit = None  # the field that may be fitted, whose grid is checked too
     if request.method in FIELD_METHODS and field_dir is None:
         to_fit = field_config or FieldTrainConfig()

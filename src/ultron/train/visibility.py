@@ -345,10 +345,12 @@ def frame_transmission(
     *,
     fitted=None,
     truth: Mapping[str, np.ndarray] | None = None,
+    advance: Callable[[int, int], None] | None = None,
 ) -> np.ndarray:
     """T (n, H, W) float32 of whole frames ``frames`` (default: all) of one sweep.
 
-    ``field`` needs ``fitted`` (any frame); ``confidence`` works for any frame; ``labels``
+    ``field`` needs ``fitted`` (any frame; ``advance``, when given, is told the frames rendered
+    so far and n after each chunk of frames); ``confidence`` works for any frame; ``labels``
     needs the sweep's labels (NaN on scanlines without an annotated pixel); ``oracle`` takes
     ``truth[sweep_name]`` (:func:`load_oracle_truth`), else the sweep's ``true_transmission``.
     """
@@ -367,6 +369,8 @@ def frame_transmission(
                 sweep.probe_to_world, f.ravel(), r.ravel(), c.ravel(), probe=dataset.probe
             )
             out[start : start + chunk.size] = t.numpy().reshape(chunk.size, height, width)
+            if advance is not None:
+                advance(start + chunk.size, index.size)
         return out
     if config.source == "confidence":
         maps = [confidence_map(sweep.images[i], config.confidence) for i in index]
