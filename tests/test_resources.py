@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from ultron.data.dataset import ProbeGeometry, SweepDataset
+from ultron.data.labels import gather_labelled_pixels, select_label_frames
 from ultron.data.outliers import (
     OUTLIER_FLOOR_MM,
     check_pose_array_outliers,
@@ -18,15 +19,23 @@ from ultron.data.outliers import (
     pose_outliers,
 )
 from ultron.errors import UltronInputError
+from ultron.mesh.compounding import CompoundingConfig, compound_labels
+from ultron.methods.registry import get_method
 from ultron.methods.ultron_method import scan_grid
 from ultron.pipeline.resources import (
+    COMPOUNDING_BYTES_PER_PIXEL,
+    COMPOUNDING_BYTES_PER_VOXEL,
+    COMPOUNDING_MESH_BYTES_PER_VOXEL,
     FIELD_BYTES_PER_VALUE,
     FIELD_FIXED_BYTES,
     FIELD_RENDER_BYTES_PER_SAMPLE,
     FIELD_TRAIN_BYTES_PER_SAMPLE,
+    MESH_FIXED_BYTES,
+    check_compounding_grid,
     check_field_grid,
     check_meshing_grid,
     check_run_resources,
+    compounding_memory,
     field_fit_memory,
     memory_limit,
     meshing_grid_shape,
@@ -93,6 +102,38 @@ def test_meshing_grid_too_large(tiny_dataset: SweepDataset):
     # a given voxel whose ratio overflows a float is sized without allocating and refused
     with pytest.raises(UltronInputError, match="meshing grid"):
         check_meshing_grid(tiny_dataset, "ds", 1e-300, None)
+
+
+def test_compounding_estimate_is_compound_labels_grid(tiny_dataset: SweepDataset):
+    """Compounding's estimate sizes the grid compound_labels builds (the labelled bone's box,
+    not the field of view) and counts every labelled pixel; a limit under it is refused with
+    one line naming the dataset, the grid and the pixels, one above it passes."""
+    selection = select_label_frames(tiny_dataset, 1.0, 0)
+    for config in (CompoundingConfig(), CompoundingConfig(voxel_mm=0.9, margin_mm=2.0)):
+        total, grid, n_pixels = compounding_memory(tiny_dataset, selection, config)
+        built = compound_labels(tiny_dataset, selection, config).grid
+        assert grid.shape == built.shape and grid.voxel_mm == built.voxel_mm
+        np.testing.assert_array_equal(grid.origin_mm, built.origin_mm)
+        assert n_pixels == len(gather_labelled_pixels(tiny_dataset, selection))
+        voxels = math.prod(grid.shape)
+        assert (
+            total
+            == max(
+                n_pixels * COMPOUNDING_BYTES_PER_PIXEL + voxels * COMPOUNDING_BYTES_PER_VOXEL,
+                voxels * COMPOUNDING_MESH_BYTES_PER_VOXEL,
+            )
+            + MESH_FIXED_BYTES
+        )
+    gib = total / 1024**3
+    check_compounding_grid(tiny_dataset, selection, config, "ds", 1.01 * gib)
+    pattern = (
+        r"^ds/dataset.json: labels: compounding's meshing grid has .* voxels \(.* of 0.9 mm over"
+        r" the labelled bone's box\) and .* labelled pixels: .*, more than --max-memory"
+    )
+    with pytest.raises(UltronInputError, match=pattern):
+        check_compounding_grid(tiny_dataset, selection, config, "ds", 0.99 * gib)
+    # the run refuses before any work, without the field of view's (larger) estimate
+    assert not get_method("compounding").scan_grid
 
 
 def test_tiny_pixels_get_a_voxel_from_the_region_not_a_petabyte_grid(tiny_dataset: SweepDataset):

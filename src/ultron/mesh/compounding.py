@@ -169,6 +169,21 @@ def fill_label_holes(
     return volume, known | by_nearest
 
 
+def compounding_grid(
+    dataset: SweepDataset, bone_mm: np.ndarray, config: CompoundingConfig
+) -> GridSpec:
+    """The grid the labels are compounded on: the box of the bone pixels ``bone_mm`` (M, 3),
+    grown by ``config.margin_mm``, at :class:`CompoundingConfig`'s voxel."""
+    if len(bone_mm) == 0:
+        raise UltronInputError("dataset", "labels", "the selected frames contain no bone (label 1)")
+    bounds = np.stack([bone_mm.min(0) - config.margin_mm, bone_mm.max(0) + config.margin_mm])
+    region_mm3 = float(np.prod(np.ptp(bounds, 0)))
+    voxel = meshing_voxel_mm(
+        dataset.probe, config.voxel_mm, region_mm3, finest_mm=resolved_spacing_mm(dataset)
+    )
+    return GridSpec.from_bounds(bounds, voxel)
+
+
 def compound_labels(
     dataset: SweepDataset, selection: FrameSelection, config: CompoundingConfig | None = None
 ) -> CompoundedVolume:
@@ -176,15 +191,8 @@ def compound_labels(
     config = config or CompoundingConfig()
     pixels = gather_labelled_pixels(dataset, selection)
     points = pixels.world_mm(dataset)
-    bone = points[pixels.label == 1]
-    if len(bone) == 0:
-        raise UltronInputError("dataset", "labels", "the selected frames contain no bone (label 1)")
-    bounds = np.stack([bone.min(0) - config.margin_mm, bone.max(0) + config.margin_mm])
-    region_mm3 = float(np.prod(np.ptp(bounds, 0)))
-    voxel = meshing_voxel_mm(
-        dataset.probe, config.voxel_mm, region_mm3, finest_mm=resolved_spacing_mm(dataset)
-    )
-    grid = GridSpec.from_bounds(bounds, voxel)
+    grid = compounding_grid(dataset, points[pixels.label == 1], config)
+    voxel = grid.voxel_mm
     splatter = Splatter(grid, config.splat)
     splatter.add(points, pixel_values(dataset, pixels, config))
     volume, observed = splatter.result()

@@ -25,13 +25,14 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
+from pathlib import Path
 from types import MappingProxyType
 from typing import Any, Protocol
 
 import torch
 
 from ultron.data.dataset import SweepDataset
-from ultron.data.labels import select_label_frames
+from ultron.data.labels import FrameSelection, select_label_frames
 from ultron.device import CPU
 from ultron.errors import argument_error
 from ultron.mesh.compounding import CompoundingConfig
@@ -41,6 +42,7 @@ from ultron.methods.on_method import ONConfig, reconstruct_on
 from ultron.methods.request import ReconstructionRequest, check_method_name
 from ultron.methods.rocosdf import RoCoSDFConfig, reconstruct_rocosdf
 from ultron.methods.ultron_method import Reconstruction, UltronConfig, reconstruct_ultron
+from ultron.pipeline.resources import check_compounding_grid
 from ultron.timing import StageTimer
 
 
@@ -65,13 +67,26 @@ class Method(Protocol):
     name: str
     needs_field: bool
     #: Whether it meshes on the grid over the scanned region (whose memory a run checks
-    #: before any work); RoCoSDF and UNSR mesh on their own grid around the labelled points.
+    #: before any work); compounding meshes the labelled bone's box, RoCoSDF and UNSR their
+    #: own grid around the labelled points.
     scan_grid: bool
     config_class: type
 
     def meshing_voxel(self, request: ReconstructionRequest) -> float | None:
         """The voxel, mm, ``request`` asks this method to mesh at (None: its default, the
         finer pixel spacing); the run checks the grid's memory with it before any work."""
+        ...
+
+    def check_resources(
+        self,
+        dataset: SweepDataset,
+        request: ReconstructionRequest,
+        selection: FrameSelection,
+        root: str | Path,
+        max_memory_gib: float | None,
+    ) -> None:
+        """Refuse, before any work, a run on ``selection`` whose own grid (one not over the
+        scanned region) would exceed the memory limit; ``root`` is named in the error."""
         ...
 
     def fit(self, dataset: SweepDataset, inputs: MethodInputs) -> Reconstruction: ...
@@ -93,6 +108,16 @@ class MethodBase:
     def meshing_voxel(self, request: ReconstructionRequest) -> float | None:
         """UltrON's meshing voxel: the voxel of every method meshed like UltrON."""
         return request.ultron.voxel_mm
+
+    def check_resources(
+        self,
+        dataset: SweepDataset,
+        request: ReconstructionRequest,
+        selection: FrameSelection,
+        root: str | Path,
+        max_memory_gib: float | None,
+    ) -> None:
+        """Nothing beyond the scan grid's check (:func:`~ultron.pipeline.resources.check_run_resources`)."""
 
 
 @dataclass(frozen=True)
@@ -117,10 +142,22 @@ class UltronMethod(MethodBase):
 class CompoundingMethod(MethodBase):
     """Label compounding, meshed with UltrON's extraction and observed-surface settings."""
 
+    scan_grid: bool = False
     config_class: type = CompoundingConfig
 
     def meshing_voxel(self, request: ReconstructionRequest) -> float | None:
         return request.compounding.voxel_mm
+
+    def check_resources(
+        self,
+        dataset: SweepDataset,
+        request: ReconstructionRequest,
+        selection: FrameSelection,
+        root: str | Path,
+        max_memory_gib: float | None,
+    ) -> None:
+        """Its grid, the labelled bone's box, and labelled pixels within the memory limit."""
+        check_compounding_grid(dataset, selection, request.compounding, root, max_memory_gib)
 
     def fit(self, dataset: SweepDataset, inputs: MethodInputs) -> Reconstruction:
         r = inputs.request

@@ -15,7 +15,8 @@ refuses such a run at once with a one-line error saying which input made it so:
    volumes, the masks, marching cubes and the constrained smoothing's arrays (the demo's
    estimate beside its measured peak:
    docs/decisions.md#resource-guards-memory-estimates-pipelineresourcespy) — against the
-   memory limit;
+   memory limit; label compounding, which meshes the labelled bone's box instead, by
+   :func:`check_compounding_grid` once its frames are chosen (:func:`compounding_memory`);
 3. for a field that will be fitted (:func:`field_fit_memory`): the grid backend's planes
    (finest cell = pixel spacing at the fit resolution; at most ``fields.grid.MAX_RESOLUTION``
    nodes per side) at :data:`FIELD_BYTES_PER_VALUE` bytes per plane value (weight, gradient,
@@ -36,12 +37,16 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+import numpy as np
+
 from ultron.data.dataset import ProbeGeometry, SweepDataset
 from ultron.data.geometry import UnitCube, field_of_view_bounds_mm
+from ultron.data.labels import FrameSelection, gather_labelled_pixels
 from ultron.data.outliers import check_pose_outliers
 from ultron.errors import UltronInputError
 from ultron.memory import memory_limit
-from ultron.mesh.grid import grid_shape
+from ultron.mesh.compounding import CompoundingConfig, compounding_grid
+from ultron.mesh.grid import GridSpec, grid_shape
 from ultron.mesh.tiles import MAX_VOLUME_VOXELS, reached_tiles, tile_for_factor, volume_factor
 from ultron.methods.ultron_method import (
     UltronConfig,
@@ -65,6 +70,13 @@ VOLUME_BYTES_PER_VOXEL = 9
 MESH_FIXED_BYTES = 256 * 1024**2
 #: Grids larger than this are sized by their voxel count alone (no tile is counted).
 MAX_COUNTED_VOXELS = 1e13
+#: Label compounding's peak bytes per labelled pixel (its indices, world point, signed distance
+#: and splat weights) and per voxel of its grid while compounding (splat sums, hole filling's
+#: distance transform) and while meshing (the volume, tiles, smoothing band), rounded up from
+#: the real fibula's and the PLUS phantom's measured peaks (module doc, 2).
+COMPOUNDING_BYTES_PER_PIXEL = 150
+COMPOUNDING_BYTES_PER_VOXEL = 60
+COMPOUNDING_MESH_BYTES_PER_VOXEL = 85
 #: Bytes per value of the field's planes while fitting: float32 weight, gradient, Adam m and v.
 FIELD_BYTES_PER_VALUE = 16
 #: A field fit's working memory per rendered sample, bytes, per backend: a training step keeps
@@ -161,6 +173,44 @@ def meshing_memory(dataset: SweepDataset, voxel_mm: float | None) -> MeshingMemo
         k = volume_factor(grid.shape, MAX_VOLUME_VOXELS)
         volume = float(math.prod(-(-n // k) for n in grid.shape))
     return MeshingMemory(sides, voxel, extent, fov, volume)
+
+
+def compounding_memory(
+    dataset: SweepDataset, selection: FrameSelection, config: CompoundingConfig
+) -> tuple[float, GridSpec, int]:
+    """Label compounding's estimated peak bytes (module doc, 2), its grid and the labelled
+    pixels counted, from the selection's bone pixels alone (nothing grid-sized allocated)."""
+    pixels = gather_labelled_pixels(dataset, selection)
+    bone = pixels.world_mm(dataset, np.flatnonzero(pixels.label == 1))
+    grid = compounding_grid(dataset, bone, config)
+    voxels = float(math.prod(grid.shape))
+    compounding = len(pixels) * COMPOUNDING_BYTES_PER_PIXEL + voxels * COMPOUNDING_BYTES_PER_VOXEL
+    meshing = voxels * COMPOUNDING_MESH_BYTES_PER_VOXEL
+    return max(compounding, meshing) + MESH_FIXED_BYTES, grid, len(pixels)
+
+
+def check_compounding_grid(
+    dataset: SweepDataset,
+    selection: FrameSelection,
+    config: CompoundingConfig,
+    root: str | Path,
+    max_memory_gib: float | None,
+) -> None:
+    """Refuse a compounding whose estimated memory (:func:`compounding_memory`) exceeds the
+    limit, naming the grid and the labelled pixels."""
+    total, grid, n_pixels = compounding_memory(dataset, selection, config)
+    limit, limit_name = memory_limit(max_memory_gib)
+    if total <= limit:
+        return
+    sides = " × ".join(map(str, grid.shape))
+    raise UltronInputError(
+        Path(root) / "dataset.json",
+        "labels",
+        f"compounding's meshing grid has {math.prod(grid.shape):.3g} voxels ({sides} of"
+        f" {grid.voxel_mm:.3g} mm over the labelled bone's box) and {n_pixels:.3g} labelled"
+        f" pixels: ≈ {_size(total)}, more than {limit_name}; label fewer frames"
+        " (--label-fraction) or give it more memory",
+    )
 
 
 def _tile_sides(shape: tuple[int, int, int], key: tuple[int, int, int], tile: int) -> list[int]:

@@ -205,13 +205,15 @@ def reconstruct(
     if request.method in FIELD_METHODS and field_dir is None:
         to_fit = field_config or FieldTrainConfig()
     with timer.stage("load"):
+        method = get_method(request.method)
         dataset, references = prepare_run(
-            out_dir, "reconstruct", dataset_dir, (field_dir,), get_method(request.method).meshing_voxel(request),
-            get_method(request.method).scan_grid, None, max_memory_gib,
+            out_dir, "reconstruct", dataset_dir, (field_dir,), method.meshing_voxel(request),
+            method.scan_grid, None, max_memory_gib,
         )  # fmt: skip
         # labels without bone: refused before minutes of field fit and training
         selection = select_label_frames(dataset, request.label_fraction, request.seed)
         check_selection_has_bone(dataset, selection, dataset_dir)
+        method.check_resources(dataset, request, selection, dataset_dir, max_memory_gib)
         if warn is not None:
             reference = references[0]
             for line in units_warnings(dataset, None if reference is None else reference.vertices):
