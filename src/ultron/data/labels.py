@@ -156,15 +156,32 @@ class LabelledPixels:
         return out
 
 
-def gather_labelled_pixels(dataset: SweepDataset, selection: FrameSelection) -> LabelledPixels:
-    """Every annotated pixel of the selected frames, with its sweep, frame, row and column."""
-    parts: list[tuple[np.ndarray, ...]] = []
+def _selected_labels(dataset: SweepDataset, selection: FrameSelection):
+    """(sweep index, selected frame indices, their labels) of every sweep with labels and
+    selected frames."""
     for sweep_index, sweep in enumerate(dataset.sweeps):
         frames = selection.frames.get(sweep.name)
         if frames is None or len(frames) == 0 or sweep.labels is None:
             continue
-        labels = sweep.labels[frames]
-        f, r, c = np.nonzero(labels != LABEL_UNANNOTATED)
+        yield sweep_index, frames, sweep.labels[frames]
+
+
+def count_labelled_pixels(dataset: SweepDataset, selection: FrameSelection) -> int:
+    """How many pixels of the selected frames are annotated (label ≠ 255)."""
+    return sum(
+        int(np.count_nonzero(labels != LABEL_UNANNOTATED))
+        for _, _, labels in _selected_labels(dataset, selection)
+    )
+
+
+def gather_labelled_pixels(
+    dataset: SweepDataset, selection: FrameSelection, only: int | None = None
+) -> LabelledPixels:
+    """Every annotated pixel of the selected frames (``only``: those with this label), with its
+    sweep, frame, row and column."""
+    parts: list[tuple[np.ndarray, ...]] = []
+    for sweep_index, frames, labels in _selected_labels(dataset, selection):
+        f, r, c = np.nonzero(labels != LABEL_UNANNOTATED if only is None else labels == only)
         parts.append((np.full(f.shape, sweep_index), frames[f], r, c, labels[f, r, c]))
     if not parts:
         raise UltronInputError("dataset", "labels", "the selected frames have no annotated pixel")
@@ -184,7 +201,7 @@ def bone_points_mm(dataset: SweepDataset, selection: FrameSelection | None) -> n
     if selection is None or selection.n_frames == 0:
         return np.zeros((0, 3))
     try:
-        pixels = gather_labelled_pixels(dataset, selection)
+        pixels = gather_labelled_pixels(dataset, selection, only=LABEL_TARGET)
     except UltronInputError:  # the selected frames have no annotated pixel
         return np.zeros((0, 3))
-    return pixels.world_mm(dataset, np.flatnonzero(pixels.label == 1))
+    return pixels.world_mm(dataset)

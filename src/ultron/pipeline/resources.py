@@ -37,11 +37,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-import numpy as np
-
 from ultron.data.dataset import ProbeGeometry, SweepDataset
 from ultron.data.geometry import UnitCube, field_of_view_bounds_mm
-from ultron.data.labels import FrameSelection, gather_labelled_pixels
+from ultron.data.labels import FrameSelection, bone_points_mm, count_labelled_pixels
 from ultron.data.outliers import check_pose_outliers
 from ultron.errors import UltronInputError
 from ultron.memory import memory_limit
@@ -180,13 +178,12 @@ def compounding_memory(
 ) -> tuple[float, GridSpec, int]:
     """Label compounding's estimated peak bytes (module doc, 2), its grid and the labelled
     pixels counted, from the selection's bone pixels alone (nothing grid-sized allocated)."""
-    pixels = gather_labelled_pixels(dataset, selection)
-    bone = pixels.world_mm(dataset, np.flatnonzero(pixels.label == 1))
-    grid = compounding_grid(dataset, bone, config)
+    n_pixels = count_labelled_pixels(dataset, selection)
+    grid = compounding_grid(dataset, bone_points_mm(dataset, selection), config)
     voxels = float(math.prod(grid.shape))
-    compounding = len(pixels) * COMPOUNDING_BYTES_PER_PIXEL + voxels * COMPOUNDING_BYTES_PER_VOXEL
+    compounding = n_pixels * COMPOUNDING_BYTES_PER_PIXEL + voxels * COMPOUNDING_BYTES_PER_VOXEL
     meshing = voxels * COMPOUNDING_MESH_BYTES_PER_VOXEL
-    return max(compounding, meshing) + MESH_FIXED_BYTES, grid, len(pixels)
+    return max(compounding, meshing) + MESH_FIXED_BYTES, grid, n_pixels
 
 
 def check_compounding_grid(
