@@ -92,12 +92,13 @@ def frames_figure(
         for col, (name, stack, cmap, vmin, vmax, bar_label) in enumerate(columns):
             ax = fig.add_subplot(n_rows, n_cols, row * n_cols + col + 1)
             extent = recorded_extent if col == 0 else field_extent
-            title = f"{sweep.name} #{frame}: {name}" if col == 0 else name
+            # the sweep's name on a line of its own: PLUS names run long
+            title = f"{sweep.name} #{frame}\n{name}" if col == 0 else name
             _panel(fig, ax, stack[row], extent, title, cmap, vmin, vmax, bar_label, col == 0)
     if fitted is None:
-        top_title(fig, "recorded frames (no acoustic field available)")
-    top = 0.3 if fitted is not None else 0.5
-    place_grid(fig, n_rows, n_cols, (0.5, 0.55, 0.45, top), (0.8, 0.55))
+        top_title(fig, "recorded frames\n(no acoustic field)")
+    top = 0.45 if fitted is not None else 0.8
+    place_grid(fig, n_rows, n_cols, (0.5, 0.55, 0.45, top), (0.8, 0.7))
     return figure_png(fig)
 
 
@@ -192,7 +193,7 @@ def label_masks_figure(
             note = f"{int((labels == LABEL_TARGET).sum())} bone px"
             if (labels == LABEL_UNANNOTATED).all():
                 note = "not annotated"
-        ax.set_title(f"{name} #{frame} ({note})", fontsize=8)
+        ax.set_title(f"{name} #{frame}\n({note})", fontsize=8)
         ax.set_xlabel("lateral (mm)", fontsize=7)
         if k % n_cols == 0:
             ax.set_ylabel("depth (mm)", fontsize=7)
@@ -203,5 +204,5 @@ def label_masks_figure(
         Patch(facecolor="none", edgecolor="grey", label="background (0): untinted"),
     ]
     fig.legend(handles=handles, loc="lower center", ncol=3, fontsize=7, frameon=False)
-    place_grid(fig, n_rows, n_cols, (0.55, 0.15, 0.8, 0.3), (0.35, 0.6))
+    place_grid(fig, n_rows, n_cols, (0.55, 0.15, 0.8, 0.45), (0.35, 0.75))
     return figure_png(fig)
