@@ -76,10 +76,8 @@ def check_selection_has_bone(
     """Refuse a selection of frames without a single bone pixel (label 1) — nothing can be
     reconstructed from it (a recording without bone, or automatic labels that found none) —
     naming ``where`` (the dataset directory), the frames and what to look at."""
-    for sweep in dataset.sweeps:
-        frames = selection.frames.get(sweep.name)
-        if frames is not None and len(frames) and (sweep.labels[frames] == LABEL_TARGET).any():
-            return
+    if any((labels == LABEL_TARGET).any() for _, _, labels in _selected_labels(dataset, selection)):
+        return
     names = ", ".join(name for name, frames in selection.frames.items() if len(frames))
     raise UltronInputError(
         where,
