@@ -152,3 +152,49 @@ def test_reconstruction_keeps_the_surface_facing_the_probe(band_dataset):
     every = replace(request, ultron=replace(request.ultron, observed=ObservedSurfaceConfig("all")))
     closed = run_method(band_dataset, every, None, StageTimer())
     assert (closed.mesh.face_normals[:, 1] > 0.9).any()  # the band's floor
+
+
+@pytest.mark.parametrize("config", [CompoundingConfig(), CompoundingConfig(interpolation="linear")])
+def test_compounding_by_runs_of_frames_equals_all_at_once(sphere_dataset, config, monkeypatch):
+    """Splatting the labels a few frames at a time (two sweeps, uneven runs) gives the volume
+    of one pass over every pixel, bit for bit."""
+    import ultron.mesh.compounding as compounding
+
+    sweep = sphere_dataset.sweeps[0]
+    halves = [slice(0, 13), slice(13, None)]
+    two = SweepDataset(
+        sphere_dataset.probe,
+        [
+            Sweep(f"s{k}", "row", sweep.images[h], sweep.probe_to_world[h], sweep.labels[h])
+            for k, h in enumerate(halves)
+        ],
+    )
+    selection = select_label_frames(two, 0.5, seed=1)
+    monkeypatch.setattr(compounding, "CHUNK_PIXELS", 10**9)
+    whole = compound_labels(two, selection, config)
+    monkeypatch.setattr(compounding, "CHUNK_PIXELS", 3 * 50 * 50 + 7)  # three frames a run
+    runs = compound_labels(two, selection, config)
+    assert np.array_equal(whole.volume, runs.volume)
+    assert np.array_equal(whole.observed, runs.observed)
+    assert whole.volume.max() > 0.5
+
+
+def test_selection_chunks_cover_the_selection_in_order(sphere_dataset):
+    from ultron.data.labels import gather_labelled_pixels, selection_chunks
+
+    selection = select_label_frames(sphere_dataset, 1.0, seed=0)
+    chunks = selection_chunks(sphere_dataset, selection, 4 * 50 * 50)
+    frames = [c.frames["row"] for c in chunks]
+    assert [len(f) for f in frames[:-1]] == [4] * (len(frames) - 1) and 1 <= len(frames[-1]) <= 4
+    assert np.array_equal(np.concatenate(frames), selection.frames["row"])
+    one_frame = selection_chunks(sphere_dataset, selection, 1)  # smaller than a frame: one each
+    assert [len(c.frames["row"]) for c in one_frame] == [1] * selection.n_frames
+    whole = gather_labelled_pixels(sphere_dataset, selection)
+    parts = [gather_labelled_pixels(sphere_dataset, c) for c in chunks]
+    for name in ("frame", "row", "col", "label"):
+        assert np.array_equal(
+            getattr(whole, name), np.concatenate([getattr(p, name) for p in parts])
+        )
+    for bad in (0, -3, 2.5, True):
+        with pytest.raises(UltronInputError, match="max_pixels"):
+            selection_chunks(sphere_dataset, selection, bad)

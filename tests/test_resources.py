@@ -104,26 +104,34 @@ def test_meshing_grid_too_large(tiny_dataset: SweepDataset):
         check_meshing_grid(tiny_dataset, "ds", 1e-300, None)
 
 
-def test_compounding_estimate_is_compound_labels_grid(tiny_dataset: SweepDataset):
+def test_compounding_estimate_is_compound_labels_grid(tiny_dataset: SweepDataset, monkeypatch):
     """Compounding's estimate sizes the grid compound_labels builds (the labelled bone's box,
-    not the field of view) and counts every labelled pixel; a limit under it is refused with
-    one line naming the dataset, the grid and the pixels, one above it passes."""
+    not the field of view) and the labelled pixels splatted at once (all of them, or a run of
+    frames of at most CHUNK_PIXELS image pixels, one frame at least); a limit under it is
+    refused with one line naming the dataset, the grid and the pixels, one above it passes."""
+    import ultron.pipeline.resources as resources
+
     selection = select_label_frames(tiny_dataset, 1.0, 0)
-    for config in (CompoundingConfig(), CompoundingConfig(voxel_mm=0.9, margin_mm=2.0)):
-        total, grid, n_pixels = compounding_memory(tiny_dataset, selection, config)
-        built = compound_labels(tiny_dataset, selection, config).grid
-        assert grid.shape == built.shape and grid.voxel_mm == built.voxel_mm
-        np.testing.assert_array_equal(grid.origin_mm, built.origin_mm)
-        assert n_pixels == len(gather_labelled_pixels(tiny_dataset, selection))
-        voxels = math.prod(grid.shape)
-        assert (
-            total
-            == max(
-                n_pixels * COMPOUNDING_BYTES_PER_PIXEL + voxels * COMPOUNDING_BYTES_PER_VOXEL,
-                voxels * COMPOUNDING_MESH_BYTES_PER_VOXEL,
+    frame_pixels = tiny_dataset.probe.height_px * tiny_dataset.probe.width_px
+    for chunk in (10**9, 1):  # every pixel in one run; a frame at a time
+        monkeypatch.setattr(resources, "CHUNK_PIXELS", chunk)
+        for config in (CompoundingConfig(), CompoundingConfig(voxel_mm=0.9, margin_mm=2.0)):
+            total, grid, n_pixels = compounding_memory(tiny_dataset, selection, config)
+            built = compound_labels(tiny_dataset, selection, config).grid
+            assert grid.shape == built.shape and grid.voxel_mm == built.voxel_mm
+            np.testing.assert_array_equal(grid.origin_mm, built.origin_mm)
+            assert n_pixels == len(gather_labelled_pixels(tiny_dataset, selection))
+            assert n_pixels > frame_pixels  # so the two runs' estimates differ
+            at_once = n_pixels if chunk > n_pixels else frame_pixels
+            voxels = math.prod(grid.shape)
+            assert (
+                total
+                == max(
+                    at_once * COMPOUNDING_BYTES_PER_PIXEL + voxels * COMPOUNDING_BYTES_PER_VOXEL,
+                    voxels * COMPOUNDING_MESH_BYTES_PER_VOXEL,
+                )
+                + MESH_FIXED_BYTES
             )
-            + MESH_FIXED_BYTES
-        )
     gib = total / 1024**3
     check_compounding_grid(tiny_dataset, selection, config, "ds", 1.01 * gib)
     pattern = (

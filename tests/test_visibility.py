@@ -146,6 +146,22 @@ def test_confidence_map_sees_the_shadow_under_a_bright_line():
     assert above > 0.9 and below < 0.2 * above, (above, below)
 
 
+def test_confidence_map_solves_monais_system():
+    """The symmetric SuperLU solve gives MONAI's own map (its general LU) to rounding."""
+    from monai.transforms import UltrasoundConfidenceMapTransform
+
+    rng = np.random.default_rng(3)
+    image = rng.integers(0, 256, size=(37, 29)).astype(np.uint8)
+    image[15:17, 5:20] = 255
+    monai = UltrasoundConfidenceMapTransform(alpha=2.0, beta=90.0, gamma=0.05)(
+        image[None].astype(np.float64)
+    )
+    expected = np.clip(np.asarray(monai, dtype=np.float64).reshape(image.shape), 0, 1)
+    ours = confidence_map(image)
+    np.testing.assert_allclose(ours, expected, rtol=0, atol=1e-6)
+    assert ours[:14].mean() > ours[18:30].mean() + 0.2  # a map with a shadow, not a constant
+
+
 def test_confidence_maps_on_threads_equal_one_by_one():
     from ultron.train.visibility import confidence_maps
 

@@ -193,6 +193,28 @@ def gather_labelled_pixels(
     )
 
 
+def selection_chunks(
+    dataset: SweepDataset, selection: FrameSelection, max_pixels: int
+) -> list[FrameSelection]:
+    """``selection`` cut into consecutive runs of frames (sweeps in the dataset's order, frames
+    in the selection's) of at most ``max_pixels`` image pixels each (one frame at least):
+    gathering the chunks' labelled pixels one after the other gives
+    :func:`gather_labelled_pixels`'s pixels in its order."""
+    if isinstance(max_pixels, bool) or not isinstance(max_pixels, int) or max_pixels < 1:
+        raise argument_error("max_pixels", f"expected a positive integer, got {max_pixels!r}")
+    frame_pixels = dataset.probe.height_px * dataset.probe.width_px
+    per_chunk = max(1, max_pixels // frame_pixels)
+    chunks = []
+    for sweep in dataset.sweeps:
+        frames = selection.frames.get(sweep.name)
+        if frames is None:
+            continue
+        for start in range(0, len(frames), per_chunk):
+            part = {sweep.name: frames[start : start + per_chunk]}
+            chunks.append(FrameSelection(selection.fraction, selection.seed, part))
+    return chunks
+
+
 def bone_points_mm(dataset: SweepDataset, selection: FrameSelection | None) -> np.ndarray:
     """World positions (P, 3) float64 mm of the bone-labelled pixels (label 1) of the selected
     frames; (0, 3) when ``selection`` is None or holds no bone label."""

@@ -43,7 +43,7 @@ from ultron.data.labels import FrameSelection, bone_points_mm, count_labelled_pi
 from ultron.data.outliers import check_pose_outliers
 from ultron.errors import UltronInputError
 from ultron.memory import memory_limit
-from ultron.mesh.compounding import CompoundingConfig, compounding_grid
+from ultron.mesh.compounding import CHUNK_PIXELS, CompoundingConfig, compounding_grid
 from ultron.mesh.grid import GridSpec, grid_shape
 from ultron.mesh.tiles import MAX_VOLUME_VOXELS, reached_tiles, tile_for_factor, volume_factor
 from ultron.methods.ultron_method import (
@@ -68,10 +68,12 @@ VOLUME_BYTES_PER_VOXEL = 9
 MESH_FIXED_BYTES = 256 * 1024**2
 #: Grids larger than this are sized by their voxel count alone (no tile is counted).
 MAX_COUNTED_VOXELS = 1e13
-#: Label compounding's peak bytes per labelled pixel (its indices, world point, signed distance
-#: and splat weights) and per voxel of its grid while compounding (splat sums, hole filling's
-#: distance transform) and while meshing (the volume, tiles, smoothing band), rounded up from
-#: the real fibula's and the PLUS phantom's measured peaks (module doc, 2).
+#: Label compounding's peak bytes per labelled pixel splatted at once (its indices, world
+#: point, signed distance and splat weights: a run of frames of at most
+#: ``mesh.compounding.CHUNK_PIXELS`` image pixels at a time) and per voxel of its grid while
+#: compounding (splat sums, hole filling's distance transform) and while meshing (the volume,
+#: tiles, smoothing band), rounded up from the real fibula's and the PLUS phantom's measured
+#: peaks (module doc, 2).
 COMPOUNDING_BYTES_PER_PIXEL = 150
 COMPOUNDING_BYTES_PER_VOXEL = 60
 COMPOUNDING_MESH_BYTES_PER_VOXEL = 85
@@ -181,7 +183,10 @@ def compounding_memory(
     n_pixels = count_labelled_pixels(dataset, selection)
     grid = compounding_grid(dataset, bone_points_mm(dataset, selection), config)
     voxels = float(math.prod(grid.shape))
-    compounding = n_pixels * COMPOUNDING_BYTES_PER_PIXEL + voxels * COMPOUNDING_BYTES_PER_VOXEL
+    # the pixels are splatted a run of frames at a time (compound_labels)
+    frame_pixels = dataset.probe.height_px * dataset.probe.width_px
+    at_once = min(n_pixels, max(CHUNK_PIXELS, frame_pixels))
+    compounding = at_once * COMPOUNDING_BYTES_PER_PIXEL + voxels * COMPOUNDING_BYTES_PER_VOXEL
     meshing = voxels * COMPOUNDING_MESH_BYTES_PER_VOXEL
     return max(compounding, meshing) + MESH_FIXED_BYTES, grid, n_pixels
 
@@ -206,7 +211,7 @@ def check_compounding_grid(
         f"compounding's meshing grid has {math.prod(grid.shape):.3g} voxels ({sides} of"
         f" {grid.voxel_mm:.3g} mm over the labelled bone's box) and {n_pixels:.3g} labelled"
         f" pixels: ≈ {_size(total)}, more than {limit_name}; label fewer frames"
-        " (--label-fraction) or give it more memory",
+        " (--label-fraction: a smaller bone box) or give it more memory",
     )
 
 

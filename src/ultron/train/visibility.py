@@ -22,6 +22,7 @@ frames (N, H, W) of a sweep, e.g. to compound per-frame visibility into a 3D obs
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass, field
@@ -212,9 +213,12 @@ def confidence_map(image: np.ndarray, config: ConfidenceConfig | None = None) ->
     that a random walker starting at pixel i reaches the transducer row before the bottom row:
     the Dirichlet problem with C = 1 on row 0 and C = 0 on row H − 1,
         L_U C_U = −B^T C_M
-    (U the unmarked pixels, M the marked ones, B the U × M block of L), solved exactly with a
-    sparse LU factorisation. A bright reflector (a bone surface) is a strong barrier to the walk,
-    so C drops under it: acoustic shadow.
+    (U the unmarked pixels, M the marked ones, B the U × M block of L), solved exactly by a
+    sparse LU factorisation. L_U is symmetric positive definite, so the factorisation takes
+    SuperLU's symmetric mode (minimum-degree ordering of L_U + L_Uᵀ, diagonal pivots) instead
+    of MONAI's general one: the same solution to ≈ 1e-12 in less time (docs/decisions.md).
+    A bright reflector (a bone surface) is a strong barrier to the walk, so C drops under it:
+    acoustic shadow.
     """
     cfg = config or ConfidenceConfig()
     image = np.asarray(image)
@@ -222,17 +226,36 @@ def confidence_map(image: np.ndarray, config: ConfidenceConfig | None = None) ->
         raise argument_error("image", f"expected an (H, W) frame with H, W ≥ 3, got {image.shape}")
     if not np.isfinite(image).all():
         raise argument_error("image", "contains NaN or infinite values")
+    solver = _symmetric_confidence_map()(
+        alpha=cfg.alpha, beta=cfg.beta, gamma=cfg.gamma, mode="B", sink_mode="all"
+    )
+    result = np.asarray(solver(image.astype(np.float64)), dtype=np.float64)
+    return np.clip(result.reshape(image.shape), 0.0, 1.0).astype(np.float32)
+
+
+@functools.cache
+def _symmetric_confidence_map() -> type:
+    """MONAI's ``UltrasoundConfidenceMap`` with its linear solve L_U x = r done by SuperLU in
+    symmetric mode (:func:`confidence_map`); everything else, the Laplacian included, MONAI's."""
     try:
-        from monai.transforms import UltrasoundConfidenceMapTransform
+        from monai.data.ultrasound_confidence_map import UltrasoundConfidenceMap
     except ImportError:
         raise UltronError(
             "the 'confidence' visibility needs MONAI: pip install 'monai>=1.6'"
         ) from None
-    transform = UltrasoundConfidenceMapTransform(
-        alpha=cfg.alpha, beta=cfg.beta, gamma=cfg.gamma, mode="B", sink_mode="all"
-    )
-    result = np.asarray(transform(image[None].astype(np.float64)), dtype=np.float64)
-    return np.clip(result.reshape(image.shape), 0.0, 1.0).astype(np.float32)
+    from scipy.sparse.linalg import splu
+
+    class SymmetricConfidenceMap(UltrasoundConfidenceMap):
+        def _solve_linear_system(self, lap: Any, rhs: Any) -> np.ndarray:
+            factor = splu(
+                lap.tocsc(),
+                permc_spec="MMD_AT_PLUS_A",
+                diag_pivot_thresh=0.0,
+                options={"SymmetricMode": True},
+            )
+            return factor.solve(np.asarray(rhs, dtype=np.float64).reshape(-1))
+
+    return SymmetricConfidenceMap
 
 
 def confidence_maps(
