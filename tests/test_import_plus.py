@@ -452,6 +452,14 @@ def _clip_outside(tmp: Path) -> list[str]:
     return args
 
 
+def _dimsize_swapped(tmp: Path) -> list[str]:
+    """DimSize with width and height swapped (16 × 12 frames written, read as 12 × 16); the
+    configuration's whole-frame clip rectangle tells."""
+    args = _case(edit=_edit("DimSize", "12 16 4"))(tmp)
+    write_config(tmp / "plus.xml", calibration(), clip=((0, 0), (16, 12)))
+    return args
+
+
 def _no_calibration(tmp: Path) -> list[str]:
     args = _case()(tmp)
     write_config(tmp / "plus.xml", None)
@@ -546,6 +554,16 @@ BAD_CASES: dict[str, tuple[Callable[[Path], list[str]], tuple[str, ...]]] = {
     "plus_clip_outside_frame": (
         _clip_outside,
         ("plus.xml", "ClipRectangleSize", "exceeds the 16 × 12 frames"),
+    ),
+    "plus_dimsize_swapped": (
+        _dimsize_swapped,
+        (
+            "plus.xml",
+            "ClipRectangleSize",
+            "exceeds the 12 × 16 frames",
+            "fits 16 × 12 frames",
+            "DimSize",
+        ),
     ),
     "plus_downsample_below_one": (
         _case(more=("--downsample", "0.5")),

@@ -10,6 +10,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from ultron.cli.common import resource_error
@@ -129,3 +130,55 @@ def test_freed_memory_is_kept_for_reuse_only_within_the_block() -> None:
     assert before < pages // 10  # glibc hands the freed 128 MiB block back to the kernel
     assert inside > pages * 9 // 10  # within the block it stays in the heap for reuse
     assert after < pages // 10  # glibc's limits restored: handed back again
+
+
+def _sequence(folder: Path) -> list[str]:
+    """import-plus arguments for a synthetic PLUS recording of 6 frames of 40 × 50 px."""
+    from plus_synthetic import recording, write_config, write_mha
+
+    folder.mkdir()
+    sequence = write_mha(folder / "rec.igs.mha", recording(n=6, height=40, width=50))
+    config = write_config(folder / "config.xml", np.diag([0.3, 0.25, 1.0, 1.0]))
+    return ["import-plus", str(sequence), "--config", str(config)]
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="ulimit is the shell's")
+@pytest.mark.parametrize("command", ["fit-field", "reconstruct", "compound", "import-plus"])
+def test_every_writing_command_over_the_file_size_limit_ends_in_one_line(
+    tmp_path: Path, command: str
+) -> None:
+    """Under ``ulimit -f 1`` (1 KiB files) each command that writes exits 2 with one line
+    naming the output the user gave (not a hidden staging path), no traceback, and leaves no
+    half output: no run, volume or dataset, and a field fit no checkpoint (it resumes)."""
+    from conftest import make_sweep
+    from ultron.data.dataset import ProbeGeometry, SweepDataset
+
+    data = tmp_path / "data"
+    probe = ProbeGeometry(width_mm=16.0, depth_mm=16.0, height_px=16, width_px=16)
+    SweepDataset(probe, [make_sweep(n=4, h=16, w=16, seed=3)]).save(data)
+    out = tmp_path / ("vol.nii.gz" if command == "compound" else "out")
+    if command == "import-plus":
+        args = _sequence(tmp_path / "rec")
+    else:
+        args = {
+            "fit-field": ["fit-field", str(data), "--iters", "2"],
+            "reconstruct": ["reconstruct", str(data), "--method", "compounding",
+                            "--label-fraction", "1"],
+            "compound": ["compound", str(data), "--spacing", "0.1"],
+        }[command]  # fmt: skip
+    args += ["--out", str(out)]
+    before = sorted(p.name for p in tmp_path.iterdir())
+    result = subprocess.run(
+        ["bash", "-c", f'ulimit -f 1 && exec "{sys.executable}" -m ultron.cli.main "$@"',
+         "ultron", *args],
+        capture_output=True, text=True, check=False, timeout=300,
+    )  # fmt: skip
+    assert result.returncode == 2, result.stderr[-2000:]
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in result.stderr, lines
+    assert lines[0].startswith(f"error: {out}") and ": disk: File too large" in lines[0], lines
+    after = sorted(p.name for p in tmp_path.iterdir())
+    if command == "fit-field":  # the fit's log may stay; no checkpoint, no field.json
+        assert not (out / "checkpoint.pt").exists() and not (out / "field.json").exists()
+        after = [name for name in after if name != "out"]
+    assert after == before  # no output, no staging or temporary file left beside it

@@ -154,9 +154,24 @@ def staged_directory(path: str | Path) -> Iterator[Path]:
         os.chmod(staging, directory_mode())
         yield staging
         staging.rename(path)
-    except BaseException:
+    except BaseException as exc:
         shutil.rmtree(staging, ignore_errors=True)
+        if isinstance(exc, OSError):  # name the output the user asked for, not the staging
+            exc.filename = staged_as_output(exc.filename, staging, path)
         raise
+
+
+def staged_as_output(filename: object, staging: Path, output: Path) -> object:
+    """An :class:`OSError`'s ``filename`` inside a ``staging`` directory, as the same path
+    under ``output``, the directory the staging becomes (and the user named); any other
+    filename unchanged."""
+    if not isinstance(filename, str | os.PathLike):
+        return filename
+    try:
+        inside = Path(os.fspath(filename)).relative_to(staging)
+    except ValueError:
+        return filename
+    return str(output / inside)
 
 
 def write_bytes(path: str | Path, data: bytes) -> None:

@@ -389,11 +389,17 @@ def _oriented_clipped(seq: SequenceFile, config: PlusConfig) -> tuple[np.ndarray
     (i0, j0), (w, h) = config.clip_origin, config.clip_size
     height, width = frames.shape[1:]
     if i0 + w > width or j0 + h > height:
+        swapped = ""
+        if i0 + w <= height and j0 + h <= width:  # the header can tell: it fits the transpose
+            swapped = (
+                f"; it fits {height} × {width} frames: are width and height swapped in the"
+                f" sequence's {seq.size_field}?"
+            )
         raise UltronInputError(
             config.path,
             "VolumeReconstruction ClipRectangleSize",
             f"clip rectangle origin ({i0}, {j0}) size {w} × {h} exceeds the {width} × {height}"
-            f" frames of {seq.path.name}",
+            f" frames of {seq.path.name}{swapped}",
         )
     clipped = np.ascontiguousarray(frames[:, j0 : j0 + h, i0 : i0 + w])
     return clipped, ((i0, j0), (w, h))

@@ -159,8 +159,10 @@ def staged_run_dir(out: str | Path, kind: str) -> Iterator[Path]:
         staging.rename(target)
         shutil.rmtree(backup, ignore_errors=True)
         (target / _LOCK).unlink(missing_ok=True)
-    except BaseException:
+    except BaseException as exc:
         shutil.rmtree(staging, ignore_errors=True)
+        if isinstance(exc, OSError):  # name the output the user asked for, not the staging
+            exc.filename = atomic.staged_as_output(exc.filename, staging, target)
         raise
     finally:
         os.close(lock)
