@@ -48,6 +48,13 @@ def _field_like(path: Path) -> Path:
     return path
 
 
+def _run_like(path: Path) -> Path:
+    """A directory holding a run.json (what makes it an ultron run's directory)."""
+    path.mkdir(parents=True)
+    (path / "run.json").write_text('{"command": "reconstruct"}')
+    return path
+
+
 def _file(path: Path) -> Path:
     path.write_text("a file\n")
     return path
@@ -217,6 +224,14 @@ CASES: dict[str, tuple[Callable[[Path, Path], list[str]], tuple[str, ...]]] = {
     "reconstruct_out_inside_its_field": (
         lambda t, d: _recon(d, t / "field" / "run", "--field", str(_field_like(t / "field"))),
         ("run", "--out", "lies inside the input"),
+    ),
+    "reconstruct_out_inside_another_field": (
+        lambda t, d: _recon(d, _field_like(t / "field") / "sub" / "run"),
+        ("run", "--out", "lies inside", "an ultron field (field.json)"),
+    ),
+    "fit_field_out_inside_a_run": (
+        lambda t, d: ["fit-field", str(d), "--out", str(_run_like(t / "run") / "field")],
+        ("field", "--out", "lies inside", "an ultron run (run.json)"),
     ),
     "demo_into_foreign_method_dir": (
         lambda t, d: ["demo", "--out", str(_foreign_dir(t / "demo" / "ultron").parent)],

@@ -165,3 +165,29 @@ def test_output_path_checks(tmp_path: Path):
         with pytest.raises(UltronInputError, match=problem):
             check(tmp_path / bad, "--out")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["dir", "file", "link"]
+
+
+def test_no_output_is_written_inside_a_field_or_a_run(tmp_path: Path):
+    """A run or a field below a field or a run directory would go with it when that one is
+    fitted or run again (replaced as a whole): refused in one line naming both; beside them,
+    or below a plain folder or a dataset, is fine."""
+    from ultron.models.field_dir import check_field_out
+
+    field, run, plain = tmp_path / "field", tmp_path / "run", tmp_path / "plain"
+    for folder, marker in ((field, "field.json"), (run, "run.json"), (plain, "notes.txt")):
+        folder.mkdir()
+        (folder / marker).write_text("{}")
+    (tmp_path / "partial").mkdir()  # a fit interrupted before its field.json
+    (tmp_path / "partial" / "checkpoint.pt").write_bytes(b"")
+    dataset = tmp_path / "data"
+    dataset.mkdir()
+    for parent, kind in ((field, "field"), (run, "run"), (tmp_path / "partial", "field")):
+        for out in (parent / "sub", parent / "a" / "b"):
+            pattern = rf"^{out}: --out: lies inside {parent}, an ultron {kind} "
+            with pytest.raises(UltronInputError, match=pattern):
+                check_run_dir(out, "reconstruct")
+            with pytest.raises(UltronInputError, match=pattern):
+                check_field_out(out, dataset)
+    for out in (tmp_path / "beside", plain / "sub", dataset / "run"):
+        assert check_run_dir(out, "reconstruct") == out
+    assert check_field_out(tmp_path / "beside", dataset) == tmp_path / "beside"

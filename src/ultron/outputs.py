@@ -69,3 +69,20 @@ def is_inside(path: str | Path, directory: str | Path) -> bool:
     """Whether ``path`` is ``directory`` or lies below it (symlinks resolved)."""
     inner, outer = Path(path).resolve(), Path(directory).resolve()
     return inner == outer or outer in inner.parents
+
+
+#: Files that mark a directory ultron writes and replaces as a whole: a field (field.json, or a
+#: fit's checkpoint.pt before it) or a run (run.json).
+OUTPUT_MARKERS = {"field.json": "field", "checkpoint.pt": "field", "run.json": "run"}
+
+
+def check_not_inside_output(path: str | Path, option: str = "--out") -> None:
+    """Refuse (one line naming ``path``) an output below a field or a run directory: those
+    are replaced as a whole by their next fit or run, which would take it with them."""
+    for parent in Path(path).resolve().parents:
+        for marker, kind in OUTPUT_MARKERS.items():
+            if (parent / marker).is_file():
+                raise UltronInputError(
+                    path, option, f"lies inside {parent}, an ultron {kind} ({marker}); an"
+                    " output is written beside another, never into it: give another directory",
+                )  # fmt: skip

@@ -23,7 +23,7 @@ import torch
 from ultron import atomic
 from ultron.device import cpu_state
 from ultron.errors import UltronInputError, read_json_file
-from ultron.outputs import check_output_dir, is_inside
+from ultron.outputs import check_not_inside_output, check_output_dir, is_inside
 
 FIELD_FORMAT = "ultron-field/1"
 FIELD_JSON = "field.json"
@@ -140,6 +140,7 @@ def check_field_out(out: str | Path, dataset_dir: str | Path, option: str = "--o
     by name). The rule of :func:`ultron.pipeline.rundir.check_run_dir`: an output directory
     belongs to one kind of output."""
     out = check_output_dir(out, option)
+    check_not_inside_output(out, option)
     if is_inside(dataset_dir, out):
         raise UltronInputError(
             out, option, f"holds the dataset {dataset_dir}; write the field into its own directory"

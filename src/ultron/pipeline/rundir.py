@@ -30,7 +30,7 @@ from pathlib import Path
 
 from ultron import atomic
 from ultron.errors import UltronInputError
-from ultron.outputs import check_output_dir, is_inside
+from ultron.outputs import check_not_inside_output, check_output_dir, is_inside
 from ultron.pipeline.record import RUN_JSON, RUN_KINDS, run_kind
 
 try:  # advisory locks mark a live run's staging directory (POSIX only)
@@ -77,6 +77,7 @@ def check_run_dir(
                 out, option, f"lies inside the input {given}, itself an ultron output; a run"
                 " is written beside it, never into it: give another directory",
             )  # fmt: skip
+    check_not_inside_output(out, option)  # nor into any other field or run
     if not out.is_dir() or not any(out.iterdir()):
         return out
     previous = _previous_kind(out)
