@@ -191,3 +191,25 @@ def test_no_output_is_written_inside_a_field_or_a_run(tmp_path: Path):
     for out in (tmp_path / "beside", plain / "sub", dataset / "run"):
         assert check_run_dir(out, "reconstruct") == out
     assert check_field_out(tmp_path / "beside", dataset) == tmp_path / "beside"
+
+
+def test_the_report_is_swapped_in_with_the_run(tmp_path: Path, tiny_dataset_dir: Path, monkeypatch):
+    """report.html is built in the staging copy: a run comes with its report, which names the
+    run's directory (not the staging one), and a report that cannot be written (a full disk)
+    fails the run as a whole, leaving the earlier run as it was."""
+    import errno
+
+    out = tmp_path / "out"
+    reconstruct(tiny_dataset_dir, REQUEST, out, report=True)
+    html = (out / "report.html").read_text()
+    assert f"Run directory {out.name}:" in html and str(out) in html and ".new" not in html
+    before = _tree(out)
+
+    def full_disk(run_dir, *args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device", str(Path(run_dir) / "report.html"))
+
+    monkeypatch.setattr("ultron.pipeline.run.write_run_report", full_disk)
+    with pytest.raises(OSError, match="No space left") as raised:
+        reconstruct(tiny_dataset_dir, REQUEST, out, report=True)
+    assert raised.value.filename == str(out.resolve() / "report.html")  # the run's own path
+    assert _tree(out) == before and _hidden_siblings(out) == []

@@ -6,7 +6,7 @@ when the observed crop dropped faces), ``occupancy.nii.gz`` (aligned with the me
 see :mod:`ultron.mesh.export`), ``metrics.json`` when the dataset has a reference surface,
 and ``run.json`` (:mod:`ultron.pipeline.record`: the command, configuration, label selection,
 versions, timings per stage, peak memory), written into a staging directory that replaces DIR
-as a whole at the end (:mod:`ultron.pipeline.rundir`); ``report.html`` follows in DIR.
+as a whole at the end (:mod:`ultron.pipeline.rundir`), ``report.html`` included.
 
 Everything cheap is checked before any work: DIR (:func:`~ultron.pipeline.rundir.check_run_dir`),
 the dataset, the reference meshes (read then, used only for metrics after the mesh exists), the
@@ -111,8 +111,9 @@ def write_outputs(
 
     ``identity`` (command, method, label_fraction, seed, …) heads run.json and tags
     metrics.json; ``references`` are :func:`load_references`'s meshes (read here if None).
-    With ``report``, ``report.html`` follows in ``out_dir`` (:mod:`ultron.report.run_report`);
-    its time is in the returned timings, not in run.json.
+    With ``report``, ``report.html`` is built in the staging directory after run.json, so it is
+    swapped in with the rest (:mod:`ultron.report.run_report`); its time is in the returned
+    timings, not in run.json.
     """
     out = Path(out_dir)
     identity = {"command": "reconstruct", **identity}
@@ -148,9 +149,9 @@ def write_outputs(
             **(extra or {}),
         }  # fmt: skip
         write_run_json(staging, payload, timer)
-    if report:
-        with timer.stage("report"):
-            write_run_report(out, dataset=dataset)
+        if report:  # in the staging copy too: a run is swapped in whole, report included
+            with timer.stage("report"):
+                write_run_report(staging, dataset=dataset, shown_as=out)
     return {"out": str(out), "metrics": metrics, "timings_s": dict(timer.seconds)}
 
 

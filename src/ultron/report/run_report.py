@@ -67,9 +67,15 @@ def _or_unknown(value: object) -> str:
     return "?" if value is None else str(value)
 
 
-def build_run_report(run_dir: str | Path, dataset: SweepDataset | None = None, fitted=None) -> str:
+def build_run_report(
+    run_dir: str | Path,
+    dataset: SweepDataset | None = None,
+    fitted=None,
+    shown_as: str | Path | None = None,
+) -> str:
     """The HTML text of :func:`write_run_report` (nothing is written)."""
     root = existing_dir(run_dir, "run_dir")
+    shown = Path(shown_as) if shown_as is not None else root
     if dataset is not None and not isinstance(dataset, SweepDataset):
         raise argument_error("dataset", f"expected a SweepDataset, got {type(dataset).__name__}")
     if fitted is not None and not hasattr(fitted, "render_maps"):
@@ -85,7 +91,7 @@ def build_run_report(run_dir: str | Path, dataset: SweepDataset | None = None, f
         fitted, field_note = _load_fitted(record, root)
     field_dir = resolve_dir(record.field_dir, root)
 
-    sections = [Section("Summary", summary_html(run, root))]
+    sections = [Section("Summary", summary_html(run, shown))]
 
     metrics_path = root / "metrics.json"
     if metrics_path.is_file():
@@ -130,20 +136,27 @@ def build_run_report(run_dir: str | Path, dataset: SweepDataset | None = None, f
 
     sections.append(Section("Loss curves", guarded(losses, "Loss curves")))
     subtitle = (
-        f"Run directory {root.name}: method {method}, label fraction "
+        f"Run directory {shown.name}: method {method}, label fraction "
         f"{_or_unknown(record.label_fraction)}, seed {_or_unknown(record.seed)}. Report built in "
         f"{time.perf_counter() - start:.1f} s."
     )
     return build_html(f"ultron run report: {method}", sections, subtitle)
 
 
-def write_run_report(run_dir: str | Path, dataset: SweepDataset | None = None, fitted=None) -> Path:
+def write_run_report(
+    run_dir: str | Path,
+    dataset: SweepDataset | None = None,
+    fitted=None,
+    shown_as: str | Path | None = None,
+) -> Path:
     """Write ``run_dir/report.html`` for a reconstruction run and return its path.
 
     ``dataset`` (default: loaded from run.json's ``dataset_dir``) provides the reference
     surface, frames and labels; ``fitted`` (default: loaded from run.json's ``field_dir``) the
     rendered B-mode, θ and T maps. Sections whose input is unavailable say so instead.
+    ``shown_as`` is the directory the report names (default ``run_dir``): the run's own, when
+    the report is written into its staging copy (:func:`ultron.pipeline.run.write_outputs`).
     """
     root = existing_dir(run_dir, "run_dir")
-    text = build_run_report(root, dataset, fitted)
+    text = build_run_report(root, dataset, fitted, shown_as)
     return write_html(root / REPORT_NAME, text)
