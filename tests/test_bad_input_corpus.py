@@ -42,9 +42,9 @@ def _foreign_dir(path: Path) -> Path:
 
 
 def _field_like(path: Path) -> Path:
-    """A directory holding a field.json (what makes it a fitted field's directory)."""
+    """A directory holding an ultron field.json (what makes it a fitted field's directory)."""
     path.mkdir(parents=True)
-    (path / "field.json").write_text("{}")
+    (path / "field.json").write_text('{"format": "ultron-field/1"}')
     return path
 
 
@@ -172,6 +172,20 @@ def _rocosdf_one_frame(tmp: Path, data: Path) -> list[str]:
             "--out", str(tmp / "out")]  # fmt: skip
 
 
+def _labels_all(tmp: Path, data: Path, value: int) -> Path:
+    """tmp/relabelled: the dataset with every label set to ``value`` (0: no bone; 255: unsure)."""
+    from dataclasses import replace
+
+    import numpy as np
+
+    from ultron.data.dataset import SweepDataset
+
+    dataset = SweepDataset.load(data)
+    sweeps = [replace(s, labels=np.full_like(s.labels, value)) for s in dataset.sweeps]
+    replace(dataset, sweeps=sweeps).save(tmp / "relabelled")
+    return tmp / "relabelled"
+
+
 def _dangling_poses(tmp: Path, _data: Path) -> list[str]:
     src = _ultranerf(tmp, ["0.png", "1.png"])
     (src / "poses.npy").unlink()
@@ -232,6 +246,14 @@ CASES: dict[str, tuple[Callable[[Path, Path], list[str]], tuple[str, ...]]] = {
     "fit_field_out_inside_a_run": (
         lambda t, d: ["fit-field", str(d), "--out", str(_run_like(t / "run") / "field")],
         ("field", "--out", "lies inside", "an ultron run (run.json)"),
+    ),
+    "reconstruct_every_label_unsure": (
+        lambda t, d: _recon(_labels_all(t, d, 255), t / "out"),
+        ("relabelled", "labels", "no annotated frame", "auto_labels_quality.csv"),
+    ),
+    "reconstruct_no_bone_labelled": (
+        lambda t, d: _recon(_labels_all(t, d, 0), t / "out"),
+        ("relabelled", "labels", "contain no bone pixel"),
     ),
     "demo_into_foreign_method_dir": (
         lambda t, d: ["demo", "--out", str(_foreign_dir(t / "demo" / "ultron").parent)],

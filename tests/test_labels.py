@@ -82,5 +82,7 @@ def test_bad_fraction(dataset, fraction):
 def test_no_labels_is_a_clear_error():
     probe = ProbeGeometry(5.0, 4.0, 4, 5)
     unlabelled = Sweep("a", "row", np.zeros((2, 4, 5), np.uint8), np.stack([np.eye(4)] * 2))
-    with pytest.raises(UltronInputError, match="no annotated frames"):
+    with pytest.raises(UltronInputError, match=r"^dataset: labels: no annotated frame"):
         select_label_frames(SweepDataset(probe, [unlabelled]), 0.5, seed=0)
+    with pytest.raises(UltronInputError, match=r"^runs/d: labels: no annotated frame"):
+        select_label_frames(SweepDataset(probe, [unlabelled]), 0.5, 0, where="runs/d")

@@ -173,24 +173,30 @@ def test_no_output_is_written_inside_a_field_or_a_run(tmp_path: Path):
     or below a plain folder or a dataset, is fine."""
     from ultron.models.field_dir import check_field_out
 
-    field, run, plain = tmp_path / "field", tmp_path / "run", tmp_path / "plain"
-    for folder, marker in ((field, "field.json"), (run, "run.json"), (plain, "notes.txt")):
-        folder.mkdir()
-        (folder / marker).write_text("{}")
-    (tmp_path / "partial").mkdir()  # a fit interrupted before its field.json
-    (tmp_path / "partial" / "checkpoint.pt").write_bytes(b"")
+    field, run, old_run = tmp_path / "field", tmp_path / "run", tmp_path / "old"
+    foreign, plain = tmp_path / "foreign", tmp_path / "plain"
+    for folder, name, text in (
+        (field, "field.json", '{"format": "ultron-field/1", "step": 3}'),
+        (run, "run.json", '{"command": "reconstruct", "method": "ultron"}'),
+        (old_run, "run.json", '{"method": "compounding"}'),  # before the command was recorded
+        (foreign, "run.json", '{"epochs": 3}'),  # another tool's files of those names
+        (foreign, "field.json", '["x"]'),
+        (plain, "notes.txt", "{}"),
+    ):
+        folder.mkdir(exist_ok=True)
+        (folder / name).write_text(text)
     dataset = tmp_path / "data"
     dataset.mkdir()
-    for parent, kind in ((field, "field"), (run, "run"), (tmp_path / "partial", "field")):
+    for parent, kind in ((field, "field"), (run, "run"), (old_run, "run")):
         for out in (parent / "sub", parent / "a" / "b"):
-            pattern = rf"^{out}: --out: lies inside {parent}, an ultron {kind} "
+            pattern = rf"^{out}: --out: lies inside {parent}, an ultron {kind} \({kind}\.json\);"
             with pytest.raises(UltronInputError, match=pattern):
                 check_run_dir(out, "reconstruct")
             with pytest.raises(UltronInputError, match=pattern):
                 check_field_out(out, dataset)
-    for out in (tmp_path / "beside", plain / "sub", dataset / "run"):
+    for out in (tmp_path / "beside", plain / "sub", foreign / "sub", dataset / "run"):
         assert check_run_dir(out, "reconstruct") == out
-    assert check_field_out(tmp_path / "beside", dataset) == tmp_path / "beside"
+        assert check_field_out(out, dataset) == out
 
 
 def test_the_report_is_swapped_in_with_the_run(tmp_path: Path, tiny_dataset_dir: Path, monkeypatch):

@@ -71,18 +71,35 @@ def is_inside(path: str | Path, directory: str | Path) -> bool:
     return inner == outer or outer in inner.parents
 
 
-#: Files that mark a directory ultron writes and replaces as a whole: a field (field.json, or a
-#: fit's checkpoint.pt before it) or a run (run.json).
-OUTPUT_MARKERS = {"field.json": "field", "checkpoint.pt": "field", "run.json": "run"}
+def ultron_output_kind(directory: str | Path) -> str | None:
+    """ "field" or "run" when ``directory`` holds an ultron field (a ``field.json`` of format
+    ``ultron-field/…``, written with every checkpoint of a fit) or an ultron run (a
+    ``run.json`` naming its command or method); None otherwise — files of those names written
+    by other tools do not count."""
+    import json
+
+    for name, kind in (("field.json", "field"), ("run.json", "run")):
+        try:
+            record = json.loads((Path(directory) / name).read_text(encoding="utf-8"))
+        except (OSError, ValueError):
+            continue
+        if not isinstance(record, dict):
+            continue
+        if kind == "field" and str(record.get("format", "")).startswith("ultron-field"):
+            return kind
+        if kind == "run" and ("command" in record or "method" in record):
+            return kind
+    return None
 
 
 def check_not_inside_output(path: str | Path, option: str = "--out") -> None:
-    """Refuse (one line naming ``path``) an output below a field or a run directory: those
-    are replaced as a whole by their next fit or run, which would take it with them."""
+    """Refuse (one line naming ``path``) an output below an ultron field or run directory
+    (:func:`ultron_output_kind`): those are replaced as a whole by their next fit or run,
+    which would take it with them."""
     for parent in Path(path).resolve().parents:
-        for marker, kind in OUTPUT_MARKERS.items():
-            if (parent / marker).is_file():
-                raise UltronInputError(
-                    path, option, f"lies inside {parent}, an ultron {kind} ({marker}); an"
-                    " output is written beside another, never into it: give another directory",
-                )  # fmt: skip
+        kind = ultron_output_kind(parent)
+        if kind is not None:
+            raise UltronInputError(
+                path, option, f"lies inside {parent}, an ultron {kind} ({kind}.json); an output"
+                " is written beside another, never into it: give another directory",
+            )  # fmt: skip

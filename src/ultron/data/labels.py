@@ -41,10 +41,13 @@ class FrameSelection:
         }
 
 
-def select_label_frames(dataset: SweepDataset, fraction: float, seed: int) -> FrameSelection:
+def select_label_frames(
+    dataset: SweepDataset, fraction: float, seed: int, where: str | Path = "dataset"
+) -> FrameSelection:
     """Choose ⌈fraction × (annotated frames)⌉ annotated frames, spread across every sweep.
 
-    Raises a clear error when the dataset has no annotated frame or ``fraction`` is not in (0, 1].
+    Raises a clear error, naming ``where`` (the dataset directory), when the dataset has no
+    annotated frame, or ``fraction`` is not in (0, 1].
     """
     if isinstance(fraction, bool) or not (0.0 < float(fraction) <= 1.0):
         raise argument_error("label_fraction", f"expected a value in (0, 1], got {fraction!r}")
@@ -52,8 +55,10 @@ def select_label_frames(dataset: SweepDataset, fraction: float, seed: int) -> Fr
     total = sum(len(v) for v in available.values())
     if total == 0:
         raise UltronInputError(
-            "dataset", "labels", "no annotated frames (labels.npy missing or all 255)"
-        )
+            where, "labels", "no annotated frame: every sweep's labels.npy is missing or all"
+            " 255 (unsure); label frames first (ultron label), or, after label --auto, see each"
+            " sweep's auto_labels_quality.csv",
+        )  # fmt: skip
     wanted = max(1, math.ceil(fraction * total - 1e-9))
     counts = _allocate(wanted, {name: len(v) for name, v in available.items()})
     rng = np.random.default_rng(seed)

@@ -12,6 +12,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+from ultron.data.labels import check_selection_has_bone, select_label_frames
 from ultron.device import describe_device, resolve_device
 from ultron.methods.catalog import FINETUNE_METHOD
 from ultron.methods.finetune import FinetuneConfig, check_theta_model, finetune_ultron
@@ -53,7 +54,13 @@ def finetune(
         network, meta = load_network(model_dir)
         # the source the model was trained with (``field`` if not recorded)
         visibility = config.visibility or VisibilityConfig.from_dict(meta, where)
-        truth = load_oracle_truth(visibility, dataset_dir, dataset) if config.iters > 0 else None
+        truth = None
+        if config.iters > 0:  # labels to fine-tune on, before any field is fitted
+            selection = select_label_frames(
+                dataset, config.label_fraction, config.seed, dataset_dir
+            )
+            check_selection_has_bone(dataset, selection, dataset_dir)
+            truth = load_oracle_truth(visibility, dataset_dir, dataset)
     device = resolve_device(config.device, "device")
     with timer.stage("field"):
         fitted, extra = load_or_fit_field(

@@ -212,7 +212,7 @@ def reconstruct(
             method.scan_grid, None, max_memory_gib,
         )  # fmt: skip
         # labels without bone: refused before minutes of field fit and training
-        selection = select_label_frames(dataset, request.label_fraction, request.seed)
+        selection = select_label_frames(dataset, request.label_fraction, request.seed, dataset_dir)
         check_selection_has_bone(dataset, selection, dataset_dir)
         method.check_resources(dataset, request, selection, dataset_dir, max_memory_gib)
         if warn is not None:
