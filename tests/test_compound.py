@@ -286,6 +286,12 @@ BAD_CASES = {
     "compound_spacing_negative": (_compound("--spacing", "-0.5"), ("--spacing",)),
     "compound_spacing_nan": (_compound("--spacing", "nan"), ("--spacing",)),
     "compound_spacing_tiny": (_compound("--spacing", "1e-6"), ("--spacing", "GiB")),
+    "compound_over_max_memory": (
+        _compound("--max-memory", "1e-6"),
+        ("--spacing", "GiB", "more than --max-memory 1e-06 GiB"),
+    ),
+    "compound_max_memory_zero": (_compound("--max-memory", "0"), ("--max-memory",)),
+    "compound_max_memory_nan": (_compound("--max-memory", "nan"), ("--max-memory",)),
     "compound_interpolation_cubic": (_compound("--interpolation", "cubic"), ("--interpolation",)),
     "compound_reduce_median": (_compound("--reduce", "median"), ("--reduce",)),
     "compound_fill_holes_two": (_compound("--fill-holes", "2"), ("--fill-holes",)),

@@ -54,6 +54,14 @@ def compound(
             " both filled ends included (PLUS's StickLengthLimit; 0 = no filling).",
         ),
     ] = 0,
+    max_memory: Annotated[
+        float | None,
+        typer.Option(
+            "--max-memory",
+            help="GiB the volume may take, estimated before any work (default: the machine's"
+            " memory, or the cgroup's or ulimit -v's limit).",
+        ),
+    ] = None,
     threads: ThreadsOption = None,
 ) -> None:
     """Compound B-mode frames into a NIfTI volume (PLUS's volume reconstruction).
@@ -74,10 +82,11 @@ def compound(
 
     check_range("--spacing", spacing, 0.0, low_open=True)
     check_range("--fill-holes", fill_holes, 0)
+    check_range("--max-memory", max_memory, 0.0, low_open=True)
     check_choice("--interpolation", interpolation, INTERPOLATIONS)
     check_choice("--reduce", reduce, REDUCTIONS)
     config = ImageCompoundingConfig(spacing, SplatConfig(interpolation, reduce), fill_holes)
-    summary = compound_volume(dataset, out, config, sweep_names(sweeps))
+    summary = compound_volume(dataset, out, config, sweep_names(sweeps), max_memory)
     for line in _summary(summary):
         console.print(line, highlight=False, soft_wrap=True)
 

@@ -63,6 +63,7 @@ def compound_volume(
     out: str | Path,
     config: ImageCompoundingConfig,
     sweep_names: Sequence[str] | None = None,
+    max_memory_gib: float | None = None,
 ) -> CompoundSummary:
     """Compound the B-mode frames of the sweeps ``sweep_names`` (all when None) of the dataset
     at ``dataset_dir`` onto PLUS's grid at ``config.spacing_mm`` and write the volume to
@@ -70,8 +71,9 @@ def compound_volume(
 
     Checks come first, in this order, each a one-line error naming its option: ``out``
     (``--out``), the dataset, the sweep names (``--sweeps``), outlier poses (which would make
-    the grid span the outlier) and the grid's working memory against this machine's
-    (``--spacing``)."""
+    the grid span the outlier) and the grid's working memory against ``max_memory_gib``
+    (GiB, ``--max-memory``) or this process's limit (:func:`ultron.memory.memory_limit`;
+    ``--spacing``)."""
     if not isinstance(config, ImageCompoundingConfig):
         raise argument_error(
             "config", f"expected an ImageCompoundingConfig, got {type(config).__name__}"
@@ -81,7 +83,7 @@ def compound_volume(
     chosen = select_sweeps(data, sweep_names)
     check_pose_outliers(data, dataset_dir)
     grid = compounding_grid(data, chosen, config.spacing_mm)
-    check_volume_memory(grid, *memory_limit())
+    check_volume_memory(grid, *memory_limit(max_memory_gib))
     start = time.perf_counter()
     result = compound_images(data, config, [s.name for s in chosen], grid)
     save_compounded(result, path)
