@@ -154,6 +154,9 @@ def test_tiny_pixels_get_a_voxel_from_the_region_not_a_petabyte_grid(tiny_datase
     assert voxel > 100 * small.probe.lateral_spacing_mm
     assert math.prod(shape) < 100 * MAX_REGION_VOXELS
     check_meshing_grid(small, "ds", None, None)
+    # refused under a small limit, the message says the voxel grew from the pixel spacing
+    with pytest.raises(UltronInputError, match=rf"of {voxel:.3g} mm .*, grown to {voxel:.3g} mm"):
+        check_meshing_grid(small, "ds", None, 1e-6)
 
 
 def test_absurd_pixel_aspect_is_refused(tiny_dataset: SweepDataset):

@@ -230,7 +230,15 @@ def check_meshing_grid(
         return
     if voxel_mm is None:
         where, field = Path(root) / "dataset.json", "probe"
-        cause = f"its voxel is the probe's finer pixel spacing ({describe_probe(probe)})"
+        pixel_mm = min(probe.lateral_spacing_mm, probe.axial_spacing_mm)
+        if memory.voxel_mm > pixel_mm * (1 + 1e-9):  # grown by the region rule or the speckle
+            cause = (
+                f"its voxel follows from the probe's finer pixel spacing ({describe_probe(probe)})"
+                f", grown to {memory.voxel_mm:.3g} mm for the speckle's size and the region's"
+                " (mesh.grid.meshing_voxel_mm); give it more memory"
+            )
+        else:
+            cause = f"its voxel is the probe's finer pixel spacing ({describe_probe(probe)})"
     else:
         where, field, cause = "argument", "voxel_mm", f"its voxel is {voxel_mm:g} mm"
     raise UltronInputError(where, field, f"{memory.describe()}, more than {limit_name}; {cause}")
