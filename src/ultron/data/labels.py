@@ -205,10 +205,8 @@ def selection_chunks(
     in the selection's) of at most ``max_pixels`` image pixels each (one frame at least):
     gathering the chunks' labelled pixels one after the other gives
     :func:`gather_labelled_pixels`'s pixels in its order."""
-    if isinstance(max_pixels, bool) or not isinstance(max_pixels, int) or max_pixels < 1:
-        raise argument_error("max_pixels", f"expected a positive integer, got {max_pixels!r}")
     frame_pixels = dataset.probe.height_px * dataset.probe.width_px
-    per_chunk = max(1, max_pixels // frame_pixels)
+    per_chunk = max(1, _checked_max_pixels(max_pixels) // frame_pixels)
     chunks = []
     for sweep in dataset.sweeps:
         frames = selection.frames.get(sweep.name)
@@ -218,6 +216,19 @@ def selection_chunks(
             part = {sweep.name: frames[start : start + per_chunk]}
             chunks.append(FrameSelection(selection.fraction, selection.seed, part))
     return chunks
+
+
+def chunk_pixels_bound(dataset: SweepDataset, max_pixels: int) -> int:
+    """The most image pixels a run of :func:`selection_chunks` holds: ``max_pixels``, or one
+    frame's pixels when a frame holds more."""
+    frame_pixels = dataset.probe.height_px * dataset.probe.width_px
+    return max(_checked_max_pixels(max_pixels), frame_pixels)
+
+
+def _checked_max_pixels(max_pixels: int) -> int:
+    if isinstance(max_pixels, bool) or not isinstance(max_pixels, int) or max_pixels < 1:
+        raise argument_error("max_pixels", f"expected a positive integer, got {max_pixels!r}")
+    return max_pixels
 
 
 def bone_points_mm(dataset: SweepDataset, selection: FrameSelection | None) -> np.ndarray:

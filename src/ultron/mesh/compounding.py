@@ -198,16 +198,19 @@ def compound_labels(
 ) -> CompoundedVolume:
     """Forward-compound the selected frames' labels into a voxel grid and fill its holes."""
     config = config or CompoundingConfig()
-    if count_labelled_pixels(dataset, selection) == 0:
+    # a run of frames at a time: the pixels' indices, positions and values are ~150 B each
+    # (8 M auto-labelled pixels on the real fibula); the voxels get them in the same order
+    chunks = [
+        chunk
+        for chunk in selection_chunks(dataset, selection, CHUNK_PIXELS)
+        if count_labelled_pixels(dataset, chunk) > 0
+    ]
+    if not chunks:
         raise UltronInputError("dataset", "labels", "the selected frames have no annotated pixel")
     grid = compounding_grid(dataset, bone_points_mm(dataset, selection), config)
     voxel = grid.voxel_mm
     splatter = Splatter(grid, config.splat)
-    # a run of frames at a time: the pixels' indices, positions and values are ~150 B each
-    # (8 M auto-labelled pixels on the real fibula); the voxels get them in the same order
-    for chunk in selection_chunks(dataset, selection, CHUNK_PIXELS):
-        if count_labelled_pixels(dataset, chunk) == 0:
-            continue
+    for chunk in chunks:
         pixels = gather_labelled_pixels(dataset, chunk)
         splatter.add(pixels.world_mm(dataset), pixel_values(dataset, pixels, config))
     volume, observed = splatter.result()

@@ -39,7 +39,12 @@ from typing import TYPE_CHECKING
 
 from ultron.data.dataset import ProbeGeometry, SweepDataset
 from ultron.data.geometry import UnitCube, field_of_view_bounds_mm
-from ultron.data.labels import FrameSelection, bone_points_mm, count_labelled_pixels
+from ultron.data.labels import (
+    FrameSelection,
+    bone_points_mm,
+    chunk_pixels_bound,
+    count_labelled_pixels,
+)
 from ultron.data.outliers import check_pose_outliers
 from ultron.errors import UltronInputError
 from ultron.memory import memory_limit
@@ -184,8 +189,7 @@ def compounding_memory(
     grid = compounding_grid(dataset, bone_points_mm(dataset, selection), config)
     voxels = float(math.prod(grid.shape))
     # the pixels are splatted a run of frames at a time (compound_labels)
-    frame_pixels = dataset.probe.height_px * dataset.probe.width_px
-    at_once = min(n_pixels, max(CHUNK_PIXELS, frame_pixels))
+    at_once = min(n_pixels, chunk_pixels_bound(dataset, CHUNK_PIXELS))
     compounding = at_once * COMPOUNDING_BYTES_PER_PIXEL + voxels * COMPOUNDING_BYTES_PER_VOXEL
     meshing = voxels * COMPOUNDING_MESH_BYTES_PER_VOXEL
     return max(compounding, meshing) + MESH_FIXED_BYTES, grid, n_pixels
