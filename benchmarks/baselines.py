@@ -18,6 +18,7 @@ import argparse
 
 from common import add_arguments, prepare, print_results, print_targets, run_all
 from ultron.methods.registry import METHODS
+from ultron.methods.rocosdf import RoCoSDFConfig
 
 RUNS = (
     ("UltrON (10%)", "ultron", 0.10),
@@ -39,8 +40,10 @@ def main() -> None:
     skip = {s for s in args.skip.split(",") if s}
     runs = [r for r in RUNS if r[1] not in skip]
     dataset_dir, field_dir, field_seconds = prepare(args)
-    sdf = {"rocosdf_preset": args.preset}
-    requests = {label: sdf for label, method, _ in runs if not METHODS[method].scan_grid}
+    sdf = {"method_config": RoCoSDFConfig.preset(args.preset)}
+    requests = {
+        label: sdf for label, method, _ in runs if METHODS[method].config_class is RoCoSDFConfig
+    }
     results = run_all(args, runs, dataset_dir, field_dir, requests)
     print(f"RoCoSDF / UNSR preset: {args.preset}")
     print_results(args, results, dataset_dir, field_dir, field_seconds)

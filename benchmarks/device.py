@@ -114,8 +114,8 @@ def end_to_end(dataset_dir: Path, preset: str, device: torch.device, out: Path) 
     """Field fit + UltrON (10 %) + mesh + metrics through ``reconstruct``; stage seconds."""
     stages = pipeline_preset(preset)
     request = ReconstructionRequest(
-        method="ultron", label_fraction=0.1, ultron=stages.ultron, on=stages.on,
-        rocosdf_preset=stages.rocosdf_preset, metrics=MetricsConfig(), device=str(device),
+        method="ultron", label_fraction=0.1, method_config=stages.ultron, metrics=MetricsConfig(),
+        device=str(device),
     )  # fmt: skip
     start = time.perf_counter()
     summary = reconstruct(

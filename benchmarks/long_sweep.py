@@ -44,15 +44,21 @@ GIB = 1024**3
 FINE_RECONSTRUCT = """
 import sys
 from dataclasses import replace
-from ultron.cli.reconstruct_cmds import _request
-from ultron.methods.catalog import FIELD_METHODS
+from ultron.methods.compounding_method import CompoundingMethodConfig
+from ultron.methods.registry import get_method
+from ultron.pipeline.presets import preset_request
 from ultron.pipeline.run import reconstruct
 dataset, field, out, method, fraction, seed, iters, points, voxel = sys.argv[1:]
-request = _request(method, float(fraction), int(seed), int(iters), int(points))
-voxel = float(voxel)
-request = replace(request, ultron=replace(request.ultron, voxel_mm=voxel),
-                  compounding=replace(request.compounding, voxel_mm=voxel))
-reconstruct(dataset, request, out, field_dir=field if method in FIELD_METHODS else None)
+request = preset_request("fast", method, float(fraction), int(seed), points=int(points),
+                         occupancy_iters=int(iters))
+config, voxel = request.method_config, float(voxel)
+if isinstance(config, CompoundingMethodConfig):
+    config = replace(config, volume=replace(config.volume, voxel_mm=voxel))
+else:
+    config = replace(config, voxel_mm=voxel)
+request = replace(request, method_config=config)
+needs_field = get_method(method).needs_field
+reconstruct(dataset, request, out, field_dir=field if needs_field else None)
 """
 
 

@@ -149,7 +149,8 @@ def test_reconstruction_keeps_the_surface_facing_the_probe(band_dataset):
     assert (normals[:, 1] <= 0).all()  # (zero-area faces have a zero normal)
     assert abs(np.median(faced.mesh.triangles_center[:, 1]) - 10.0) < 0.5
     assert faced.info["faces_kept"] < faced.info["faces_extracted"]
-    every = replace(request, ultron=replace(request.ultron, observed=ObservedSurfaceConfig("all")))
+    config = replace(request.method_config, observed=ObservedSurfaceConfig("all"))
+    every = replace(request, method_config=config)
     closed = run_method(band_dataset, every, None, StageTimer())
     assert (closed.mesh.face_normals[:, 1] > 0.9).any()  # the band's floor
 

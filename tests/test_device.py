@@ -254,7 +254,7 @@ def test_tiny_ultron_on_cuda_matches_cpu(tiny_l3, tmp_path, monkeypatch):
     metrics = {}
     for device in ("cpu", "cuda"):
         request = ReconstructionRequest(
-            method="ultron", label_fraction=0.5, ultron=UltronConfig(occupancy=occupancy),
+            method="ultron", label_fraction=0.5, method_config=UltronConfig(occupancy=occupancy),
             metrics=MetricsConfig(n_points=20_000, repeats=1), device=device,
         )  # fmt: skip
         summary = reconstruct(tiny_l3, request, tmp_path / device, field_config=field)

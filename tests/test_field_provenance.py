@@ -221,7 +221,9 @@ def test_allowed_other_field_is_recorded_in_run_json(
 
     def compounding(dataset, request, fitted, timer, truth=None, dataset_name=None):
         assert fitted is not None  # the other dataset's field was loaded
-        return original(dataset, replace(request, method="compounding"), None, timer)
+        return original(
+            dataset, replace(request, method="compounding", method_config=None), None, timer
+        )
 
     monkeypatch.setattr(run_module, "run_method", compounding)
     request = ReconstructionRequest(label_fraction=1.0, metrics=MetricsConfig(n_points=500))

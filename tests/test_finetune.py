@@ -65,7 +65,7 @@ def shapes(tmp_path_factory) -> dict[str, Path]:
     request = ReconstructionRequest(
         method="ultron",
         label_fraction=0.5,
-        ultron=UltronConfig(
+        method_config=UltronConfig(
             occupancy=OccupancyTrainConfig(
                 iters=600, batch_size=1024, lr=1e-3, positive_weight=None
             )

@@ -13,6 +13,7 @@ from ultron.cli.main import app
 from ultron.device import ACCELERATOR_CHUNK_FACTOR, evaluation_chunk
 from ultron.errors import UltronInputError
 from ultron.methods.on_method import ONConfig
+from ultron.methods.rocosdf import RoCoSDFConfig
 from ultron.methods.ultron_method import UltronConfig
 from ultron.pipeline.presets import (
     PAPER_OCCUPANCY_ITERS,
@@ -60,25 +61,33 @@ def test_unknown_preset_names_the_argument():
 
 def test_request_takes_the_preset_and_options_win():
     request = preset_request("paper", "ultron", 0.1, 0, points=1000)
-    assert request.ultron.context.radii_mm == () and request.ultron.occupancy.iters == 50_000
-    assert request.rocosdf_preset == "paper" and request.metrics.n_points == 1000
-    request = preset_request(
-        "paper", "ultron", 0.1, 0, occupancy_iters=200, theta_context="1,2",
-        negatives="observed", surface="observed", mesh_coordinates="ras",
-    )  # fmt: skip
-    assert request.ultron.context.radii_mm == (1.0, 2.0)
-    assert request.ultron.occupancy.negatives == "observed"
-    assert request.ultron.occupancy.iters == 200 and request.on.occupancy.iters == 200
-    assert request.ultron.observed.surface == "observed" and request.mesh_coordinates == "ras"
-    assert request.ultron.occupancy.positive_weight == 1.0
-    balanced = preset_request(positive_weight="balanced")
-    assert balanced.ultron.occupancy.positive_weight is None
-    assert preset_request(positive_weight="3").ultron.occupancy.positive_weight == 3
-    assert preset_request(visibility="labels").ultron.visibility.source == "labels"
-    assert preset_request(oracle=True).ultron.visibility.source == "oracle"
+    ultron = request.method_config
+    assert ultron.context.radii_mm == () and ultron.occupancy.iters == 50_000
+    assert request.metrics.n_points == 1000
+    assert preset_request("paper", "rocosdf").method_config == RoCoSDFConfig.preset("paper")
+    options = {
+        "occupancy_iters": 200, "theta_context": "1,2", "negatives": "observed",
+        "surface": "observed", "mesh_coordinates": "ras",
+    }  # fmt: skip
+    request = preset_request("paper", "ultron", 0.1, 0, **options)
+    ultron = request.method_config
+    assert ultron.context.radii_mm == (1.0, 2.0)
+    assert ultron.occupancy.negatives == "observed" and ultron.occupancy.iters == 200
+    assert ultron.observed.surface == "observed" and request.mesh_coordinates == "ras"
+    assert ultron.occupancy.positive_weight == 1.0
+    assert preset_request("paper", "on", **options).method_config.occupancy.iters == 200
+    compounding = preset_request("paper", "compounding", **options).method_config
+    assert compounding.observed.surface == "observed"
+    assert preset_request("paper", "compounding").method_config.observed.surface == "all"
+    balanced = preset_request(positive_weight="balanced").method_config
+    assert balanced.occupancy.positive_weight is None
+    assert preset_request(positive_weight="3").method_config.occupancy.positive_weight == 3
+    assert preset_request(visibility="labels").method_config.visibility.source == "labels"
+    assert preset_request(oracle=True).method_config.visibility.source == "oracle"
     fast = preset_request()
-    assert fast.ultron == UltronConfig(occupancy=OccupancyTrainConfig(seed=fast.seed))
-    assert fast.on == ONConfig() and fast.method == "ultron" and fast.label_fraction == 0.1
+    assert fast.method_config == UltronConfig(occupancy=OccupancyTrainConfig(seed=fast.seed))
+    assert preset_request(method="on").method_config == ONConfig()
+    assert fast.method == "ultron" and fast.label_fraction == 0.1
     assert preset_field_config("paper", 1).iterations == 75_000
     assert preset_field_config("paper", 1, 10).iterations == 10
     assert preset_field_config("fast", 1) == FieldTrainConfig(seed=1)

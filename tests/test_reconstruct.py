@@ -78,7 +78,7 @@ def test_ultron_end_to_end(tiny: Path, tmp_path: Path, monkeypatch):
     request = ReconstructionRequest(
         method="ultron",
         label_fraction=0.5,
-        ultron=UltronConfig(
+        method_config=UltronConfig(
             occupancy=OccupancyTrainConfig(
                 iters=600, batch_size=1024, lr=1e-3, positive_weight=None
             )
@@ -121,7 +121,8 @@ def test_ultron_end_to_end(tiny: Path, tmp_path: Path, monkeypatch):
     assert events["mesh_observed"][-1] == (24, 24, "frames")  # every frame's T rendered
     others = {}
     for method in ("ultron-noloss", "compounding"):
-        other, events = replace(request, method=method), {}
+        config = None if method == "compounding" else request.method_config  # its defaults
+        other, events = replace(request, method=method, method_config=config), {}
         result = reconstruct(
             tiny, other, tmp_path / method, field_config=field_config, report=False,
             advance=lambda *e, got=events: got.setdefault(e[0], []).append(e[1:]),
@@ -146,7 +147,9 @@ def test_on_end_to_end(tiny: Path, tmp_path: Path):
 
     on = ONConfig()
     on = replace(on, occupancy=replace(on.occupancy, iters=400, batch_size=1024, lr=1e-3))
-    request = ReconstructionRequest(method="on", label_fraction=1.0, on=on, metrics=FAST_METRICS)
+    request = ReconstructionRequest(
+        method="on", label_fraction=1.0, method_config=on, metrics=FAST_METRICS
+    )
     summary = reconstruct(tiny, request, tmp_path / "out")
     run = _check_outputs(tmp_path / "out", with_metrics=True)
     assert run["n_label_frames"] == 24 and "unit_cube" in run
@@ -164,5 +167,19 @@ def test_on_rejects_the_compensated_loss():
 
 
 def test_bad_rocosdf_preset_is_a_clear_error():
+    from ultron.methods.rocosdf import RoCoSDFConfig
+
     with pytest.raises(ValueError, match="preset"):
-        ReconstructionRequest(method="rocosdf", rocosdf_preset="slow")
+        RoCoSDFConfig.preset("slow")
+
+
+def test_a_request_carries_its_own_methods_settings():
+    from ultron.errors import UltronInputError
+    from ultron.methods.compounding_method import CompoundingMethodConfig
+    from ultron.methods.on_method import ONConfig
+
+    with pytest.raises(UltronInputError, match=r"method_config: method 'on' takes a ONConfig"):
+        ReconstructionRequest(method="on", method_config=UltronConfig())
+    assert ReconstructionRequest(method="on").method_config == ONConfig()
+    compounding = ReconstructionRequest(method="compounding").method_config
+    assert compounding == CompoundingMethodConfig()

@@ -13,6 +13,7 @@ from ultron.cli.main import app
 from ultron.errors import UltronInputError
 from ultron.mesh.compounding import CompoundingConfig
 from ultron.methods.catalog import FIELD_METHODS, METHOD_NAMES
+from ultron.methods.compounding_method import CompoundingMethodConfig
 from ultron.methods.on_method import ONConfig
 from ultron.methods.registry import METHODS, MethodInputs, get_method
 from ultron.methods.rocosdf import RoCoSDFConfig
@@ -30,7 +31,7 @@ def test_registry_holds_every_method_once():
         assert method.name == name and get_method(name) is method
         assert callable(method.fit)
     configs = {name: METHODS[name].config_class for name in NAMES}
-    assert configs["ultron"] is UltronConfig and configs["compounding"] is CompoundingConfig
+    assert configs["ultron"] is UltronConfig and configs["compounding"] is CompoundingMethodConfig
     assert configs["on"] is ONConfig and configs["unsr-col"] is RoCoSDFConfig
     # compounding meshes the labelled bone's box (its own memory check), RoCoSDF / UNSR theirs
     off_scan = ["compounding", "rocosdf", "unsr-row", "unsr-col"]
@@ -58,7 +59,7 @@ def test_a_field_method_without_a_field_is_a_clear_error(name, tiny_dataset):
     with pytest.raises(UltronInputError, match="needs a fitted acoustic field"):
         run_method(tiny_dataset, request, None, StageTimer())
     with pytest.raises(UltronInputError, match="needs a fitted acoustic field"):
-        METHODS[name].fit(tiny_dataset, MethodInputs(request, StageTimer()))
+        METHODS[name].fit(tiny_dataset, MethodInputs(request.method_config, StageTimer()))
 
 
 def test_reconstruct_help_lists_every_registered_method():
@@ -76,17 +77,33 @@ def test_the_catalog_lists_the_registry_without_loading_it():
     assert result.stdout.strip() == "False", result.stderr
 
 
-def test_each_method_owns_its_meshing_voxel_and_loss():
-    request = ReconstructionRequest(
-        ultron=UltronConfig(voxel_mm=0.7),
-        compounding=CompoundingConfig(voxel_mm=0.3),
-        on=replace(ONConfig(), meshing=replace(ONConfig().meshing, voxel_mm=0.9)),
-    )
-    voxels = {name: METHODS[name].meshing_voxel(request) for name in METHODS}
+class _Stages:
+    """Every method's settings, as a preset holds them (registry.StageSettings)."""
+
+    ultron = UltronConfig(voxel_mm=0.7)
+    on = replace(ONConfig(), meshing=replace(ONConfig().meshing, voxel_mm=0.9))
+    rocosdf_preset = "paper"
+
+
+def test_each_method_owns_its_settings_meshing_voxel_and_loss():
+    configs = {name: METHODS[name].config_of(_Stages) for name in METHODS}
+    for name, config in configs.items():
+        assert isinstance(config, METHODS[name].config_class), name
+    assert configs["ultron"] is _Stages.ultron and configs["on"] is _Stages.on
+    assert configs["rocosdf"] == RoCoSDFConfig.preset("paper")
+    # compounding meshes with UltrON's extraction and observed crop, at its own voxel
+    assert configs["compounding"].observed is _Stages.ultron.observed
+    assert configs["compounding"].extraction is _Stages.ultron.extraction
+    configs["compounding"] = CompoundingMethodConfig(CompoundingConfig(voxel_mm=0.3))
+    voxels = {name: METHODS[name].meshing_voxel(configs[name]) for name in METHODS}
     assert voxels == {
         "ultron": 0.7, "ultron-noloss": 0.7, "compounding": 0.3, "on": 0.9,
-        "rocosdf": 0.7, "unsr-row": 0.7, "unsr-col": 0.7,
+        "rocosdf": None, "unsr-row": None, "unsr-col": None,
     }  # fmt: skip
+    assert METHODS["ultron"].visibility(configs["ultron"]) is _Stages.ultron.visibility
+    assert [n for n in METHODS if METHODS[n].visibility(configs[n]) is not None] == list(
+        FIELD_METHODS
+    )
     assert {n: METHODS[n].loss for n in FIELD_METHODS} == {
         "ultron": "ultron",
         "ultron-noloss": "bce",

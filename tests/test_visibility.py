@@ -17,6 +17,7 @@ from ultron.errors import UltronInputError
 from ultron.fields import FieldConfig, GridFieldConfig
 from ultron.methods.ultron_method import UltronConfig, occupancy_training_data
 from ultron.pipeline.model_io import load_network
+from ultron.pipeline.presets import preset_request
 from ultron.pipeline.run import ReconstructionRequest, reconstruct
 from ultron.render import RenderConfig, pixel_points_mm, render_properties
 from ultron.train import FieldTrainConfig, fit_field
@@ -257,7 +258,7 @@ def test_oracle_reads_transmission_npy_and_trains(fitted_case, tmp_path):
     )
     occupancy = OccupancyTrainConfig(iters=150, batch_size=1024, lr=1e-3, positive_weight=None)
     request = ReconstructionRequest(
-        method="ultron", label_fraction=1.0, ultron=UltronConfig(occupancy=occupancy,
+        method="ultron", label_fraction=1.0, method_config=UltronConfig(occupancy=occupancy,
         visibility=config, voxel_mm=0.5),
     )  # fmt: skip
     reconstruct(data_dir, request, tmp_path / "out", field_dir=root / "field", report=False)
@@ -317,9 +318,9 @@ def test_visibility_config_records_and_validates():
     with pytest.raises(UltronInputError, match="oracle-transmission"):
         visibility_config("labels", oracle=True)
     with pytest.raises(UltronInputError, match="ultron or ultron-noloss"):
-        ReconstructionRequest(
-            method="on", ultron=UltronConfig(visibility=VisibilityConfig("labels"))
-        )
+        preset_request(method="on", visibility="labels")
+    with pytest.raises(UltronInputError, match="--oracle-transmission applies to"):
+        preset_request(method="compounding", oracle=True)
 
 
 def _one_line_error(args: list[str]) -> str:

@@ -29,7 +29,8 @@ from ultron.device import resolve_device
 from ultron.errors import argument_error
 from ultron.methods.on_method import ONConfig
 from ultron.methods.registry import get_method
-from ultron.methods.request import ROCOSDF_PRESETS, ReconstructionRequest
+from ultron.methods.request import ReconstructionRequest
+from ultron.methods.rocosdf import ROCOSDF_PRESETS
 from ultron.methods.ultron_method import UltronConfig
 from ultron.metrics.surface import METRIC_NAMES, MetricsConfig
 from ultron.phantom.annotation import AnnotationConfig
@@ -478,9 +479,7 @@ class _Planner:
                 method=row.method,
                 label_fraction=row.label_fraction,
                 seed=spec.seed,
-                ultron=config.ultron,
-                on=config.on,
-                rocosdf_preset=config.rocosdf_preset,
+                method_config=get_method(row.method).config_of(config),
                 metrics=config.metrics,
                 device=config.device,
             )

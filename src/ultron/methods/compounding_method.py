@@ -9,6 +9,8 @@ transmission: a face counts as observed where some frame saw it facing the probe
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
+
 from ultron.data.dataset import SweepDataset
 from ultron.data.labels import select_label_frames
 from ultron.mesh.compounding import CompoundingConfig, compound_labels
@@ -19,31 +21,40 @@ from ultron.methods.ultron_method import Reconstruction
 from ultron.timing import StageTimer
 
 
+@dataclass(frozen=True)
+class CompoundingMethodConfig:
+    """Settings of a compounding run: the volume (:class:`~ultron.mesh.compounding.
+    CompoundingConfig`), its surface extraction and the observed-surface crop (by default
+    UltrON's, so that both methods mesh alike; a preset hands it UltrON's)."""
+
+    volume: CompoundingConfig = field(default_factory=CompoundingConfig)
+    extraction: ExtractionConfig = field(default_factory=ExtractionConfig)
+    observed: ObservedSurfaceConfig = field(default_factory=ObservedSurfaceConfig)
+
+
 def reconstruct_compounding(
     dataset: SweepDataset,
     label_fraction: float,
     seed: int,
-    config: CompoundingConfig,
-    extraction: ExtractionConfig,
-    observed: ObservedSurfaceConfig,
+    config: CompoundingMethodConfig,
     timer: StageTimer,
 ) -> Reconstruction:
     """Compound ``label_fraction`` of the annotated frames (chosen with ``seed``), mesh the
-    volume with ``extraction`` and keep its ``observed`` part."""
+    volume with ``config.extraction`` and keep its ``config.observed`` part."""
     with timer.stage("labels"):
         selection = select_label_frames(dataset, label_fraction, seed)
     with timer.stage("mesh"):
-        compounded = compound_labels(dataset, selection, config)
-        mesh = extract_surface(compounded.volume, compounded.grid, extraction,
+        compounded = compound_labels(dataset, selection, config.volume)
+        mesh = extract_surface(compounded.volume, compounded.grid, config.extraction,
                                advance=timer.counter("smoothing iterations"))  # fmt: skip
     with timer.stage("mesh_observed"):
-        observation = faced_observation(mesh, dataset, compounded.grid.voxel_mm, observed)
+        observation = faced_observation(mesh, dataset, compounded.grid.voxel_mm, config.observed)
     info = {
         **observation.info,
         "selection": selection.to_dict(),
         "n_label_frames": selection.n_frames,
         "hole_fill_radius_mm": compounded.hole_fill_radius_mm,
-        "compounding_config": config.__dict__,
+        "compounding_config": config.volume.__dict__,
     }
     return Reconstruction(
         mesh=observation.kept,

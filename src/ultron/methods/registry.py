@@ -1,9 +1,11 @@
 """Every reconstruction method behind one interface, found through one registry.
 
 ``METHODS`` maps a method's name (``reconstruct --method``) to a :class:`Method`: whether it
-needs a fitted acoustic field, the class of its settings (held by the
-:class:`~ultron.methods.request.ReconstructionRequest`), the voxel it meshes at, and
-``fit(dataset, inputs)`` → :class:`~ultron.methods.ultron_method.Reconstruction`. The names
+needs a fitted acoustic field, the class of its settings (``config_class``: a
+:class:`~ultron.methods.request.ReconstructionRequest` carries one instance, its
+``method_config``), how to take them from a preset that sets every stage (``config_of``), the
+voxel it meshes at, and ``fit(dataset, inputs)`` →
+:class:`~ultron.methods.ultron_method.Reconstruction`. The names
 and which need a field come from :mod:`ultron.methods.catalog` (readable
 without torch, for the CLI); this module checks at import that both list the same methods.
 The pipeline, the benchmark and the reports read them instead of keeping their own lists:
@@ -24,7 +26,7 @@ name               module                                                needs f
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from types import MappingProxyType
 from typing import Any, Protocol
@@ -35,26 +37,37 @@ from ultron.data.dataset import SweepDataset
 from ultron.data.labels import FrameSelection, select_label_frames
 from ultron.device import CPU
 from ultron.errors import argument_error
-from ultron.mesh.compounding import CompoundingConfig
 from ultron.methods.catalog import FIELD_METHODS, METHOD_NAMES
-from ultron.methods.compounding_method import reconstruct_compounding
+from ultron.methods.compounding_method import CompoundingMethodConfig, reconstruct_compounding
 from ultron.methods.on_method import ONConfig, reconstruct_on
-from ultron.methods.request import ReconstructionRequest, check_method_name
 from ultron.methods.rocosdf import RoCoSDFConfig, reconstruct_rocosdf
 from ultron.methods.ultron_method import Reconstruction, UltronConfig, reconstruct_ultron
 from ultron.pipeline.resources import check_compounding_grid
 from ultron.timing import StageTimer
+from ultron.train.visibility import VisibilityConfig
+
+
+class StageSettings(Protocol):
+    """Settings of every method under one name (a pipeline preset, the benchmark's
+    configuration): UltrON's (also compounding's extraction and observed crop), ON's and the
+    name of RoCoSDF's preset. :meth:`Method.config_of` takes a method's own from them."""
+
+    ultron: UltronConfig
+    on: ONConfig
+    rocosdf_preset: str
 
 
 @dataclass(frozen=True)
 class MethodInputs:
-    """What a method runs with besides the dataset: the request (label fraction, seed and
-    every method's settings), the fitted field (None unless the method needs one), the stage
-    timer, the oracle's true T per sweep (diagnostic runs), the dataset's name for input
-    errors, and the device."""
+    """What a method runs with besides the dataset: its settings (``config``, an instance of
+    its ``config_class``), the label fraction and seed, the stage timer, the fitted field (None
+    unless the method needs one), the oracle's true T per sweep (diagnostic runs), the
+    dataset's name for input errors, and the device."""
 
-    request: ReconstructionRequest
-    timer: StageTimer
+    config: Any
+    timer: StageTimer = field(default_factory=StageTimer)
+    label_fraction: float = 0.1
+    seed: int = 0
     fitted: Any = None
     truth: Mapping[str, Any] | None = None
     dataset_name: str | None = None
@@ -72,15 +85,24 @@ class Method(Protocol):
     scan_grid: bool
     config_class: type
 
-    def meshing_voxel(self, request: ReconstructionRequest) -> float | None:
-        """The voxel, mm, ``request`` asks this method to mesh at (None: its default, the
-        finer pixel spacing); the run checks the grid's memory with it before any work."""
+    def config_of(self, stages: StageSettings) -> Any:
+        """Its settings (a ``config_class``) under ``stages``, a preset that sets every method."""
+        ...
+
+    def meshing_voxel(self, config: Any) -> float | None:
+        """The voxel, mm, ``config`` asks this method to mesh at (None: its default, the finer
+        pixel spacing); the run checks the grid's memory with it before any work."""
+        ...
+
+    def visibility(self, config: Any) -> VisibilityConfig | None:
+        """The source of its loss's transmission T (None: it uses none), whose files (the
+        oracle's) a run reads before any work."""
         ...
 
     def check_resources(
         self,
         dataset: SweepDataset,
-        request: ReconstructionRequest,
+        config: Any,
         selection: FrameSelection,
         root: str | Path,
         max_memory_gib: float | None,
@@ -94,7 +116,7 @@ class Method(Protocol):
 
 @dataclass(frozen=True)
 class MethodBase:
-    """The defaults of a :class:`Method`: no field, meshed on the scan grid."""
+    """The defaults of a :class:`Method`: no field, meshed on the scan grid, no T."""
 
     name: str
     scan_grid: bool = True
@@ -105,14 +127,13 @@ class MethodBase:
         """Whether it reads a fitted acoustic field (:mod:`ultron.methods.catalog`)."""
         return self.name in FIELD_METHODS
 
-    def meshing_voxel(self, request: ReconstructionRequest) -> float | None:
-        """UltrON's meshing voxel: the voxel of every method meshed like UltrON."""
-        return request.ultron.voxel_mm
+    def visibility(self, config: Any) -> VisibilityConfig | None:
+        return None
 
     def check_resources(
         self,
         dataset: SweepDataset,
-        request: ReconstructionRequest,
+        config: Any,
         selection: FrameSelection,
         root: str | Path,
         max_memory_gib: float | None,
@@ -128,11 +149,19 @@ class UltronMethod(MethodBase):
     loss: str = "ultron"
     config_class: type = UltronConfig
 
+    def config_of(self, stages: StageSettings) -> UltronConfig:
+        return stages.ultron
+
+    def meshing_voxel(self, config: UltronConfig) -> float | None:
+        return config.voxel_mm
+
+    def visibility(self, config: UltronConfig) -> VisibilityConfig | None:
+        return config.visibility
+
     def fit(self, dataset: SweepDataset, inputs: MethodInputs) -> Reconstruction:
         if inputs.fitted is None:
             raise argument_error("field", f"method {self.name!r} needs a fitted acoustic field")
-        request = inputs.request
-        config = replace(request.ultron, label_fraction=request.label_fraction, seed=request.seed)
+        config = replace(inputs.config, label_fraction=inputs.label_fraction, seed=inputs.seed)
         return reconstruct_ultron(
             dataset, inputs.fitted, self.loss, config, inputs.timer, inputs.truth, inputs.device
         )
@@ -143,28 +172,31 @@ class CompoundingMethod(MethodBase):
     """Label compounding, meshed with UltrON's extraction and observed-surface settings."""
 
     scan_grid: bool = False
-    config_class: type = CompoundingConfig
+    config_class: type = CompoundingMethodConfig
 
-    def meshing_voxel(self, request: ReconstructionRequest) -> float | None:
-        return request.compounding.voxel_mm
+    def config_of(self, stages: StageSettings) -> CompoundingMethodConfig:
+        return CompoundingMethodConfig(
+            extraction=stages.ultron.extraction, observed=stages.ultron.observed
+        )
+
+    def meshing_voxel(self, config: CompoundingMethodConfig) -> float | None:
+        return config.volume.voxel_mm
 
     def check_resources(
         self,
         dataset: SweepDataset,
-        request: ReconstructionRequest,
+        config: CompoundingMethodConfig,
         selection: FrameSelection,
         root: str | Path,
         max_memory_gib: float | None,
     ) -> None:
         """Its grid, the labelled bone's box, and labelled pixels within the memory limit."""
-        check_compounding_grid(dataset, selection, request.compounding, root, max_memory_gib)
+        check_compounding_grid(dataset, selection, config.volume, root, max_memory_gib)
 
     def fit(self, dataset: SweepDataset, inputs: MethodInputs) -> Reconstruction:
-        r = inputs.request
         return reconstruct_compounding(
-            dataset, r.label_fraction, r.seed, r.compounding, r.ultron.extraction,
-            r.ultron.observed, inputs.timer,
-        )  # fmt: skip
+            dataset, inputs.label_fraction, inputs.seed, inputs.config, inputs.timer
+        )
 
 
 @dataclass(frozen=True)
@@ -173,12 +205,17 @@ class ONMethod(MethodBase):
 
     config_class: type = ONConfig
 
-    def meshing_voxel(self, request: ReconstructionRequest) -> float | None:
-        return request.on.meshing.voxel_mm
+    def config_of(self, stages: StageSettings) -> ONConfig:
+        return stages.on
+
+    def meshing_voxel(self, config: ONConfig) -> float | None:
+        return config.meshing.voxel_mm
 
     def fit(self, dataset: SweepDataset, inputs: MethodInputs) -> Reconstruction:
-        r = inputs.request
-        return reconstruct_on(dataset, r.label_fraction, r.seed, r.on, inputs.timer, inputs.device)
+        return reconstruct_on(
+            dataset, inputs.label_fraction, inputs.seed, inputs.config, inputs.timer,
+            inputs.device,
+        )  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -189,13 +226,19 @@ class SDFMethod(MethodBase):
     scan_grid: bool = False
     config_class: type = RoCoSDFConfig
 
+    def config_of(self, stages: StageSettings) -> RoCoSDFConfig:
+        return RoCoSDFConfig.preset(stages.rocosdf_preset)
+
+    def meshing_voxel(self, config: RoCoSDFConfig) -> float | None:
+        """None: its grid has a fixed resolution around the labelled points (no scan grid)."""
+        return None
+
     def fit(self, dataset: SweepDataset, inputs: MethodInputs) -> Reconstruction:
-        request = inputs.request
         with inputs.timer.stage("labels"):
-            selection = select_label_frames(dataset, request.label_fraction, request.seed)
+            selection = select_label_frames(dataset, inputs.label_fraction, inputs.seed)
         return reconstruct_rocosdf(
-            dataset, selection, RoCoSDFConfig.preset(request.rocosdf_preset), request.seed,
-            self.views, progress=inputs.timer.fit_progress, timer=inputs.timer,
+            dataset, selection, inputs.config, inputs.seed, self.views,
+            progress=inputs.timer.fit_progress, timer=inputs.timer,
             dataset_name=inputs.dataset_name, device=inputs.device,
         )  # fmt: skip
 
@@ -218,9 +261,23 @@ if tuple(METHODS) != METHOD_NAMES:  # the catalog and the registry list the same
     raise RuntimeError(f"registry {tuple(METHODS)} differs from the catalog {METHOD_NAMES}")
 
 
+def check_method_name(name: str) -> str:
+    """``name`` when it is a catalogued method; otherwise an error naming ``method``."""
+    if name not in METHOD_NAMES:
+        raise argument_error("method", f"expected one of {METHOD_NAMES}, got {name!r}")
+    return name
+
+
 def get_method(name: str) -> Method:
     """The registered method ``name``; an unknown one is an error naming ``method``."""
     return METHODS[check_method_name(name)]
 
 
-__all__ = ["METHODS", "Method", "MethodInputs", "get_method"]
+__all__ = [
+    "METHODS",
+    "Method",
+    "MethodInputs",
+    "StageSettings",
+    "check_method_name",
+    "get_method",
+]

@@ -1,67 +1,54 @@
 """What a reconstruction runs with: :class:`ReconstructionRequest`.
 
-It sits below both the registry (whose methods read it) and the pipeline (which builds and
-runs it), so that neither imports the other's module for it.
+One method, its label fraction and seed, and that method's own settings
+(``method_config``, an instance of the registry's :attr:`~ultron.methods.registry.Method.config_class`):
+the request carries no other method's settings. A preset that sets every stage at once
+(:mod:`ultron.pipeline.presets`, the benchmark's configuration) hands each method its own
+through :meth:`~ultron.methods.registry.Method.config_of`.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 from ultron.device import resolve_device
 from ultron.errors import argument_error
-from ultron.mesh.compounding import CompoundingConfig
 from ultron.mesh.export import check_mesh_coordinates
-from ultron.methods.catalog import FIELD_METHODS, METHOD_NAMES
-from ultron.methods.on_method import ONConfig
-from ultron.methods.ultron_method import UltronConfig
+from ultron.methods.registry import check_method_name, get_method
 from ultron.metrics.surface import MetricsConfig
-
-ROCOSDF_PRESETS = ("fast", "paper")
-
-
-def check_method_name(name: str) -> str:
-    """``name`` when it is a catalogued method; otherwise an error naming ``method``."""
-    if name not in METHOD_NAMES:
-        raise argument_error("method", f"expected one of {METHOD_NAMES}, got {name!r}")
-    return name
 
 
 @dataclass(frozen=True)
 class ReconstructionRequest:
-    """What to run: the method, its label fraction and seed, and per-stage settings."""
+    """What to run: the method, its label fraction and seed, its settings (``method_config``:
+    None takes the method's defaults), the metrics, the mesh files' coordinates and the device."""
 
     method: str = "ultron"
     label_fraction: float = 0.1
     seed: int = 0
-    ultron: UltronConfig = field(default_factory=UltronConfig)
-    compounding: CompoundingConfig = field(default_factory=CompoundingConfig)
-    on: ONConfig = field(default_factory=ONConfig)
-    rocosdf_preset: str = "fast"
+    method_config: Any = None
     metrics: MetricsConfig = field(default_factory=MetricsConfig)
     mesh_coordinates: str = "lps"
     #: Where the networks train and are evaluated (:func:`ultron.device.resolve_device`).
     device: str = "cpu"
 
     def __post_init__(self) -> None:
-        check_method_name(self.method)
+        config_class = get_method(self.method).config_class
+        if self.method_config is None:
+            object.__setattr__(self, "method_config", config_class())
+        elif not isinstance(self.method_config, config_class):
+            raise argument_error(
+                "method_config",
+                f"method {self.method!r} takes a {config_class.__name__}, got"
+                f" {type(self.method_config).__name__}",
+            )
         if not 0 < self.label_fraction <= 1:
             raise argument_error(
                 "label_fraction", f"expected a value in (0, 1], got {self.label_fraction}"
             )
         check_mesh_coordinates(self.mesh_coordinates, "mesh_coordinates")
         resolve_device(self.device, "device")
-        if self.rocosdf_preset not in ROCOSDF_PRESETS:
-            raise argument_error(
-                "preset", f"expected one of {ROCOSDF_PRESETS}, got {self.rocosdf_preset!r}"
-            )
-        source = self.ultron.visibility.source
-        if source != "field" and self.method not in FIELD_METHODS:
-            flag = "--oracle-transmission" if source == "oracle" else f"--visibility {source}"
-            raise argument_error(
-                "visibility", f"{flag} applies to --method {' or '.join(FIELD_METHODS)} only, "
-                f"not {self.method!r}",
-            )  # fmt: skip
 
 
-__all__ = ["ROCOSDF_PRESETS", "ReconstructionRequest", "check_method_name"]
+__all__ = ["ReconstructionRequest", "check_method_name"]

@@ -165,6 +165,8 @@ PRESETS: MappingProxyType[str, RoCoSDFConfig] = MappingProxyType(
         "fast": RoCoSDFConfig(),
     }
 )
+#: The names of :data:`PRESETS`, in order.
+ROCOSDF_PRESETS: tuple[str, ...] = tuple(PRESETS)
 
 
 # ------------------------------------------------------------------- normalised units

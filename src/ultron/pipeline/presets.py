@@ -23,7 +23,9 @@ from dataclasses import dataclass, replace
 from ultron.errors import argument_error
 from ultron.fields.context import ThetaContextConfig
 from ultron.mesh.observed import ObservedSurfaceConfig
+from ultron.methods.catalog import FIELD_METHODS
 from ultron.methods.on_method import ONConfig
+from ultron.methods.registry import get_method
 from ultron.methods.request import ReconstructionRequest
 from ultron.methods.ultron_method import UltronConfig
 from ultron.metrics.surface import MetricsConfig
@@ -102,9 +104,19 @@ def preset_request(
 ) -> ReconstructionRequest:
     """The reconstruction request of ``preset`` for ``method``, with the options given (None:
     the preset's): ``occupancy_iters`` for UltrON and ON, ``visibility`` / ``oracle`` the
-    source of T (:func:`~ultron.train.visibility.visibility_config`), ``surface``,
-    ``theta_context`` (radii in mm, comma-separated, or ``none``), ``positive_weight`` (a
-    number or ``balanced``), ``negatives``; metrics on ``points`` points per surface."""
+    source of T (:func:`~ultron.train.visibility.visibility_config`; UltrON's alone),
+    ``surface``, ``theta_context`` (radii in mm, comma-separated, or ``none``),
+    ``positive_weight`` (a number or ``balanced``), ``negatives``; metrics on ``points``
+    points per surface. The request carries ``method``'s settings alone
+    (:meth:`~ultron.methods.registry.Method.config_of`)."""
+    chosen = get_method(method)
+    source = visibility_config(visibility, oracle)
+    if source.source != "field" and not chosen.needs_field:  # T is UltrON's alone
+        flag = "--oracle-transmission" if oracle else f"--visibility {visibility}"
+        raise argument_error(
+            "visibility",
+            f"{flag} applies to --method {' or '.join(FIELD_METHODS)} only, not {method!r}",
+        )
     base = pipeline_preset(preset, seed)
     occupancy, on = base.ultron.occupancy, base.on
     changes = {"negatives": negatives, "iters": occupancy_iters}
@@ -113,9 +125,7 @@ def preset_request(
         occupancy = replace(occupancy, positive_weight=parse_positive_weight(positive_weight))
     if occupancy_iters is not None:
         on = replace(on, occupancy=replace(on.occupancy, iters=occupancy_iters))
-    ultron = replace(
-        base.ultron, occupancy=occupancy, visibility=visibility_config(visibility, oracle)
-    )
+    ultron = replace(base.ultron, occupancy=occupancy, visibility=source)
     if surface is not None:
         ultron = replace(ultron, observed=replace(ultron.observed, surface=surface))
     if theta_context is not None:
@@ -124,9 +134,7 @@ def preset_request(
         method=method,
         label_fraction=label_fraction,
         seed=seed,
-        ultron=ultron,
-        on=on,
-        rocosdf_preset=base.rocosdf_preset,
+        method_config=chosen.config_of(replace(base, ultron=ultron, on=on)),
         metrics=MetricsConfig(n_points=points),
         mesh_coordinates=mesh_coordinates,
         device=device,

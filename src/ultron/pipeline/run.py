@@ -25,7 +25,6 @@ from ultron.data.labels import check_selection_has_bone, select_label_frames
 from ultron.data.units import units_warnings
 from ultron.device import describe_device, resolve_device
 from ultron.mesh.export import load_mesh, save_mesh, save_volume_nifti
-from ultron.methods.catalog import FIELD_METHODS
 from ultron.methods.evidence import evidence_summary, reconstruction_evidence, with_observation
 from ultron.methods.registry import MethodInputs, get_method
 from ultron.methods.request import ReconstructionRequest
@@ -63,12 +62,13 @@ def run_method(
     Every result carries its observed / inferred split (:mod:`ultron.methods.evidence`): a
     method that computes none (ON, RoCoSDF) is flagged with T ≡ 1 and keeps its surface."""
     inputs = MethodInputs(
-        request, timer, fitted, truth, dataset_name, resolve_device(request.device, "device")
-    )
+        request.method_config, timer, request.label_fraction, request.seed, fitted, truth,
+        dataset_name, resolve_device(request.device, "device"),
+    )  # fmt: skip
     result = get_method(request.method).fit(dataset, inputs)
     if result.observation is None:
         with timer.stage("mesh_observed"):
-            result = with_observation(result, dataset, request.ultron.observed)
+            result = with_observation(result, dataset)
     return result
 
 
@@ -202,31 +202,32 @@ def reconstruct(
     the meshing's tiles and smoothing iterations, the observed crop's frames:
     :class:`~ultron.timing.StageTimer`)."""
     timer = StageTimer(announce=announce, advance=advance)
+    method, config = get_method(request.method), request.method_config
     to_fit = None  # the field that may be fitted, whose grid is checked too
-    if request.method in FIELD_METHODS and field_dir is None:
+    if method.needs_field and field_dir is None:
         to_fit = field_config or FieldTrainConfig()
     with timer.stage("load"):
-        method = get_method(request.method)
         dataset, references = prepare_run(
-            out_dir, "reconstruct", dataset_dir, (field_dir,), method.meshing_voxel(request),
+            out_dir, "reconstruct", dataset_dir, (field_dir,), method.meshing_voxel(config),
             method.scan_grid, None, max_memory_gib,
         )  # fmt: skip
         # labels without bone: refused before minutes of field fit and training
         selection = select_label_frames(dataset, request.label_fraction, request.seed, dataset_dir)
         check_selection_has_bone(dataset, selection, dataset_dir)
-        method.check_resources(dataset, request, selection, dataset_dir, max_memory_gib)
+        method.check_resources(dataset, config, selection, dataset_dir, max_memory_gib)
         if warn is not None:
             reference = references[0]
             for line in units_warnings(dataset, None if reference is None else reference.vertices):
                 warn(line)
         # the oracle's files (an input) before the field to fit (its memory and frame size)
-        truth = load_oracle_truth(request.ultron.visibility, dataset_dir, dataset)
+        visibility = method.visibility(config)
+        truth = None if visibility is None else load_oracle_truth(visibility, dataset_dir, dataset)
         if to_fit is not None:
             check_run_resources(dataset, dataset_dir, mesh=False, field_config=to_fit,
                                 max_memory_gib=max_memory_gib)  # fmt: skip
     device = resolve_device(request.device, "device")
     fitted, extra = None, {"device": describe_device(device)}
-    if request.method in FIELD_METHODS:
+    if method.needs_field:
         with timer.stage("field"):
             fitted, field_extra = load_or_fit_field(
                 dataset_dir, dataset, field_dir, field_config, progress, allow_other_field,
