@@ -26,7 +26,7 @@ name               module                                                needs f
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 from types import MappingProxyType
 from typing import Any, Protocol
@@ -161,10 +161,10 @@ class UltronMethod(MethodBase):
     def fit(self, dataset: SweepDataset, inputs: MethodInputs) -> Reconstruction:
         if inputs.fitted is None:
             raise argument_error("field", f"method {self.name!r} needs a fitted acoustic field")
-        config = replace(inputs.config, label_fraction=inputs.label_fraction, seed=inputs.seed)
         return reconstruct_ultron(
-            dataset, inputs.fitted, self.loss, config, inputs.timer, inputs.truth, inputs.device
-        )
+            dataset, inputs.fitted, self.loss, inputs.label_fraction, inputs.seed, inputs.config,
+            inputs.timer, inputs.truth, inputs.device,
+        )  # fmt: skip
 
 
 @dataclass(frozen=True)

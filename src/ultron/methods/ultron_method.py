@@ -68,8 +68,6 @@ class UltronConfig:
     """Settings of an UltrON reconstruction (``visibility``: the source of the loss's T,
     ``context``: the neighbourhood f_ω reads besides θ(x))."""
 
-    label_fraction: float = 0.1
-    seed: int = 0
     occupancy: OccupancyTrainConfig = field(default_factory=OccupancyTrainConfig)
     voxel_mm: float | None = None
     coarse_factor: int = 2
@@ -80,10 +78,6 @@ class UltronConfig:
     context: ThetaContextConfig = field(default_factory=ThetaContextConfig)
 
     def __post_init__(self) -> None:
-        if not 0 < self.label_fraction <= 1:
-            raise argument_error(
-                "label_fraction", f"expected a value in (0, 1], got {self.label_fraction}"
-            )
         if self.voxel_mm is not None and not self.voxel_mm > 0:
             raise argument_error("voxel_mm", f"expected > 0, got {self.voxel_mm}")
         if not isinstance(self.coarse_factor, int) or self.coarse_factor < 1:
@@ -302,13 +296,16 @@ def reconstruct_ultron(
     dataset: SweepDataset,
     fitted,
     loss: str,
+    label_fraction: float,
+    seed: int,
     config: UltronConfig,
     timer: StageTimer,
     truth: Mapping[str, np.ndarray] | None = None,
     device: torch.device | str | None = None,
 ) -> Reconstruction:
     """Run stages 2 and 3 of UltrON with ``loss`` (:data:`ultron.train.occupancy.LOSSES`:
-    "ultron", the attenuation-compensated loss, or "bce", the ablation's); ``truth`` is the
+    "ultron", the attenuation-compensated loss, or "bce", the ablation's) on
+    ``label_fraction`` of the annotated frames, chosen with ``seed``; ``truth`` is the
     oracle's true T per sweep (only for ``config.visibility.source == "oracle"``). f_ω trains
     and is evaluated on ``device`` (default: the fitted field's)."""
     if loss not in LOSSES:
@@ -319,7 +316,7 @@ def reconstruct_ultron(
         network=config.context.network(config.occupancy.network, len(fitted.channels)),
     )
     with timer.stage("labels"):
-        selection = select_label_frames(dataset, config.label_fraction, config.seed)
+        selection = select_label_frames(dataset, label_fraction, seed)
         data = occupancy_training_data(
             dataset, fitted, selection, config.visibility, truth, config.context
         )
