@@ -32,6 +32,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+from scipy.spatial.transform import Rotation
 
 from ultron.errors import argument_error
 
@@ -150,25 +151,6 @@ class TrackingNoise:
         return self.translation_mm > 0 or self.rotation_deg > 0
 
 
-def rotation_from_vector(rotvec: np.ndarray) -> np.ndarray:
-    """Rodrigues: R = I + sin θ·K + (1 − cos θ)·K², θ = |ω|, K the cross matrix of ω/θ."""
-    rotvec = np.asarray(rotvec, dtype=np.float64)
-    theta = np.linalg.norm(rotvec, axis=-1, keepdims=True)
-    axis = rotvec / np.where(theta > 0, theta, 1.0)
-    kx, ky, kz = axis[..., 0], axis[..., 1], axis[..., 2]
-    zero = np.zeros_like(kx)
-    k = np.stack(
-        [
-            np.stack([zero, -kz, ky], -1),
-            np.stack([kz, zero, -kx], -1),
-            np.stack([-ky, kx, zero], -1),
-        ],
-        -2,
-    )
-    s, c = np.sin(theta)[..., None], np.cos(theta)[..., None]
-    return np.eye(3) + s * k + (1.0 - c) * (k @ k)
-
-
 def perturb_poses(
     true_probe_to_world: np.ndarray, noise: TrackingNoise, generator: torch.Generator
 ) -> np.ndarray:
@@ -185,6 +167,6 @@ def perturb_poses(
     translation = draw(noise.translation_mm)
     rotvec = np.radians(draw(noise.rotation_deg))
     delta = np.tile(np.eye(4), (n, 1, 1))
-    delta[:, :3, :3] = rotation_from_vector(rotvec)
+    delta[:, :3, :3] = Rotation.from_rotvec(rotvec).as_matrix()
     delta[:, :3, 3] = translation
     return poses @ delta
