@@ -52,7 +52,7 @@ def reconstruction_evidence(
     result: Reconstruction, dataset: SweepDataset, observed: ObservedSurfaceConfig | None = None
 ) -> tuple[Reconstruction, dict[str, SurfaceEvidence]]:
     """``result`` with its observation (:func:`with_observation`; :func:`ultron.pipeline.run.
-    run_method` already adds it, with the request's criterion) and
+    run_method` already adds it, with the default criterion) and
     the evidence of its mesh (``"mesh"``) and, when the observed crop dropped faces, of the
     whole extracted surface (``"extracted"``)."""
     result = with_observation(result, dataset, observed)
