@@ -118,7 +118,12 @@ def test_benchmark_plans_fields_from_the_registry(tmp_path):
     jobs = [t.job for t in plan.tasks.values() if isinstance(t.job, ReconstructJob)]
     assert jobs
     for job in jobs:
-        assert (job.field_dir is not None) == METHODS[job.request.method].needs_field
+        method = METHODS[job.request.method]
+        assert (job.field_dir is not None) == method.needs_field
+        # each cell's request carries its own method's settings, the benchmark's preset's
+        assert type(job.request.method_config) is method.config_class
+    ultron = next(j for j in jobs if j.request.method == "ultron").request.method_config
+    assert ultron.occupancy.iters == quick_config().ultron.occupancy.iters
 
 
 def test_cli_unknown_method_is_one_line_naming_the_option(tmp_path):
