@@ -15,7 +15,7 @@ from typing import Any
 from ultron.device import resolve_device
 from ultron.errors import argument_error
 from ultron.mesh.export import check_mesh_coordinates
-from ultron.methods.registry import check_method_name, get_method
+from ultron.methods.registry import get_method
 from ultron.metrics.surface import MetricsConfig
 
 
@@ -51,4 +51,4 @@ class ReconstructionRequest:
         resolve_device(self.device, "device")
 
 
-__all__ = ["ReconstructionRequest", "check_method_name"]
+__all__ = ["ReconstructionRequest"]

@@ -166,7 +166,7 @@ def _monai_version() -> str:
     from importlib.metadata import PackageNotFoundError, version
 
     try:
-        return f"monai {version('monai')} UltrasoundConfidenceMapTransform"
+        return f"monai {version('monai')} UltrasoundConfidenceMap, SuperLU symmetric mode"
     except PackageNotFoundError:
         return "monai (not installed)"
 
