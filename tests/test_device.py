@@ -241,7 +241,58 @@ def test_request_rejects_a_bad_device():
         ReconstructionRequest(device="tpu")
 
 
+def test_device_benchmark_steps_run_on_the_cpu(tiny_l3):
+    """benchmarks/device.py's per-step timers run against the current library (they are what
+    a GPU session runs first; a stale one costs that session its device time)."""
+    import importlib.util
+    import math
+
+    from ultron.data.dataset import SweepDataset
+
+    path = Path(__file__).parents[1] / "benchmarks" / "device.py"
+    spec = importlib.util.spec_from_file_location("device_benchmark", path)
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    dataset = SweepDataset.load(tiny_l3)
+    cpu = torch.device("cpu")
+    for preset in ("fast", "paper"):
+        seconds = bench.field_step_seconds(dataset, preset, cpu, steps=1)
+        per_step, finetune = bench.occupancy_seconds(preset, cpu, steps=2)
+        assert all(math.isfinite(t) and t > 0 for t in (seconds, per_step, finetune)), preset
+
+
 # ---------------------------------------------------------------------------------- GPU
+@pytest.mark.skipif(NO_CUDA, reason="needs a CUDA device")
+@pytest.mark.parametrize("preset", ["fast", "paper"])
+def test_field_step_on_cuda_matches_cpu(tiny_l3, preset):
+    """One step of the field fit computes the same loss and gradients on CUDA as on the CPU
+    (same initial field, same CPU generator): the batch, the scatterers and the physics are
+    the same; only the order of float32 sums differs (measured on an H200 with the fast
+    preset: gradients within 2.3e-7 of the CPU's, relative norm)."""
+    import copy
+
+    from ultron.data.dataset import SweepDataset
+    from ultron.pipeline.presets import pipeline_preset
+    from ultron.train.field_fit import _prepare
+    from ultron.train.fit_shape import resolve_fit_shape
+
+    dataset = SweepDataset.load(tiny_l3)
+    config = resolve_fit_shape(pipeline_preset(preset).field, dataset)
+    frames, cube, module, _ = _prepare(dataset, config)
+    render = config.render.rescaled(dataset.probe, frames.probe)
+    results = {}
+    for device in ("cpu", "cuda"):
+        field = copy.deepcopy(module).to(device)
+        generator = torch.Generator().manual_seed(0)
+        total = training_objective(field, frames.to(device), cube, render, config, generator)[0]
+        total.backward()
+        grads = [p.grad.flatten().cpu() for p in field.parameters() if p.grad is not None]
+        results[device] = (float(total.detach()), torch.cat(grads))
+    (loss_cpu, grad_cpu), (loss_cuda, grad_cuda) = results["cpu"], results["cuda"]
+    assert loss_cuda == pytest.approx(loss_cpu, rel=1e-5)
+    assert float((grad_cuda - grad_cpu).norm() / grad_cpu.norm()) < 1e-4
+
+
 @pytest.mark.skipif(NO_CUDA, reason="needs a CUDA device")
 def test_tiny_ultron_on_cuda_matches_cpu(tiny_l3, tmp_path, monkeypatch):
     from ultron.methods.ultron_method import UltronConfig
@@ -259,8 +310,13 @@ def test_tiny_ultron_on_cuda_matches_cpu(tiny_l3, tmp_path, monkeypatch):
         )  # fmt: skip
         summary = reconstruct(tiny_l3, request, tmp_path / device, field_config=field)
         metrics[device] = summary["metrics"]["mean"]
+    # The fit amplifies float32 rounding (the step test above: 2e-7) over 1000 steps: on an
+    # H200 machine CUDA's CD was 1.5 % from its CPU's (8.240 vs 8.363 mm), and that CPU's 0.2 %
+    # from a 2-core one's (8.344); a GPU path that computed anything else lands far off.
     for name in ("cd", "mad"):
-        assert metrics["cuda"][name] == pytest.approx(metrics["cpu"][name], rel=0.01), name
+        assert metrics["cuda"][name] == pytest.approx(metrics["cpu"][name], rel=0.05), (
+            name, metrics["cpu"], metrics["cuda"],
+        )  # fmt: skip
 
 
 def test_map_chunks_equals_one_call_and_keeps_no_graph():
@@ -274,11 +330,6 @@ def test_map_chunks_equals_one_call_and_keeps_no_graph():
         assert torch.equal(out, whole) and not out.requires_grad
     assert map_chunks(lambda x: x, torch.zeros(0, 3), 4).shape == (0,)
     assert map_chunks(lambda x: x, torch.zeros(0, 3), 4, empty=torch.zeros(0, 3)).shape == (0, 3)
-    # gradients only when asked (and enabled), e.g. the phantoms' SDF
-    kept = map_chunks(lambda x: x @ weight, inputs, 3, gradients=True)
-    assert kept.requires_grad and torch.equal(kept.detach(), whole)
-    with torch.no_grad():
-        assert not map_chunks(lambda x: x @ weight, inputs, 3, gradients=True).requires_grad
     # gradients only when asked (and enabled), e.g. the phantoms' SDF
     kept = map_chunks(lambda x: x @ weight, inputs, 3, gradients=True)
     assert kept.requires_grad and torch.equal(kept.detach(), whole)
