@@ -30,6 +30,7 @@ Usage::
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import statistics
@@ -85,6 +86,40 @@ def field_step_seconds(dataset: SweepDataset, preset: str, device: torch.device,
         descend([optimizer], training_objective(module, frames, cube, render, config, generator)[0])
 
     return timed(device, step, steps)
+
+
+#: Operations that only re-describe a tensor's memory (no kernel on any device).
+VIEW_OPERATIONS = frozenset({
+    "view", "_unsafe_view", "_reshape_alias", "expand", "slice", "select", "unsqueeze",
+    "squeeze", "t", "transpose", "permute", "as_strided", "alias", "detach", "split",
+    "split_with_sizes", "unbind", "narrow", "diagonal", "unfold",
+})  # fmt: skip
+
+
+def field_step_operations(dataset: SweepDataset, preset: str) -> int:
+    """Tensor operations (views excluded) one field step of ``preset`` dispatches on the CPU,
+    forward, backward and optimiser together: each is at least one kernel launch on a GPU,
+    where a step this small is bound by launches, not arithmetic (docs/devices.md)."""
+    from torch.utils._python_dispatch import TorchDispatchMode
+
+    class Count(TorchDispatchMode):
+        operations = 0
+
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            if func.overloadpacket.__name__ not in VIEW_OPERATIONS:
+                Count.operations += 1
+            return func(*args, **(kwargs or {}))
+
+    config = resolve_fit_shape(pipeline_preset(preset).field, dataset)
+    frames, cube, module, _ = _prepare(dataset, config)
+    optimizer = make_optimizer(module, config.lr)
+    generator = torch.Generator().manual_seed(0)
+    render = config.render.rescaled(dataset.probe, frames.probe)
+    for counted in (False, True):  # the first step creates the optimiser's state
+        with Count() if counted else contextlib.nullcontext():
+            objective = training_objective(module, frames, cube, render, config, generator)[0]
+            descend([optimizer], objective)
+    return Count.operations
 
 
 def occupancy_data(in_dim: int, n: int = 200_000) -> OccupancyTrainingData:
@@ -184,7 +219,8 @@ def main() -> None:
                 field_s * stages.field.iterations + occupancy_s * stages.ultron.occupancy.iters
             )
             row[preset] = {"field_step_s": field_s, "occupancy_step_s": occupancy_s,
-                           "finetune_100_s": finetune_s, "estimate_s": estimate}  # fmt: skip
+                           "finetune_100_s": finetune_s, "estimate_s": estimate,
+                           "field_step_operations": field_step_operations(dataset, preset)}  # fmt: skip
             if preset == "fast" or device.type == "cuda" or args.paper_end_to_end:
                 out = args.out / "runs" / f"{device.type}-{preset}"
                 fraction = args.paper_fraction if preset == "paper" else 1.0
@@ -197,9 +233,10 @@ def main() -> None:
         results[str(device)] = row
     (args.out / "device.json").write_text(json.dumps(results, indent=1))
     print()
-    print("| device | preset | field step (s) | occupancy step (ms) | fine-tune 100 it (s) "
-          "| end to end (s) | iterations run | extrapolated (s) | estimate (s) | CD (mm) |")  # fmt: skip
-    print("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|")
+    print("| device | preset | field step (s) | its operations | occupancy step (ms) "
+          "| fine-tune 100 it (s) | end to end (s) | iterations run | extrapolated (s) "
+          "| estimate (s) | CD (mm) |")  # fmt: skip
+    print("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     for name, row in results.items():
         for preset in presets:
             r = row[preset]
@@ -209,7 +246,8 @@ def main() -> None:
             ran = f"{e2e['field_iterations']} + {e2e['occupancy_iterations']}" if e2e else "—"
             whole = f"{e2e['extrapolated_s']:.0f}" if e2e and e2e["fraction"] < 1 else "—"
             cd = f"{e2e['cd']:.3f}" if e2e.get("cd") is not None else "—"
-            print(f"| {name} | {preset} | {r['field_step_s']:.4f} | {1000 * r['occupancy_step_s']:.2f}"
+            print(f"| {name} | {preset} | {r['field_step_s']:.4f} | {r['field_step_operations']} "
+                  f"| {1000 * r['occupancy_step_s']:.2f}"
                   f" | {r['finetune_100_s']:.3f} | {total} | {ran} | {whole} "
                   f"| {r['estimate_s']:.0f} | {cd} |")  # fmt: skip
     if len(results) > 1 and "cpu" in results and "fast" in presets:

@@ -259,6 +259,7 @@ def test_device_benchmark_steps_run_on_the_cpu(tiny_l3):
         seconds = bench.field_step_seconds(dataset, preset, cpu, steps=1)
         per_step, finetune = bench.occupancy_seconds(preset, cpu, steps=2)
         assert all(math.isfinite(t) and t > 0 for t in (seconds, per_step, finetune)), preset
+        assert bench.field_step_operations(dataset, preset) > 100  # forward, backward, Adam
 
 
 # ---------------------------------------------------------------------------------- GPU
