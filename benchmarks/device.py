@@ -7,7 +7,8 @@ plus ``cuda`` when this machine has one) it measures
    around each): a field step of the ``fast`` preset (grid field, 8 patches of 32 scanlines)
    and of the ``paper`` preset (8 × 128 MLP, 4 whole frames), an occupancy step of each
    preset's f_ω (4096 labelled pixels), and 100 fine-tuning iterations (1024 pixels a step,
-   the last two layers frozen, as ``ultron finetune``);
+   the last two layers frozen, as ``ultron finetune``); with the operations a field step
+   launches (:func:`field_step_operations`, counted on the CPU);
 2. end to end, through the library exactly as ``ultron reconstruct`` runs it: simulate → fit
    the field → UltrON (10 %) → mesh → metrics, with the ``fast`` preset on every device and,
    on a GPU (or with ``--paper-end-to-end``), the ``paper`` preset (75k + 50k iterations);
