@@ -293,12 +293,14 @@ def field_of_view_samples(
 ) -> Iterator[np.ndarray]:
     """The voxels (M, 3) int64 of ``grid`` holding samples of the frames' slabs at half-voxel
     spacing (:func:`field_of_view_mask`), per chunk of frames (repeats possible)."""
-    shape = np.asarray(grid.shape)
+    shape = np.asarray(grid.shape, dtype=np.float64)
     points = slab_points(probe_to_world, probe, elevation_half_thickness_mm, grid.voxel_mm / 2)
     for chunk in points:
-        ijk = np.rint(grid.world_to_index(chunk)).astype(np.int64)
-        inside = ((ijk >= 0) & (ijk < shape)).all(axis=1)
-        yield ijk[inside]
+        index = grid.world_to_index(chunk)
+        np.rint(index, out=index)  # whole numbers: the bounds test reads them exactly
+        inside = (index >= 0) & (index < shape)
+        keep = inside[:, 0] & inside[:, 1] & inside[:, 2]
+        yield index[keep].astype(np.int64)
 
 
 def slab_points(

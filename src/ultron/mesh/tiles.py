@@ -30,7 +30,7 @@ from ultron.mesh.grid import (
     PointsFn,
     ambiguous_cells_and_upsampled,
     evaluate_at,
-    field_of_view_samples,
+    field_of_view_mask,
     slab_points,
 )
 
@@ -131,22 +131,18 @@ def field_of_view_tiles(
     tile: int,
 ) -> dict[Key, np.ndarray]:
     """:func:`~ultron.mesh.grid.field_of_view_mask` of ``grid``, kept only in the tiles of
-    ``tile`` voxels that some frame reaches: tile key → boolean block of its clipped shape."""
+    ``tile`` voxels that some frame reaches: tile key → boolean block of its clipped shape
+    (keys in C order). The mask is marked on the whole grid first — one byte a voxel of this
+    grid, which the meshing passes coarsened (an eighth of the fine grid's voxels) — since
+    marking the slabs' samples in place costs far less than grouping them by tile."""
+    mask = field_of_view_mask(grid, probe_to_world, probe, elevation_half_thickness_mm)
     layout = TileLayout(grid.shape, tile)
     masks: dict[Key, np.ndarray] = {}
-    counts = np.asarray(layout.counts, dtype=np.int64)
-    for ijk in field_of_view_samples(grid, probe_to_world, probe, elevation_half_thickness_mm):
-        keys = ijk // tile
-        flat = (keys[:, 0] * counts[1] + keys[:, 1]) * counts[2] + keys[:, 2]
-        order = np.argsort(flat, kind="stable")
-        flat, ijk = flat[order], ijk[order]
-        starts = np.flatnonzero(np.r_[True, flat[1:] != flat[:-1]])
-        for begin, end in zip(starts, np.r_[starts[1:], len(flat)], strict=True):
-            key = tuple(int(k) for k in np.unravel_index(flat[begin], tuple(counts)))
-            lo, hi = layout.bounds(key)
-            block = masks.setdefault(key, np.zeros(tuple(hi - lo), dtype=bool))
-            local = ijk[begin:end] - lo
-            block[local[:, 0], local[:, 1], local[:, 2]] = True
+    for key in itertools.product(*(range(count) for count in layout.counts)):
+        lo, hi = layout.bounds(key)
+        block = mask[lo[0] : hi[0], lo[1] : hi[1], lo[2] : hi[2]]
+        if block.any():
+            masks[key] = block.copy()
     return masks
 
 
