@@ -31,7 +31,6 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import os
 import statistics
@@ -75,7 +74,8 @@ def timed(device: torch.device, fn, steps: int, warmup: int = 3) -> float:
     return statistics.median(times)
 
 
-def field_step_seconds(dataset: SweepDataset, preset: str, device: torch.device, steps: int):
+def field_step(dataset: SweepDataset, preset: str, device: torch.device):
+    """One update of ``preset``'s field fit on ``device`` (a fresh field, seed 0), callable."""
     config = resolve_fit_shape(pipeline_preset(preset).field, dataset)
     frames, cube, module, _ = _prepare(dataset, config)
     frames, module = frames.to(device), module.to(device)
@@ -86,7 +86,11 @@ def field_step_seconds(dataset: SweepDataset, preset: str, device: torch.device,
     def step() -> None:
         descend([optimizer], training_objective(module, frames, cube, render, config, generator)[0])
 
-    return timed(device, step, steps)
+    return step
+
+
+def field_step_seconds(dataset: SweepDataset, preset: str, device: torch.device, steps: int):
+    return timed(device, field_step(dataset, preset, device), steps)
 
 
 #: Operations that only re-describe a tensor's memory (no kernel on any device).
@@ -104,23 +108,21 @@ def field_step_operations(dataset: SweepDataset, preset: str) -> int:
     from torch.utils._python_dispatch import TorchDispatchMode
 
     class Count(TorchDispatchMode):
-        operations = 0
+        def __init__(self) -> None:
+            super().__init__()
+            self.operations = 0
 
         def __torch_dispatch__(self, func, types, args=(), kwargs=None):
             if func.overloadpacket.__name__ not in VIEW_OPERATIONS:
-                Count.operations += 1
+                self.operations += 1
             return func(*args, **(kwargs or {}))
 
-    config = resolve_fit_shape(pipeline_preset(preset).field, dataset)
-    frames, cube, module, _ = _prepare(dataset, config)
-    optimizer = make_optimizer(module, config.lr)
-    generator = torch.Generator().manual_seed(0)
-    render = config.render.rescaled(dataset.probe, frames.probe)
-    for counted in (False, True):  # the first step creates the optimiser's state
-        with Count() if counted else contextlib.nullcontext():
-            objective = training_objective(module, frames, cube, render, config, generator)[0]
-            descend([optimizer], objective)
-    return Count.operations
+    step = field_step(dataset, preset, torch.device("cpu"))
+    step()  # the first step creates the optimiser's state
+    counter = Count()
+    with counter:
+        step()
+    return counter.operations
 
 
 def occupancy_data(in_dim: int, n: int = 200_000) -> OccupancyTrainingData:

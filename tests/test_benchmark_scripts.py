@@ -5,14 +5,28 @@ no other test notices when a refactor renames what they import."""
 from __future__ import annotations
 
 import importlib.util
+import math
 import sys
 from pathlib import Path
+from types import ModuleType
 
 import pytest
+import torch
 
 BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
 SCRIPTS = sorted(path.name for path in BENCHMARKS.glob("*.py"))
 HELPERS = {"common.py"}  # imported by the scripts, not run
+
+
+def _load(script: str, monkeypatch) -> ModuleType:
+    """``benchmarks/<script>`` imported as a module (its siblings importable, as when run)."""
+    monkeypatch.syspath_prepend(str(BENCHMARKS))
+    name = f"benchmark_script_{Path(script).stem}"
+    spec = importlib.util.spec_from_file_location(name, BENCHMARKS / script)
+    module = importlib.util.module_from_spec(spec)
+    monkeypatch.setitem(sys.modules, name, module)  # dataclasses look their module up
+    spec.loader.exec_module(module)
+    return module
 
 
 def test_the_scripts_are_found():
@@ -21,12 +35,22 @@ def test_the_scripts_are_found():
 
 @pytest.mark.parametrize("script", SCRIPTS)
 def test_benchmark_script_imports(script, monkeypatch):
-    monkeypatch.syspath_prepend(str(BENCHMARKS))  # the scripts import their siblings
-    name = f"benchmark_script_{Path(script).stem}"
-    spec = importlib.util.spec_from_file_location(name, BENCHMARKS / script)
-    module = importlib.util.module_from_spec(spec)
-    monkeypatch.setitem(sys.modules, name, module)  # dataclasses look their module up
-    spec.loader.exec_module(module)
+    module = _load(script, monkeypatch)
     assert module.__doc__, f"{script}: no docstring saying what it measures"
     if script not in HELPERS:
         assert callable(getattr(module, "main", None)), f"{script}: no main()"
+
+
+def test_device_benchmark_steps_run_on_the_cpu(tiny_l3, monkeypatch):
+    """benchmarks/device.py's per-step timers and operation count run against the current
+    library (they are what a GPU session runs first; a stale one costs it its device time)."""
+    from ultron.data.dataset import SweepDataset
+
+    bench = _load("device.py", monkeypatch)
+    dataset = SweepDataset.load(tiny_l3)
+    cpu = torch.device("cpu")
+    for preset in ("fast", "paper"):
+        seconds = bench.field_step_seconds(dataset, preset, cpu, steps=1)
+        per_step, finetune = bench.occupancy_seconds(preset, cpu, steps=2)
+        assert all(math.isfinite(t) and t > 0 for t in (seconds, per_step, finetune)), preset
+        assert bench.field_step_operations(dataset, preset) > 100  # forward, backward, Adam

@@ -241,27 +241,6 @@ def test_request_rejects_a_bad_device():
         ReconstructionRequest(device="tpu")
 
 
-def test_device_benchmark_steps_run_on_the_cpu(tiny_l3):
-    """benchmarks/device.py's per-step timers run against the current library (they are what
-    a GPU session runs first; a stale one costs that session its device time)."""
-    import importlib.util
-    import math
-
-    from ultron.data.dataset import SweepDataset
-
-    path = Path(__file__).parents[1] / "benchmarks" / "device.py"
-    spec = importlib.util.spec_from_file_location("device_benchmark", path)
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
-    dataset = SweepDataset.load(tiny_l3)
-    cpu = torch.device("cpu")
-    for preset in ("fast", "paper"):
-        seconds = bench.field_step_seconds(dataset, preset, cpu, steps=1)
-        per_step, finetune = bench.occupancy_seconds(preset, cpu, steps=2)
-        assert all(math.isfinite(t) and t > 0 for t in (seconds, per_step, finetune)), preset
-        assert bench.field_step_operations(dataset, preset) > 100  # forward, backward, Adam
-
-
 # ---------------------------------------------------------------------------------- GPU
 @pytest.mark.skipif(NO_CUDA, reason="needs a CUDA device")
 @pytest.mark.parametrize("preset", ["fast", "paper"])
