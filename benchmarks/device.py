@@ -49,6 +49,7 @@ from ultron.metrics.surface import MetricsConfig
 from ultron.phantom import SimulationConfig, simulate_dataset
 from ultron.pipeline.presets import pipeline_preset
 from ultron.pipeline.run import ReconstructionRequest, reconstruct
+from ultron.train.field_batch import FieldObjective
 from ultron.train.field_fit import _prepare, make_optimizer, training_objective
 from ultron.train.fit_shape import resolve_fit_shape
 from ultron.train.loop import descend
@@ -74,17 +75,23 @@ def timed(device: torch.device, fn, steps: int, warmup: int = 3) -> float:
     return statistics.median(times)
 
 
-def field_step(dataset: SweepDataset, preset: str, device: torch.device):
-    """One update of ``preset``'s field fit on ``device`` (a fresh field, seed 0), callable."""
+def field_step(
+    dataset: SweepDataset, preset: str, device: torch.device, graphs: bool | None = None
+):
+    """One update of ``preset``'s field fit on ``device`` (a fresh field, seed 0), callable;
+    replayed from CUDA graphs as the fit does (``graphs``, default: on a CUDA device)."""
+    graphs = device.type == "cuda" if graphs is None else graphs
     config = resolve_fit_shape(pipeline_preset(preset).field, dataset)
     frames, cube, module, _ = _prepare(dataset, config)
     frames, module = frames.to(device), module.to(device)
     optimizer = make_optimizer(module, config.lr)
     generator = torch.Generator().manual_seed(0)
     render = config.render.rescaled(dataset.probe, frames.probe)
+    objective = FieldObjective(module, render, config, frames.probe.axial_spacing_mm, graphs)
 
     def step() -> None:
-        descend([optimizer], training_objective(module, frames, cube, render, config, generator)[0])
+        loss = training_objective(module, frames, cube, render, config, generator, False, objective)
+        descend([optimizer], loss[0])
 
     return step
 

@@ -290,11 +290,15 @@ def test_tiny_ultron_on_cuda_matches_cpu(tiny_l3, tmp_path, monkeypatch):
         )  # fmt: skip
         summary = reconstruct(tiny_l3, request, tmp_path / device, field_config=field)
         metrics[device] = summary["metrics"]["mean"]
-    # The fit amplifies float32 rounding (the step test above: 2e-7) over 1000 steps: on an
-    # H200 machine CUDA's CD was 1.5 % from its CPU's (8.240 vs 8.363 mm), and that CPU's 0.2 %
-    # from a 2-core one's (8.344); a GPU path that computed anything else lands far off.
-    for name in ("cd", "mad"):
-        assert metrics["cuda"][name] == pytest.approx(metrics["cpu"][name], rel=0.05), (
+    # The fit amplifies float32 rounding (the step test above: 2e-7) over 1000 steps, and a
+    # CUDA fit is not even reproducible: grid_sample's backward adds with atomics, in no fixed
+    # order. Four fresh CUDA runs of this reconstruction on one H200 (fitted with CUDA graphs
+    # thrice, eagerly once): CD 8.31, 8.37, 8.21, 7.10 mm and MAD 1.060, 1.103, 1.058, 1.072,
+    # against its CPU's 8.363 / 1.080 (docs/devices.md); a 5 % bound on CD failed once. A GPU
+    # path that computed anything else (another geometry, T, loss) lands far further off.
+    tolerance = {"cd": 0.25, "mad": 0.05}
+    for name, rel in tolerance.items():
+        assert metrics["cuda"][name] == pytest.approx(metrics["cpu"][name], rel=rel), (
             name, metrics["cpu"], metrics["cuda"],
         )  # fmt: skip
 

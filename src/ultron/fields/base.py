@@ -31,9 +31,16 @@ class AcousticField(nn.Module):
     def forward(self, points_unit: torch.Tensor) -> AcousticProperties:
         return self.heads(self.raw(points_unit))
 
-    def regularization(self, generator: torch.Generator | None = None) -> torch.Tensor:
+    def regularization(
+        self, generator: torch.Generator | None = None, draws: torch.Tensor | None = None
+    ) -> torch.Tensor:
         """Smoothness penalty of the parameters (a scalar; zero for backends without one).
 
-        Backends may evaluate it stochastically; ``generator`` makes that reproducible.
+        Backends may evaluate it stochastically; ``generator`` makes that reproducible, or
+        ``draws`` (:meth:`regularization_draws`, on the parameters' device) gives the draws.
         """
         return torch.zeros((), device=module_device(self))
+
+    def regularization_draws(self, generator: torch.Generator | None) -> torch.Tensor | None:
+        """The random draws :meth:`regularization` makes from ``generator`` (None: none)."""
+        return None

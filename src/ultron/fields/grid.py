@@ -235,7 +235,9 @@ class GridField(AcousticField):
     def raw(self, points_unit: torch.Tensor) -> torch.Tensor:
         return self.decoder(self.features(points_unit))
 
-    def regularization(self, generator: torch.Generator | None = None) -> torch.Tensor:
+    def regularization(
+        self, generator: torch.Generator | None = None, draws: torch.Tensor | None = None
+    ) -> torch.Tensor:
         """Squared total variation of the planes, × ``smoothness_weight``.
 
             TV = Σ_levels mean_window[(P[i+1, j] − P[i, j])² + (P[i, j+1] − P[i, j])²]
@@ -246,14 +248,38 @@ class GridField(AcousticField):
         ``TV_LARGE_PLANE_PROBABILITY`` (then scaled by its inverse), because the gradient of a
         window still costs a pass over the whole plane. The draws are made on ``generator``'s
         device (the fit's CPU generator), the penalty on the planes'.
+
+        ``draws`` (instead of ``generator``): :meth:`regularization_draws`' table, moved to the
+        planes' device — the same estimate with no draw and no synchronisation (a skipped
+        window is weighted by 0 instead of not evaluated), so a CUDA graph can capture it.
         """
         total = torch.zeros((), device=self._axis_scale.device)
         if self.config.smoothness_weight == 0:
             return total
+        rows = iter(() if draws is None else draws)
         for level in self.planes:
             planes = list(level) if self.per_axis else [level]
-            total = total + sum(_plane_tv(plane, generator) for plane in planes) / len(planes)
+            if draws is None:
+                terms = [_plane_tv(plane, generator) for plane in planes]
+            else:
+                terms = [_plane_tv_drawn(plane, rows) for plane in planes]
+            total = total + sum(terms) / len(planes)
         return self.config.smoothness_weight * total
+
+    def regularization_draws(self, generator: torch.Generator | None) -> torch.Tensor | None:
+        """The random windows :meth:`regularization` draws from ``generator``, in its order: one
+        row (first row, first column, kept ∈ {0, 1}) per plane larger than ``TV_WINDOW``, int64
+        on the generator's device; None when no plane needs a draw."""
+        if self.config.smoothness_weight == 0:
+            return None
+        shapes = [
+            plane.shape[-2:]
+            for level in self.planes
+            for plane in (list(level) if self.per_axis else [level])
+        ]
+        windows = [_window_draw(rows, cols, generator) for rows, cols in shapes]
+        table = [(i, j, int(keep)) for i, j, keep in filter(None, windows)]
+        return torch.tensor(table, dtype=torch.int64) if table else None
 
 
 def _bilinear(planes: torch.Tensor, coords: torch.Tensor) -> torch.Tensor:
@@ -261,26 +287,71 @@ def _bilinear(planes: torch.Tensor, coords: torch.Tensor) -> torch.Tensor:
     return F.grid_sample(planes, coords, mode="bilinear", padding_mode="border", align_corners=True)
 
 
+def _window_draw(
+    rows: int, cols: int, generator: torch.Generator | None
+) -> tuple[int, int, bool] | None:
+    """The random window of a (rows, cols) plane (:func:`_plane_tv`): (first row, first column,
+    kept), or None for a plane no larger than ``TV_WINDOW`` (no draw)."""
+    if max(rows, cols) <= TV_WINDOW:
+        return None
+    draw = torch.rand((), generator=generator)
+    if rows == cols:
+        i, j = torch.randint(0, rows - TV_WINDOW + 1, (2,), generator=generator).tolist()
+    else:
+        i, j = (
+            int(torch.randint(0, max(1, n - TV_WINDOW + 1), (), generator=generator))
+            for n in (rows, cols)
+        )
+    return i, j, float(draw) < TV_LARGE_PLANE_PROBABILITY
+
+
 def _plane_tv(plane: torch.Tensor, generator: torch.Generator | None) -> torch.Tensor:
     """Squared TV of a plane (…, rows, cols) — for square planes a level's (3, C, R, R)
     tensor, whose mean is the three planes' — on a random ``TV_WINDOW`` window with probability
     ``TV_LARGE_PLANE_PROBABILITY`` (then scaled by its inverse) where a side exceeds the window,
     on the whole plane otherwise (:meth:`GridField.regularization`)."""
-    rows, cols = plane.shape[-2:]
+    return _window_tv(plane, _window_draw(*plane.shape[-2:], generator))
+
+
+def _window_tv(plane: torch.Tensor, window: tuple[int, int, bool] | None) -> torch.Tensor:
+    """:func:`_plane_tv` on a drawn ``window`` (:func:`_window_draw`), by slicing."""
     scale = 1.0
-    if max(rows, cols) > TV_WINDOW:
-        draw = torch.rand((), generator=generator)
-        if rows == cols:
-            i, j = torch.randint(0, rows - TV_WINDOW + 1, (2,), generator=generator).tolist()
-        else:
-            i, j = (
-                int(torch.randint(0, max(1, n - TV_WINDOW + 1), (), generator=generator))
-                for n in (rows, cols)
-            )
-        if float(draw) >= TV_LARGE_PLANE_PROBABILITY:
+    if window is not None:
+        i, j, keep = window
+        if not keep:
             return torch.zeros((), device=plane.device)
         plane = plane[..., i : i + TV_WINDOW, j : j + TV_WINDOW]
         scale = 1.0 / TV_LARGE_PLANE_PROBABILITY
+    return scale * _squared_tv(plane)
+
+
+def _plane_tv_drawn(plane: torch.Tensor, draws) -> torch.Tensor:
+    """:func:`_plane_tv` with the window from the next row of ``draws`` (an iterator over
+    the table of :meth:`GridField.regularization_draws`). On the CPU the window is sliced, as
+    :func:`_plane_tv` does; on another device it is gathered by index and a skipped window
+    weighted by 0 — no value leaves the device, so a CUDA graph can capture it."""
+    rows, cols = plane.shape[-2:]
+    if max(rows, cols) <= TV_WINDOW:
+        return _squared_tv(plane)
+    row = next(draws)
+    if row.device.type == "cpu":
+        first_row, first_col, kept = row.tolist()
+        return _window_tv(plane, (first_row, first_col, bool(kept)))
+    return _indexed_window_tv(plane, row)
+
+
+def _indexed_window_tv(plane: torch.Tensor, row: torch.Tensor) -> torch.Tensor:
+    """:func:`_window_tv` of the window in ``row`` = (first row, first column, kept), a
+    tensor on the plane's device: gathered by index, weighted by kept / p (0 when skipped)."""
+    rows, cols = plane.shape[-2:]
+    offsets = torch.arange(TV_WINDOW, device=plane.device)
+    window = plane.index_select(-2, row[0] + offsets[: min(rows, TV_WINDOW)])
+    window = window.index_select(-1, row[1] + offsets[: min(cols, TV_WINDOW)])
+    return (row[2].to(plane.dtype) / TV_LARGE_PLANE_PROBABILITY) * _squared_tv(window)
+
+
+def _squared_tv(plane: torch.Tensor) -> torch.Tensor:
+    """mean[(P[i+1, j] − P[i, j])²] + mean[(P[i, j+1] − P[i, j])²] over the last two axes."""
     dy = plane[..., 1:, :] - plane[..., :-1, :]
     dx = plane[..., :, 1:] - plane[..., :, :-1]
-    return scale * (dy.pow(2).mean() + dx.pow(2).mean())
+    return dy.pow(2).mean() + dx.pow(2).mean()

@@ -116,10 +116,30 @@ def sample_scatterers(
     if not inside:
         raise argument_error("probability", "expected values strictly inside (0, 1)")
     p = torch.as_tensor(probability, dtype=dtype, device=device)
-    uniform = torch.rand(shape, generator=generator, dtype=dtype, device=_device_of(generator))
-    uniform = uniform.to(p.device).clamp(1e-6, 1 - 1e-6)
+    uniform = scatterer_noise(shape, generator, dtype)
+    return scatterers_from_noise(p, uniform.to(p.device), temperature)
+
+
+def scatterer_noise(
+    shape: tuple[int, ...], generator: torch.Generator | None, dtype: torch.dtype = torch.float32
+) -> torch.Tensor:
+    """The uniform noise U ~ Uniform(0, 1) of :func:`sample_scatterers`, drawn from
+    ``generator`` on the generator's device (one draw of ``shape``)."""
+    return torch.rand(shape, generator=generator, dtype=dtype, device=_device_of(generator))
+
+
+def scatterers_from_noise(
+    probability: torch.Tensor, uniform: torch.Tensor, temperature: float
+) -> torch.Tensor:
+    """Scatterer indicators from given noise (the deterministic half of
+    :func:`sample_scatterers`, no check of p and no synchronisation: it can be captured in a
+    CUDA graph):
+
+        U' = clamp(U, 10⁻⁶, 1 − 10⁻⁶),  S = sigmoid((logit p + log U' − log(1 − U')) / τ)
+    """
+    uniform = uniform.clamp(1e-6, 1 - 1e-6)
     logistic = torch.log(uniform) - torch.log1p(-uniform)
-    return torch.sigmoid((torch.logit(p) + logistic) / temperature)
+    return torch.sigmoid((torch.logit(probability) + logistic) / temperature)
 
 
 def _device_of(generator: torch.Generator | None) -> torch.device | None:

@@ -115,6 +115,9 @@ def render_properties(
     config: RenderConfig,
     generator: torch.Generator | None = None,
     expected: bool = False,
+    *,
+    scatterers: torch.Tensor | None = None,
+    kernels: tuple[torch.Tensor, torch.Tensor] | None = None,
 ) -> RenderedFrames:
     """Render θ laid out as (…, H, C) scanlines into B-mode (Ultra-NeRF, METHOD.md §2).
 
@@ -123,12 +126,17 @@ def render_properties(
     when ``expected``; I = T·(G ∗ (S·φ)) + log(1 + π T β)/log(1 + π). Everything is computed
     on θ's device; the draws come from ``generator``'s (a CPU generator draws the same S on
     every device, :func:`~ultron.render.physics.sample_scatterers`).
+
+    Given ``scatterers`` (S, broadcastable to θ) and ``kernels`` (the PSF's (axial, lateral)
+    1D kernels on θ's device, :meth:`RenderConfig.kernels`), nothing is drawn, built or
+    copied from the host: the rendering is device work alone (a fit's CUDA graph captures it).
     """
+    if scatterers is not None or kernels is not None:
+        if scatterers is None or kernels is None:
+            raise argument_error("scatterers", "expected scatterers and kernels together")
+        return _render_with(properties, step_mm, scatterers, kernels)
     if not expected and generator is None:
         raise argument_error("generator", "sampling scatterers needs a torch.Generator")
-    transmission = physics.total_transmission(
-        properties.attenuation, properties.reflection, step_mm
-    )
     dtype, device = properties.scattering.dtype, properties.scattering.device
     probability: torch.Tensor | float = (
         properties.density if properties.density is not None else config.scatter_probability
@@ -147,14 +155,21 @@ def render_properties(
         )
         if properties.density is None:
             scatterers = scatterers.detach()
-    kernel_axial, kernel_lateral = config.kernels(dtype, device)
+    return _render_with(properties, step_mm, scatterers, config.kernels(dtype, device))
+
+
+def _render_with(
+    properties: AcousticProperties,
+    step_mm: float,
+    scatterers: torch.Tensor,
+    kernels: tuple[torch.Tensor, torch.Tensor],
+) -> RenderedFrames:
+    """:func:`render_properties` with the scatterers and the PSF's kernels given."""
+    transmission = physics.total_transmission(
+        properties.attenuation, properties.reflection, step_mm
+    )
     intensity, speckle, reflection = physics.bmode_intensity(
-        transmission,
-        properties.reflection,
-        properties.scattering,
-        scatterers,
-        kernel_axial,
-        kernel_lateral,
+        transmission, properties.reflection, properties.scattering, scatterers, *kernels
     )
     return RenderedFrames(intensity, speckle, reflection, transmission, properties)
 

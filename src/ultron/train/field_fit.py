@@ -57,7 +57,13 @@ from ultron.models.field_dir import (
 )
 from ultron.models.fitted import FittedField, ThetaStatistics, probe_to_dict
 from ultron.parallel import default_workers
-from ultron.render.renderer import RenderConfig, render_field
+from ultron.render.renderer import RenderConfig
+from ultron.train.field_batch import (
+    FieldObjective,
+    batch_inputs,
+    draw_batch,
+    sample_patches,
+)
 from ultron.train.field_config import (
     DEFAULT_LR,
     FIELD_PRESETS,
@@ -74,26 +80,8 @@ from ultron.train.field_config import (
 from ultron.train.fit_shape import resolve_fit_shape
 from ultron.train.frames import FrameSet, resampled_probe
 from ultron.train.loop import Progress, run_training
-from ultron.train.losses import (
-    METRIC_SSIM_K2,
-    confidence_transmission_prior,
-    psnr,
-    ssim,
-    ultranerf_loss,
-    weighted_scattering_tv,
-)
+from ultron.train.losses import METRIC_SSIM_K2, psnr, ssim
 from ultron.train.transmission_check import record_transmission_check
-
-
-def sample_patches(
-    frames: FrameSet, n_frames: int, patch_width: int, generator: torch.Generator
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Random training patches: frame indices (B,) and their adjacent columns (B, P)."""
-    width = frames.probe.width_px
-    patch = min(patch_width, width)
-    pick = torch.randint(0, frames.train_index.shape[0], (n_frames,), generator=generator)
-    start = torch.randint(0, width - patch + 1, (n_frames,), generator=generator)
-    return frames.train_index[pick], start[:, None] + torch.arange(patch)
 
 
 def training_objective(
@@ -104,46 +92,25 @@ def training_objective(
     config: FieldTrainConfig,
     generator: torch.Generator,
     hold_scattering: bool = False,
+    objective: FieldObjective | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """The loss of a batch of random patches to minimise (image loss, the field's
-    regularisation and the configured priors), the image loss and the MSE.
+    regularisation and the configured priors), the image loss and the MSE (detached).
 
-    The batch is drawn from ``generator`` (the fit's CPU generator) and rendered on the
-    module's device, where ``frames.images`` must be (:meth:`FrameSet.to`).
+    The batch is drawn from ``generator`` (the fit's CPU generator, :func:`draw_batch`) and
+    its loss computed on the module's device, where ``frames.images`` must be
+    (:meth:`FrameSet.to`), by ``objective`` (a fit's :class:`FieldObjective`, e.g. replaying
+    CUDA graphs; default: the eager loss).
 
     ``hold_scattering`` renders with φ held at its initial value (the curriculum's first phase:
     the image's dark regions can then only be explained by a loss of transmission).
     """
-    frame_idx, cols = sample_patches(frames, config.frames_per_batch, config.patch_width, generator)
-    device = frames.images.device
-    rendered = render_field(
-        module,
-        cube,
-        frames.probe,
-        frames.probe_to_world[frame_idx],
-        render_config,
-        cols,
-        generator=generator,
-        expected=config.train_scatterers == "expected",
-        hold_scattering=module.head_config.initial_scattering if hold_scattering else None,
-    )
-    patch_cols = cols[:, None, :].expand(-1, frames.probe.height_px, -1).to(device)
-    batch = frame_idx.to(device)
-    target = torch.gather(frames.images[batch], 2, patch_cols)
-    loss, mse = ultranerf_loss(rendered.intensity, target, config.ssim_weight, config.mse_weight)
-    total = loss + module.regularization(generator)
-    if config.confidence_prior_weight > 0:
-        if frames.confidence is None:
-            raise argument_error("frames", "the confidence prior needs FrameSet.with_confidence()")
-        confidence = torch.gather(frames.confidence[batch], 2, patch_cols)
-        total = total + config.confidence_prior_weight * confidence_transmission_prior(
-            rendered.transmission, confidence, config.confidence_prior_margin
-        )
-    if config.scattering_tv_weight > 0:
-        total = total + config.scattering_tv_weight * weighted_scattering_tv(
-            rendered.properties.scattering, rendered.properties.reflection
-        )
-    return total, loss, mse
+    if objective is None:
+        objective = FieldObjective(module, render_config, config, frames.probe.axial_spacing_mm)
+    batch = draw_batch(module, frames, cube, config, generator)
+    inputs = batch_inputs(batch, frames, config, frames.images.device)
+    hold = module.head_config.initial_scattering if hold_scattering else None
+    return objective(inputs, hold)
 
 
 def make_optimizer(module: AcousticField, lr: float) -> torch.optim.Optimizer:
@@ -353,11 +320,17 @@ class _FieldRun:
     log: list[dict[str, Any]]
     #: The field being fitted, joined to the renderer (for the held-out checks), built once.
     fitted: FittedField = field(init=False)
+    #: The batch loss, built once (on a CUDA device: replayed from CUDA graphs).
+    loss: FieldObjective = field(init=False)
 
     def __post_init__(self) -> None:
         self.fitted = FittedField(
             self.module, self.resolved, self.cube, self.frames.probe, self.render_config
         )
+        self.loss = FieldObjective(
+            self.module, self.render_config, self.config, self.frames.probe.axial_spacing_mm,
+            graphs=self.device.type == "cuda",
+        )  # fmt: skip
 
     def objective(self, k: int) -> tuple[torch.Tensor, dict[str, float | torch.Tensor]]:
         """Update k's loss (0-based) and its scalars; ``lr`` is the rate of the next update."""
@@ -365,7 +338,7 @@ class _FieldRun:
         hold = k < self.config.effective_scattering_warmup
         total, loss, mse = training_objective(
             self.module, self.frames, self.cube, self.render_config, self.config,
-            self.generator, hold,
+            self.generator, hold, self.loss,
         )  # fmt: skip
         mse_value = max(float(mse.detach()), 1e-12)
         return total, {"loss": loss.detach(), "psnr": 10 * math.log10(1 / mse_value),

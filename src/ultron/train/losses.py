@@ -4,6 +4,7 @@ the confidence-map prior on the transmission."""
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import torch
 
@@ -29,6 +30,7 @@ def ssim_map(
     k1: float = 0.01,
     k2: float = LOSS_SSIM_K2,
     data_range: float = 1.0,
+    kernel: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Local SSIM (Wang et al. 2004) with a Gaussian window, over the valid region.
 
@@ -36,13 +38,18 @@ def ssim_map(
         C1 = (k1 L)², C2 = (k2 L)²
 
     ``x`` and ``y`` are (…, H, W) with H, W ≥ ``window``; returns (B, 1, H−w+1, W−w+1).
+    ``kernel``: the window's 1D Gaussian already on the images' device and dtype
+    (:func:`ssim_kernel`), so that nothing is built or copied from the host.
     """
     if x.shape != y.shape:
         raise argument_error("y", f"shape {tuple(y.shape)} differs from x {tuple(x.shape)}")
     a, b = _as_batch("x", x), _as_batch("y", y)
     if min(a.shape[-2:]) < window:
         raise argument_error("x", f"images must be at least {window} pixels on each side")
-    kernel = gaussian_kernel_1d(window, sigma, a.dtype).to(a.device)
+    if kernel is None:
+        kernel = ssim_kernel(window, sigma, a.dtype, a.device)
+    elif kernel.shape != (window,):
+        raise argument_error("kernel", f"expected ({window},), got {tuple(kernel.shape)}")
     c1, c2 = (k1 * data_range) ** 2, (k2 * data_range) ** 2
     stacked = torch.cat([a, b, a * a, b * b, a * b], dim=1)  # (B, 5, H, W)
     height, width = a.shape[-2:]
@@ -58,7 +65,17 @@ def ssim_map(
     return (num / den).unsqueeze(1)
 
 
-def ssim(x: torch.Tensor, y: torch.Tensor, **kwargs: float) -> torch.Tensor:
+def ssim_kernel(
+    window: int = 7,
+    sigma: float = 1.5,
+    dtype: torch.dtype = torch.float32,
+    device: torch.device | str | None = None,
+) -> torch.Tensor:
+    """The 1D Gaussian window of :func:`ssim_map` (built on the CPU, moved to ``device``)."""
+    return gaussian_kernel_1d(window, sigma, dtype).to(device)
+
+
+def ssim(x: torch.Tensor, y: torch.Tensor, **kwargs: Any) -> torch.Tensor:
     """Mean of :func:`ssim_map` (a scalar)."""
     return ssim_map(x, y, **kwargs).mean()
 
@@ -76,13 +93,16 @@ def ultranerf_loss(
     mse_weight: float = 0.25,
     window: int = 7,
     sigma: float = 1.5,
+    kernel: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Ultra-NeRF's image loss 0.75·(1 − SSIM) + 0.25·MSE (SSIM k1 = 0.01, k2 = 0.1).
 
-    Returns (loss, mse).
+    Returns (loss, mse). ``kernel``: the SSIM window, as in :func:`ssim_map`.
     """
     mse = torch.mean((rendered - target) ** 2)
-    structural = ssim(rendered, target, window=window, sigma=sigma, k1=0.01, k2=LOSS_SSIM_K2)
+    structural = ssim(
+        rendered, target, window=window, sigma=sigma, k1=0.01, k2=LOSS_SSIM_K2, kernel=kernel
+    )
     return ssim_weight * (1 - structural) + mse_weight * mse, mse
 
 
