@@ -5,7 +5,8 @@ plus ``cuda`` when this machine has one) it measures
 
 1. per-step times (median of ``--steps`` steps after 3 warm-up steps, the device synchronised
    around each): a field step of the ``fast`` preset (grid field, 8 patches of 32 scanlines)
-   and of the ``paper`` preset (8 × 128 MLP, 4 whole frames), an occupancy step of each
+   and of the ``paper`` preset (8 × 128 MLP, 4 whole frames) as the fit takes it (on a GPU
+   replayed from CUDA graphs, :mod:`ultron.train.field_batch`), an occupancy step of each
    preset's f_ω (4096 labelled pixels), and 100 fine-tuning iterations (1024 pixels a step,
    the last two layers frozen, as ``ultron finetune``); with the operations a field step
    launches (:func:`field_step_operations`, counted on the CPU);
