@@ -133,6 +133,24 @@ def test_field_loss_is_device_work_alone(tiny_l3, scatterers, prior, hold, paper
     assert total.device == META and not loss.requires_grad and not mse.requires_grad
 
 
+def test_a_failed_capture_warns_and_fits_eagerly(tiny_l3):
+    """Where no CUDA graph can be captured (here: a CPU build, whose CUDAGraph cannot be
+    made), the objective says why in one warning and computes the eager loss."""
+    dataset = SweepDataset.load(tiny_l3)
+    config = quick_field_config(confidence_prior_weight=0.0)
+    cube = UnitCube((0.0, 20.0, 0.0), 40.0)
+    module, _ = build_field(config.field, cube.half_extent_mm, 0.5, seed=0)
+    frames = FrameSet.from_dataset(dataset, None, config.holdout_every)
+    batch = draw_batch(module, frames, cube, config, torch.Generator().manual_seed(0))
+    inputs = batch_inputs(batch, frames, config, torch.device("cpu"))
+    step_mm = frames.probe.axial_spacing_mm
+    with pytest.warns(RuntimeWarning, match="CUDA graph capture failed") as caught:
+        graphed = FieldObjective(module, config.render, config, step_mm, graphs=True)(inputs)
+    assert len(caught) == 1
+    eager = FieldObjective(module, config.render, config, step_mm)(inputs)
+    assert all(torch.equal(a, b) for a, b in zip(graphed, eager, strict=True))
+
+
 # ---------------------------------------------------------------------------------- GPU
 @pytest.mark.skipif(NO_CUDA, reason="needs a CUDA device")
 @pytest.mark.parametrize("preset", ["fast", "paper"])
