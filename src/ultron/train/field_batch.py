@@ -12,6 +12,7 @@ graphed loss compute the same thing from the same batch.
 
 from __future__ import annotations
 
+import contextlib
 import warnings
 from dataclasses import dataclass, replace
 
@@ -216,6 +217,7 @@ class FieldObjective:
         graphs: bool = False,
     ) -> None:
         self._parts = (field, render_config, config, step_mm)
+        self._device = next(field.parameters()).device
         self._eager: dict[float | None, FieldLoss] = {}
         self._graphed: dict[float | None, torch.nn.Module] = {}
         #: Why the capture failed (then the loss runs eagerly); None otherwise.
@@ -234,7 +236,8 @@ class FieldObjective:
             self._capture(inputs, hold_scattering)
         if self.failed is not None:
             return self._loss(hold_scattering)(**inputs)
-        return self._graphed[hold_scattering](*(inputs[name] for name in _names(inputs)))
+        with torch.cuda.device(self._device):  # a graph replays on the device it was made on
+            return self._graphed[hold_scattering](*(inputs[name] for name in _names(inputs)))
 
     def _loss(self, hold_scattering: float | None) -> FieldLoss:
         if hold_scattering not in self._eager:
@@ -245,10 +248,12 @@ class FieldObjective:
         names = _names(inputs)
         sample = tuple(inputs[name].clone() for name in names)
         positional = _Positional(self._loss(hold_scattering), names)
+        cuda = self._device.type == "cuda"
         try:
-            self._graphed[hold_scattering] = torch.cuda.make_graphed_callables(
-                positional, sample, allow_unused_input=True
-            )
+            with torch.cuda.device(self._device) if cuda else contextlib.nullcontext():
+                self._graphed[hold_scattering] = torch.cuda.make_graphed_callables(
+                    positional, sample, allow_unused_input=True
+                )
             # The capture made the parameters' gradient accumulators on its own stream, and its
             # outputs keep them; the replayed backward's gradients reach them already in order,
             # so PyTorch's warning that their streams differ says nothing here.
