@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gc
 import sys
 from typing import Annotated
 
@@ -68,7 +69,16 @@ def _root(
 def main() -> None:
     """Console-script entry point. An option value of the wrong type (``--frames ten``) is one
     ``error:`` line naming the option, exit 2, like every other bad input; other usage errors
-    print click's usage message."""
+    print click's usage message. Everything is written when the command returns, so the
+    objects then alive are frozen out of the garbage collector (:func:`gc.freeze`): the
+    interpreter's exit then skips collecting torch's ≈ 10⁵ objects, 0.3 s of every command."""
+    try:
+        return _run()
+    finally:
+        gc.freeze()
+
+
+def _run() -> None:
     try:
         code = app(standalone_mode=False)
     except typer.BadParameter as exc:
