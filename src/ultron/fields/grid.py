@@ -256,14 +256,11 @@ class GridField(AcousticField):
         total = torch.zeros((), device=self._axis_scale.device)
         if self.config.smoothness_weight == 0:
             return total
+        if draws is None:
+            draws = self.regularization_draws(generator)
         rows = iter(() if draws is None else draws)
-        for level in self.planes:
-            planes = list(level) if self.per_axis else [level]
-            if draws is None:
-                terms = [_plane_tv(plane, generator) for plane in planes]
-            else:
-                terms = [_plane_tv_drawn(plane, rows) for plane in planes]
-            total = total + sum(terms) / len(planes)
+        for planes in self._tv_levels():
+            total = total + sum(_plane_tv_drawn(plane, rows) for plane in planes) / len(planes)
         return self.config.smoothness_weight * total
 
     def regularization_draws(self, generator: torch.Generator | None) -> torch.Tensor | None:
@@ -272,14 +269,15 @@ class GridField(AcousticField):
         on the generator's device; None when no plane needs a draw."""
         if self.config.smoothness_weight == 0:
             return None
-        shapes = [
-            plane.shape[-2:]
-            for level in self.planes
-            for plane in (list(level) if self.per_axis else [level])
-        ]
+        shapes = [plane.shape[-2:] for planes in self._tv_levels() for plane in planes]
         windows = [_window_draw(rows, cols, generator) for rows, cols in shapes]
         table = [(i, j, int(keep)) for i, j, keep in filter(None, windows)]
         return torch.tensor(table, dtype=torch.int64) if table else None
+
+    def _tv_levels(self) -> list[list[torch.Tensor]]:
+        """Each level's planes as the TV takes them: its three per-axis planes, or its one
+        (3, C, R, R) tensor of square planes."""
+        return [list(level) if self.per_axis else [level] for level in self.planes]
 
 
 def _bilinear(planes: torch.Tensor, coords: torch.Tensor) -> torch.Tensor:
@@ -290,7 +288,7 @@ def _bilinear(planes: torch.Tensor, coords: torch.Tensor) -> torch.Tensor:
 def _window_draw(
     rows: int, cols: int, generator: torch.Generator | None
 ) -> tuple[int, int, bool] | None:
-    """The random window of a (rows, cols) plane (:func:`_plane_tv`): (first row, first column,
+    """The random window of a (rows, cols) plane (:func:`_window_tv`): (first row, first column,
     kept), or None for a plane no larger than ``TV_WINDOW`` (no draw)."""
     if max(rows, cols) <= TV_WINDOW:
         return None
@@ -305,16 +303,11 @@ def _window_draw(
     return i, j, float(draw) < TV_LARGE_PLANE_PROBABILITY
 
 
-def _plane_tv(plane: torch.Tensor, generator: torch.Generator | None) -> torch.Tensor:
-    """Squared TV of a plane (…, rows, cols) — for square planes a level's (3, C, R, R)
-    tensor, whose mean is the three planes' — on a random ``TV_WINDOW`` window with probability
-    ``TV_LARGE_PLANE_PROBABILITY`` (then scaled by its inverse) where a side exceeds the window,
-    on the whole plane otherwise (:meth:`GridField.regularization`)."""
-    return _window_tv(plane, _window_draw(*plane.shape[-2:], generator))
-
-
 def _window_tv(plane: torch.Tensor, window: tuple[int, int, bool] | None) -> torch.Tensor:
-    """:func:`_plane_tv` on a drawn ``window`` (:func:`_window_draw`), by slicing."""
+    """Squared TV of a plane (…, rows, cols) — for square planes a level's (3, C, R, R)
+    tensor, whose mean is the three planes' — on its drawn ``TV_WINDOW`` window
+    (:func:`_window_draw`), sliced, scaled by 1 / ``TV_LARGE_PLANE_PROBABILITY`` when kept and 0
+    when not; on the whole plane when no window was drawn (:meth:`GridField.regularization`)."""
     scale = 1.0
     if window is not None:
         i, j, keep = window
@@ -326,10 +319,11 @@ def _window_tv(plane: torch.Tensor, window: tuple[int, int, bool] | None) -> tor
 
 
 def _plane_tv_drawn(plane: torch.Tensor, draws) -> torch.Tensor:
-    """:func:`_plane_tv` with the window from the next row of ``draws`` (an iterator over
-    the table of :meth:`GridField.regularization_draws`). On the CPU the window is sliced, as
-    :func:`_plane_tv` does; on another device it is gathered by index and a skipped window
-    weighted by 0 — no value leaves the device, so a CUDA graph can capture it."""
+    """The plane's squared TV on the window in the next row of ``draws`` (an iterator over the
+    table of :meth:`GridField.regularization_draws`; a plane no larger than ``TV_WINDOW`` takes
+    no row). On the CPU the window is sliced (:func:`_window_tv`); on another device it is
+    gathered by index and a skipped window weighted by 0 — no value leaves the device, so a
+    CUDA graph can capture it."""
     rows, cols = plane.shape[-2:]
     if max(rows, cols) <= TV_WINDOW:
         return _squared_tv(plane)
