@@ -65,6 +65,8 @@ def test_bad_config():
         CompoundingConfig(mode="median")
     with pytest.raises(UltronInputError, match="interpolation"):
         CompoundingConfig(interpolation="cubic")
+    with pytest.raises(UltronInputError, match="outer_side_mm"):
+        CompoundingConfig(outer_side_mm=-0.5)
 
 
 def test_label_signed_distance_by_hand():
@@ -199,3 +201,43 @@ def test_selection_chunks_cover_the_selection_in_order(sphere_dataset):
     for bad in (0, -3, 2.5, True):
         with pytest.raises(UltronInputError, match="max_pixels"):
             selection_chunks(sphere_dataset, selection, bad)
+
+
+def _crossing_depth_mm(compounded, x: float, z: float) -> float:
+    """Depth y (mm) where the occupancy first reaches 0.5 down the column at (x, z), linear
+    between voxel centres."""
+    grid = compounded.grid
+    i, _, k = np.rint(grid.world_to_index([x, 0.0, z])).astype(int)
+    column = compounded.volume[i, :, k].astype(np.float64)
+    j = int(np.argmax(column >= 0.5))
+    assert j > 0 and column[j - 1] < 0.5
+    t = (0.5 - column[j - 1]) / (column[j] - column[j - 1])
+    y0 = grid.index_to_world(np.array([i, j - 1, k], dtype=float))[1]
+    return float(y0 + t * grid.voxel_mm)
+
+
+@pytest.mark.parametrize("interpolation", ["nearest", "linear"])
+def test_unsure_gap_above_the_band_keeps_the_surface_at_its_top(band_dataset, interpolation):
+    # the labeller leaves 2 mm of unsure pixels between the background and the band (as
+    # label --auto does above a detected echo); the band's top edge is at y = 9.75 mm (between
+    # the pixel centres at 9.5 and 10.0)
+    sweep = band_dataset.sweeps[0]
+    y = frame_pixels_world(torch.as_tensor(sweep.probe_to_world), band_dataset.probe).numpy()
+    labels = sweep.labels.copy()
+    labels[(y[..., 1] >= 8.0) & (y[..., 1] < 10.0)] = 255
+    gapped = SweepDataset(
+        band_dataset.probe, [Sweep("row", "row", sweep.images, sweep.probe_to_world, labels)]
+    )
+    selection = select_label_frames(gapped, 1.0, seed=0)
+    edge = 9.75
+    errors = {}
+    for outer_side_mm in (2.0, 0.0):  # the default, and the labels as stored
+        config = CompoundingConfig(interpolation=interpolation, outer_side_mm=outer_side_mm)
+        compounded = compound_labels(gapped, selection, config)
+        depths = [_crossing_depth_mm(compounded, 0.0, z) for z in (-8.0, -4.0, 0.0, 2.0)]
+        errors[outer_side_mm > 0] = np.abs(np.array(depths) - edge)  # on and between frames
+    assert CompoundingConfig().outer_side_mm == 2.0
+    assert errors[True].max() < 0.1
+    # without it the gap is a hole: filled from the band on the frames (the surface moves
+    # out), interpolated between them, so the surface ripples from frame to frame
+    assert errors[False].max() >= 0.2

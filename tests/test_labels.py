@@ -7,7 +7,12 @@ import pytest
 
 from conftest import make_pose
 from ultron.data.dataset import ProbeGeometry, Sweep, SweepDataset
-from ultron.data.labels import gather_labelled_pixels, select_label_frames
+from ultron.data.labels import (
+    count_labelled_pixels,
+    gather_labelled_pixels,
+    select_label_frames,
+    surface_outer_side,
+)
 from ultron.errors import UltronInputError
 
 
@@ -86,3 +91,65 @@ def test_no_labels_is_a_clear_error():
         select_label_frames(SweepDataset(probe, [unlabelled]), 0.5, seed=0)
     with pytest.raises(UltronInputError, match=r"^runs/d: labels: no annotated frame"):
         select_label_frames(SweepDataset(probe, [unlabelled]), 0.5, 0, where="runs/d")
+
+
+def test_surface_outer_side_by_hand():
+    # one frame, rows top to bottom; columns: a band under a 3-row unsure gap, a band right
+    # under background, no band, a band at the top row, a gap broken by a background pixel
+    u, b, g = 255, 1, 0
+    labels = np.array(
+        [
+            [g, g, g, b, u],
+            [u, g, u, b, g],
+            [u, g, u, u, u],
+            [u, b, u, u, u],
+            [b, b, u, u, b],
+            [b, u, u, u, b],
+        ],
+        dtype=np.uint8,
+    )
+    outer = surface_outer_side(labels, 2)
+    expected = np.zeros_like(outer)
+    expected[[2, 3], 0] = True  # two of the gap's three rows; none where the band meets 0
+    expected[[2, 3], 4] = True  # the run above the band stops at the background pixel
+    np.testing.assert_array_equal(outer, expected)
+    np.testing.assert_array_equal(surface_outer_side(labels, 5)[:, 0], [0, 1, 1, 1, 0, 0])
+    assert not surface_outer_side(labels, 0).any()
+    # frames stack: each frame on its own
+    stacked = surface_outer_side(np.stack([labels, labels[::-1]]), 2)
+    np.testing.assert_array_equal(stacked[0], expected)
+    np.testing.assert_array_equal(stacked[1], surface_outer_side(labels[::-1], 2))
+
+
+@pytest.mark.parametrize("rows", [-1, 1.5, True])
+def test_surface_outer_side_rejects_bad_rows(rows):
+    with pytest.raises(UltronInputError, match="rows"):
+        surface_outer_side(np.zeros((3, 3), np.uint8), rows)
+    with pytest.raises(UltronInputError, match="labels"):
+        surface_outer_side(np.zeros(3, np.uint8), 1)
+
+
+def test_gathered_outer_side_reads_as_background(dataset):
+    selection = select_label_frames(dataset, 0.1, seed=1)
+    plain = gather_labelled_pixels(dataset, selection)
+    # the fixture's bone pixel (row 2) sits right under background (row 1): nothing to add
+    assert len(gather_labelled_pixels(dataset, selection, outer_side_mm=2.0)) == len(plain)
+    # unannotate the pixel above it: the gap (rows 1 and 0 of column 1) reads as background
+    sweeps = []
+    for sweep in dataset.sweeps:
+        labels = sweep.labels.copy()
+        labels[:, 1, 1] = 255
+        sweeps.append(Sweep(sweep.name, sweep.kind, sweep.images, sweep.probe_to_world, labels))
+    gapped = SweepDataset(dataset.probe, sweeps)
+    base = gather_labelled_pixels(gapped, selection)  # the labels as stored
+    assert len(base) == len(plain) - 15  # 15 frames chosen
+    # 1 mm rows: 2 mm reaches both rows above the bone pixel
+    for mm, added_rows in ((0.5, set()), (1.0, {1}), (1.99, {1}), (2.0, {0, 1}), (9, {0, 1})):
+        pixels = gather_labelled_pixels(gapped, selection, outer_side_mm=mm)
+        assert len(pixels) == len(base) + 15 * len(added_rows)
+        assert count_labelled_pixels(gapped, selection, mm) == len(pixels)
+        at_column = (pixels.col == 1) & (pixels.row < 2)
+        assert set(pixels.row[at_column]) == added_rows and not pixels.label[at_column].any()
+    for bad in (-1.0, float("nan"), "2"):
+        with pytest.raises(UltronInputError, match="outer_side_mm"):
+            gather_labelled_pixels(gapped, selection, outer_side_mm=bad)

@@ -17,8 +17,13 @@ import numpy as np
 
 from ultron.data.dataset import SweepDataset
 from ultron.data.geometry import apply_pose, probe_points_mm
-from ultron.data.validation import LABEL_TARGET, LABEL_UNANNOTATED
+from ultron.data.validation import LABEL_BACKGROUND, LABEL_TARGET, LABEL_UNANNOTATED
 from ultron.errors import UltronInputError, argument_error
+
+#: How far above a band of bone labels label compounding reads its unsure pixels as background
+#: (:func:`surface_outer_side`): the band's own thickness in the annotation convention (the
+#: simulator's annotator and ``label --auto`` draw 2 mm bands).
+OUTER_SIDE_MM = 2.0
 
 
 @dataclass(frozen=True)
@@ -159,31 +164,86 @@ class LabelledPixels:
         return out
 
 
-def _selected_labels(dataset: SweepDataset, selection: FrameSelection):
+def surface_outer_side(labels: np.ndarray, rows: int) -> np.ndarray:
+    """The unsure pixels (255) on the outer side of a labelled surface: bool, the shape of
+    ``labels`` (..., H, W), row 0 at the transducer and one scanline per column.
+
+    The annotation convention (a band of bone, 1, under the surface a scanline meets: the
+    simulator's annotator, ``label --auto`` and the CT-derived labels alike) puts the surface at
+    the band's top edge, so the pixels just above that edge are outside bone by the label's own
+    account, even where the labeller left them unsure (``label --auto`` claims background only
+    ≥ 1.5 mm above any echo that could be bone). Pixel (r, c) is on the outer side when it is
+    255 and, for some k in 1 … ``rows``, pixel (r + k, c) is 1 and the pixels between are 255:
+    the run of unsure pixels directly above each band, at most ``rows`` long.
+    """
+    labels = np.asarray(labels)
+    if labels.ndim < 2:
+        raise argument_error("labels", f"expected (..., H, W) labels, got shape {labels.shape}")
+    if isinstance(rows, bool) or not isinstance(rows, int) or rows < 0:
+        raise argument_error("rows", f"expected an integer ≥ 0, got {rows!r}")
+    unsure = labels == LABEL_UNANNOTATED
+    outer = np.zeros(labels.shape, dtype=bool)
+    reached = labels == LABEL_TARGET  # the pixels whose upper neighbour is k rows from a band
+    for _ in range(rows):
+        step = np.zeros_like(reached)
+        step[..., :-1, :] = reached[..., 1:, :]
+        reached = step & unsure
+        if not reached.any():
+            break
+        outer |= reached
+    return outer
+
+
+def outer_side_rows(dataset: SweepDataset, outer_side_mm: float) -> int:
+    """Rows of ``dataset``'s frames within ``outer_side_mm`` (≥ 0) of a band's top edge."""
+    if not (isinstance(outer_side_mm, int | float) and math.isfinite(outer_side_mm)) or (
+        outer_side_mm < 0
+    ):
+        raise argument_error("outer_side_mm", f"expected a distance ≥ 0 mm, got {outer_side_mm!r}")
+    return int(outer_side_mm / dataset.probe.axial_spacing_mm + 1e-9)
+
+
+def _selected_labels(dataset: SweepDataset, selection: FrameSelection, outer_side_mm: float = 0.0):
     """(sweep index, selected frame indices, their labels) of every sweep with labels and
-    selected frames."""
+    selected frames; the :func:`surface_outer_side` pixels within ``outer_side_mm`` read as
+    background (0)."""
+    outer_rows = outer_side_rows(dataset, outer_side_mm)
     for sweep_index, sweep in enumerate(dataset.sweeps):
         frames = selection.frames.get(sweep.name)
         if frames is None or len(frames) == 0 or sweep.labels is None:
             continue
-        yield sweep_index, frames, sweep.labels[frames]
+        labels = sweep.labels[frames]
+        if outer_rows > 0:
+            labels = np.where(
+                surface_outer_side(labels, outer_rows), LABEL_BACKGROUND, labels
+            ).astype(np.uint8)
+        yield sweep_index, frames, labels
 
 
-def count_labelled_pixels(dataset: SweepDataset, selection: FrameSelection) -> int:
-    """How many pixels of the selected frames are annotated (label ≠ 255)."""
+def count_labelled_pixels(
+    dataset: SweepDataset, selection: FrameSelection, outer_side_mm: float = 0.0
+) -> int:
+    """How many pixels :func:`gather_labelled_pixels` gathers from the selected frames."""
     return sum(
         int(np.count_nonzero(labels != LABEL_UNANNOTATED))
-        for _, _, labels in _selected_labels(dataset, selection)
+        for _, _, labels in _selected_labels(dataset, selection, outer_side_mm)
     )
 
 
 def gather_labelled_pixels(
-    dataset: SweepDataset, selection: FrameSelection, only: int | None = None
+    dataset: SweepDataset,
+    selection: FrameSelection,
+    only: int | None = None,
+    outer_side_mm: float = 0.0,
 ) -> LabelledPixels:
     """Every annotated pixel of the selected frames (``only``: those with this label), with its
-    sweep, frame, row and column."""
+    sweep, frame, row and column; with ``outer_side_mm`` > 0 also, as background (0), the unsure
+    pixels on the outer side of each labelled surface within that distance of its top edge
+    (:func:`surface_outer_side`: the label puts the surface at that edge). Label compounding
+    reads labels so; the learned methods read them as stored (docs/real-sweeps.md, "Compounding
+    automatic labels")."""
     parts: list[tuple[np.ndarray, ...]] = []
-    for sweep_index, frames, labels in _selected_labels(dataset, selection):
+    for sweep_index, frames, labels in _selected_labels(dataset, selection, outer_side_mm):
         f, r, c = np.nonzero(labels != LABEL_UNANNOTATED if only is None else labels == only)
         parts.append((np.full(f.shape, sweep_index), frames[f], r, c, labels[f, r, c]))
     if not parts:

@@ -8,7 +8,13 @@ result is meshed by the same smoothing + marching cubes as every other method.
 What each pixel carries (``signed_distance``, the default): not its label but its in-frame
 signed distance to the edge of the bone label (mm, positive in bone, from the frame's 2D
 Euclidean distance transforms with the pixel spacings, truncated at ± ``clip_mm``; 255 pixels
-count as not bone and are not splatted). Interpolating signed distances between frames moves a
+count as not bone and are not splatted, except those directly above a band of bone labels,
+within ``outer_side_mm`` of its top edge (:func:`~ultron.data.labels.surface_outer_side`): the
+label puts the surface at that edge, and splatting its outer side keeps the surface there. Without it, where the labeller leaves a gap
+of unsure pixels above the band (``label --auto`` claims background only ≥ 1.5 mm above any
+echo that could be bone), the hole filling carries the band's values into the gap and the
+surface moves out by about half the gap: figures in
+docs/real-sweeps.md#compounding-automatic-labels-the-surface-at-the-labels-top-edge). Interpolating signed distances between frames moves a
 contour smoothly from one frame to the next (shape-based interpolation), where interpolating
 0/1 labels puts a step halfway. The volume written is the occupancy
 clip(0.5 + d / (2·clip_mm), 0, 1), so its 0.5 level is the zero of the signed distance; with
@@ -40,6 +46,7 @@ import numpy as np
 from ultron.data.dataset import SweepDataset
 from ultron.data.geometry import median_frame_gap_mm
 from ultron.data.labels import (
+    OUTER_SIDE_MM,
     FrameSelection,
     LabelledPixels,
     bone_points_mm,
@@ -74,6 +81,7 @@ class CompoundingConfig:
     margin_mm: float = 5.0
     signed_distance: bool = True
     clip_mm: float = 2.0
+    outer_side_mm: float = OUTER_SIDE_MM
 
     def __post_init__(self) -> None:
         if self.mode not in ("mean", "max"):
@@ -88,6 +96,8 @@ class CompoundingConfig:
             raise argument_error(
                 "hole_fill_radius_mm", f"expected ≥ 0, got {self.hole_fill_radius_mm}"
             )
+        if not self.outer_side_mm >= 0:
+            raise argument_error("outer_side_mm", f"expected ≥ 0, got {self.outer_side_mm}")
         if not self.clip_mm > 0:
             raise argument_error("clip_mm", f"expected a positive distance, got {self.clip_mm}")
 
@@ -200,10 +210,11 @@ def compound_labels(
     config = config or CompoundingConfig()
     # a run of frames at a time: the pixels' indices, positions and values are ~150 B each
     # (8 M auto-labelled pixels on the real fibula); the voxels get them in the same order
+    outer = config.outer_side_mm
     chunks = [
         chunk
         for chunk in selection_chunks(dataset, selection, CHUNK_PIXELS)
-        if count_labelled_pixels(dataset, chunk) > 0
+        if count_labelled_pixels(dataset, chunk, outer) > 0
     ]
     if not chunks:
         raise UltronInputError("dataset", "labels", "the selected frames have no annotated pixel")
@@ -211,7 +222,7 @@ def compound_labels(
     voxel = grid.voxel_mm
     splatter = Splatter(grid, config.splat)
     for chunk in chunks:
-        pixels = gather_labelled_pixels(dataset, chunk)
+        pixels = gather_labelled_pixels(dataset, chunk, outer_side_mm=outer)
         splatter.add(pixels.world_mm(dataset), pixel_values(dataset, pixels, config))
     volume, observed = splatter.result()
 

@@ -185,7 +185,7 @@ def compounding_memory(
 ) -> tuple[float, GridSpec, int]:
     """Label compounding's estimated peak bytes (module doc, 2), its grid and the labelled
     pixels counted, from the selection's bone pixels alone (nothing grid-sized allocated)."""
-    n_pixels = count_labelled_pixels(dataset, selection)
+    n_pixels = count_labelled_pixels(dataset, selection, config.outer_side_mm)
     grid = compounding_grid(dataset, bone_points_mm(dataset, selection), config)
     voxels = float(math.prod(grid.shape))
     # the pixels are splatted a run of frames at a time (compound_labels)
