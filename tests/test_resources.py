@@ -120,7 +120,10 @@ def test_compounding_estimate_is_compound_labels_grid(tiny_dataset: SweepDataset
             built = compound_labels(tiny_dataset, selection, config).grid
             assert grid.shape == built.shape and grid.voxel_mm == built.voxel_mm
             np.testing.assert_array_equal(grid.origin_mm, built.origin_mm)
-            assert n_pixels == len(gather_labelled_pixels(tiny_dataset, selection))
+            gathered = gather_labelled_pixels(
+                tiny_dataset, selection, outer_side_mm=config.outer_side_mm
+            )
+            assert n_pixels == len(gathered)  # what compound_labels splats
             assert n_pixels > frame_pixels  # so the two runs' estimates differ
             at_once = n_pixels if chunk > n_pixels else frame_pixels
             voxels = math.prod(grid.shape)
