@@ -10,13 +10,13 @@ signed distance to the edge of the bone label (mm, positive in bone, from the fr
 Euclidean distance transforms with the pixel spacings, truncated at ± ``clip_mm``; 255 pixels
 count as not bone and are not splatted, except those directly above a band of bone labels,
 within ``outer_side_mm`` of its top edge (:func:`~ultron.data.labels.surface_outer_side`): the
-label puts the surface at that edge, and splatting its outer side keeps the surface there. Without it, where the labeller leaves a gap
-of unsure pixels above the band (``label --auto`` claims background only ≥ 1.5 mm above any
-echo that could be bone), the hole filling carries the band's values into the gap and the
-surface moves out by about half the gap: figures in
-docs/real-sweeps.md#compounding-automatic-labels-the-surface-at-the-labels-top-edge). Interpolating signed distances between frames moves a
-contour smoothly from one frame to the next (shape-based interpolation), where interpolating
-0/1 labels puts a step halfway. The volume written is the occupancy
+label puts the surface at that edge, and splatting its outer side keeps the surface there.
+Without it, where the labeller leaves a gap of unsure pixels above the band (``label --auto``
+claims background only ≥ 1.5 mm above any echo that could be bone), the hole filling carries
+the band's values into the gap and the surface moves out by about half the gap: figures in
+docs/real-sweeps.md#compounding-automatic-labels-the-surface-at-the-labels-top-edge).
+Interpolating signed distances between frames moves a contour smoothly from one frame to the
+next (shape-based interpolation), where interpolating 0/1 labels puts a step halfway. The volume written is the occupancy
 clip(0.5 + d / (2·clip_mm), 0, 1), so its 0.5 level is the zero of the signed distance; with
 ``signed_distance=False`` it is the compounded label (mean or max of 0/1).
 
@@ -210,11 +210,11 @@ def compound_labels(
     config = config or CompoundingConfig()
     # a run of frames at a time: the pixels' indices, positions and values are ~150 B each
     # (8 M auto-labelled pixels on the real fibula); the voxels get them in the same order
-    outer = config.outer_side_mm
+    # (a chunk without annotated pixels has no band, so no outer side: the plain count decides)
     chunks = [
         chunk
         for chunk in selection_chunks(dataset, selection, CHUNK_PIXELS)
-        if count_labelled_pixels(dataset, chunk, outer) > 0
+        if count_labelled_pixels(dataset, chunk) > 0
     ]
     if not chunks:
         raise UltronInputError("dataset", "labels", "the selected frames have no annotated pixel")
@@ -222,7 +222,7 @@ def compound_labels(
     voxel = grid.voxel_mm
     splatter = Splatter(grid, config.splat)
     for chunk in chunks:
-        pixels = gather_labelled_pixels(dataset, chunk, outer_side_mm=outer)
+        pixels = gather_labelled_pixels(dataset, chunk, outer_side_mm=config.outer_side_mm)
         splatter.add(pixels.world_mm(dataset), pixel_values(dataset, pixels, config))
     volume, observed = splatter.result()
 
