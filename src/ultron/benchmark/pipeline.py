@@ -30,10 +30,10 @@ from typing import Any
 
 from ultron import atomic
 from ultron.benchmark import stage1
-from ultron.benchmark.plan import BenchmarkConfig, Plan, Task, plan_benchmark
+from ultron.benchmark.plan import TABLE1, BenchmarkConfig, Plan, Task, plan_benchmark
 from ultron.benchmark.ray_executor import check_executor
 from ultron.benchmark.runner import Outcome, default_threads, run_tasks
-from ultron.benchmark.tables import TARGETS, aggregate, json_safe, markdown_table
+from ultron.benchmark.tables import TARGETS, aggregate, cell_targets, json_safe, markdown_table
 from ultron.device import resolve_device
 from ultron.errors import UltronInputError, argument_error
 from ultron.report.bench_report import write_benchmark_report
@@ -164,6 +164,8 @@ def build_payload(
     status = {task_id: outcome["status"] for task_id, outcome in outcomes.items()}
     tables = {name: aggregate(name, plan.cells, status, out) for name in plan.tables}
     targets = [t for name in plan.tables for t in TARGETS[name](tables[name])]
+    if TABLE1 in plan.tables:
+        targets += cell_targets(plan.cells, status, out)
     markdown = {name: markdown_table(name, rows) for name, rows in tables.items()}
     stage1_summary = stage1.summarise(stage1.field_checks(plan, status))
     if stage1_summary["fields"]:  # simulated datasets carry the true T

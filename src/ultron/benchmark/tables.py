@@ -29,6 +29,7 @@ from ultron.benchmark.plan import (
     ROBUSTNESS,
     ROBUSTNESS_METHODS,
     ROCOSDF_100,
+    ROW,
     SOURCE_PHANTOM,
     TABLE1,
     TABLE1_ROWS,
@@ -54,6 +55,17 @@ CD_MARGIN_TARGET = 0.26  # UltrON (10%) ≥ 26 % below ON (100%) and RoCoSDF (10
 HALF_LABELS_TOLERANCE = 0.10  # UltrON (5%) within 10 % of UltrON (10%)
 LOSS_GAIN_TARGET = 0.10  # UltrON (10%) CD vis. ≥ 10 % below UltrON w/o loss (10%)
 HD95_TARGET_MM = 3.0  # UltrON (10%) HD95 (one-sided) ≤ 3 mm
+#: Issue 32's targets on data with a real acquisition's imperfections: UltrON (10%)'s mean
+#: CD vis. ≤ 0.40 mm (the issue's: as good as compounding every labelled frame) and HD95
+#: ≤ 1.5 mm, sparse labels within 10 % (5 %) and 30 % (1 %) of it in CD vis.
+MEAN_CD_VISIBLE_TARGET_MM = 0.40
+STRICT_HD95_TARGET_MM = 1.5
+SPARSE_TOLERANCES = {ULTRON_5.name: 0.10, ROW["UltrON (1%)"].name: 0.30}
+#: The rows UltrON (10%) must be below on every phantom (mean over its seeds).
+BASELINE_ROWS = tuple(
+    ROW[name].name
+    for name in ("compounding (10%)", "compounding (100%)", "ON (100%)", "RoCoSDF (100%)")
+)
 
 
 def row_names(table: str) -> list[str]:
@@ -233,7 +245,7 @@ def table1_targets(rows: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
             f" (target ≤ +{HALF_LABELS_TOLERANCE:.0%})"
         )
         targets.append(_target(name, change <= HALF_LABELS_TOLERANCE, detail))
-    return targets + visible_targets(rows)
+    return targets + visible_targets(rows) + sparse_label_targets(rows)
 
 
 def visible_targets(rows: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
@@ -266,6 +278,101 @@ def visible_targets(rows: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
     if (missing := _unmeasured(name, {u10: hd95})) is not None:
         return [*targets, missing]
     return [*targets, _target(name, hd95 <= HD95_TARGET_MM, f"{hd95:.3f} mm")]
+
+
+def sparse_label_targets(rows: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
+    """Issue 32's mean targets: UltrON (10%)'s CD vis. ≤ 0.40 mm and HD95 ≤ 1.5 mm, UltrON (5%)
+    and (1%) within :data:`SPARSE_TOLERANCES` of it in CD vis."""
+    u10 = ULTRON_10.name
+    ours = _figure(rows, u10, "cd_visible")
+    targets = []
+    for metric, label, limit in (
+        ("cd_visible", "CD vis.", MEAN_CD_VISIBLE_TARGET_MM),
+        ("hd95", "HD95", STRICT_HD95_TARGET_MM),
+    ):
+        name = f"{u10} {label} ≤ {limit:g} mm (issue 32)"
+        value = _figure(rows, u10, metric)
+        if (missing := _unmeasured(name, {u10: value})) is not None:
+            targets.append(missing)
+        else:
+            targets.append(_target(name, value <= limit, f"{value:.3f} mm"))
+    for sparse, tolerance in SPARSE_TOLERANCES.items():
+        name = f"{sparse} CD vis. within {tolerance:.0%} of {u10}"
+        pair = {sparse: _figure(rows, sparse, "cd_visible"), u10: ours}
+        if (missing := _unmeasured(name, pair)) is not None:
+            targets.append(missing)
+            continue
+        change = pair[sparse] / ours - 1
+        detail = f"{pair[sparse]:.3f} vs {ours:.3f} mm: {change:+.1%} (target ≤ +{tolerance:.0%})"
+        targets.append(_target(name, change <= tolerance, detail))
+    return targets
+
+
+def cell_figures(
+    cells: Sequence[CellEntry], status: Mapping[str, str], out: Path, metric: str = "cd_visible"
+) -> dict[str, dict[tuple[str, int], float]]:
+    """Table 1's row → {(phantom, seed): ``metric``} over the cells that succeeded and measured
+    it."""
+    figures: dict[str, dict[tuple[str, int], float]] = {}
+    for cell in cells:
+        if cell.table != TABLE1 or status.get(cell.task_id) == "failed":
+            continue
+        metrics = read_cell_metrics(out, cell.run_dir)
+        if metrics is not None and metrics.get(metric) is not None:
+            figures.setdefault(cell.row, {})[(cell.phantom, cell.seed)] = metrics[metric]
+    return figures
+
+
+def cell_targets(
+    cells: Sequence[CellEntry], status: Mapping[str, str], out: Path
+) -> list[dict[str, Any]]:
+    """Issue 32's targets cell by cell, in CD vis.: UltrON (10%) ≥ 10 % below its ablation in
+    every phantom × seed, and below every baseline (:data:`BASELINE_ROWS`) on every phantom
+    (means over the phantom's seeds). A miss names its cells."""
+    figures = cell_figures(cells, status, out)
+    u10, noloss = ULTRON_10.name, NOLOSS_10.name
+    ours = figures.get(u10, {})
+    name = f"{u10} CD vis. ≥ {LOSS_GAIN_TARGET:.0%} below {noloss} in every phantom × seed"
+    theirs = figures.get(noloss, {})
+    keys = sorted(set(ours) & set(theirs))
+    if not keys:
+        targets = [_target(name, None, f"not measured: no cell with both {u10} and {noloss}")]
+    else:
+        missed = [k for k in keys if 1 - ours[k] / theirs[k] < LOSS_GAIN_TARGET]
+        listing = ", ".join(
+            f"{p}-s{s} {ours[p, s]:.3f} vs {theirs[p, s]:.3f} ({_relative(ours[p, s], theirs[p, s])})"
+            for p, s in missed
+        )
+        detail = f"{len(keys) - len(missed)} of {len(keys)} cells" + (
+            f"; missed: {listing}" if missed else ""
+        )
+        targets = [_target(name, not missed, detail)]
+    name = f"{u10} CD vis. below every baseline on every phantom (mean over seeds)"
+    phantoms = sorted({p for p, _ in ours})
+    compared, missed_rows = 0, []
+    for phantom in phantoms:
+        mine = _phantom_mean(ours, phantom)
+        for row in BASELINE_ROWS:
+            other = _phantom_mean(figures.get(row, {}), phantom)
+            if other is None:
+                continue
+            compared += 1
+            if not mine < other:
+                missed_rows.append(f"{phantom}: {mine:.3f} vs {row} {other:.3f}")
+    if compared == 0:
+        return [
+            *targets,
+            _target(name, None, f"not measured: no phantom with {u10} and a baseline"),
+        ]
+    detail = f"{compared - len(missed_rows)} of {compared} comparisons" + (
+        f"; missed: {', '.join(missed_rows)}" if missed_rows else ""
+    )
+    return [*targets, _target(name, not missed_rows, detail)]
+
+
+def _phantom_mean(figures: Mapping[tuple[str, int], float], phantom: str) -> float | None:
+    values = [v for (p, _), v in figures.items() if p == phantom]
+    return float(np.mean(values)) if values else None
 
 
 def table2_targets(rows: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
