@@ -507,6 +507,11 @@ def test_aggregate_mean_std_and_targets(tmp_path: Path):
     assert table2_targets(gap)[0]["met"] is True and "60%" in table2_targets(gap)[0]["detail"]
     no_gap = [row("w/o fine-tuning", 2.0), row("1% + 100 iter", 2.0), row("full training", 2.5)]
     assert table2_targets(no_gap)[0]["met"] is None
+    tiny_gap = [row("w/o fine-tuning", 2.019), row("1% + 100 iter", 2.5), row("full training", 2.0)]
+    assert table2_targets(tiny_gap)[0]["met"] is None  # 0.019 mm < 1 % of 2.0 mm: no gap
+    assert "no gap to recover: +0.019 mm" in table2_targets(tiny_gap)[0]["detail"]
+    just_gap = [row("w/o fine-tuning", 2.021), row("1% + 100 iter", 2.0), row("full training", 2.0)]
+    assert table2_targets(just_gap)[0]["met"] is True
 
 
 def test_issue32_targets_mean_and_cell_by_cell(tmp_path: Path):
