@@ -36,6 +36,7 @@ from ultron.benchmark.plan import (
 from ultron.benchmark.tables import (
     aggregate,
     cell_targets,
+    per_phantom_markdown,
     sparse_label_targets,
     table1_targets,
     table2_targets,
@@ -201,7 +202,7 @@ def test_end_to_end_resume_and_failed_cells(bench_dir: Path, monkeypatch, tiny_r
     payload = json.loads((out / BENCHMARK_JSON).read_text())
     assert set(payload) == {"config", "markdown", "tables", "targets", "cells", "stage1"}
     assert set(payload["tables"]) == {"table1", "table2"}
-    assert set(payload["markdown"]) == {"table1", "table2", "stage1"}
+    assert list(payload["markdown"]) == ["table1", "table1_per_phantom", "table2", "stage1"]
     _check_stage1(out, payload)
     markdown = (out / "tables.md").read_text()
     # The visible-reference figures lead the tables (the tiny phantom has a visible reference).
@@ -224,6 +225,9 @@ def test_end_to_end_resume_and_failed_cells(bench_dir: Path, monkeypatch, tiny_r
     assert all(r["n"] == 1 and math.isfinite(r["mean"]["cd"]) for r in table1.values())
     assert all(math.isfinite(r["mean"]["cd_visible"]) for r in table1.values())
     assert "↳ *paper*" in payload["markdown"]["table1"]
+    per_phantom = payload["markdown"]["table1_per_phantom"]  # one phantom, one seed: the means
+    cd_vis = table1["UltrON (10%)"]["mean"]["cd_visible"]
+    assert f"| UltrON (10%) | {cd_vis:.3f} |" in per_phantom and per_phantom in markdown
 
     # the failed fine-tuning cell is recorded; the rest went on
     cells = {c["id"]: c for c in payload["cells"]}
@@ -552,6 +556,13 @@ def test_issue32_targets_mean_and_cell_by_cell(tmp_path: Path):
     loss, _ = cell_targets(cells, status, tmp_path)
     assert loss["met"] is True and loss["detail"] == "2 of 2 cells"
     assert all(t["met"] is None for t in cell_targets([], {}, tmp_path))
+    table = per_phantom_markdown(cells, status, tmp_path).splitlines()
+    assert table[2] == "| row | L3 | condyle |"
+    # L3: the failed seed 1 is left out (0.50 alone); compounding (10%): (0.70 + 0.60) / 2
+    assert "| UltrON (10%) | 0.500 | 0.300 |" in table
+    assert "| compounding (10%) | 0.650 | — |" in table
+    assert "| RoCoSDF (100%) | — | — |" in table
+    assert per_phantom_markdown([], {}, tmp_path) == ""
 
 
 @NEEDS_RAY

@@ -4,7 +4,8 @@ Outputs (atomic): ``DIR/benchmark.json`` (schema below), ``DIR/tables.md`` (the 
 and targets) and ``DIR/report.html`` (:mod:`ultron.report.bench_report`)::
 
     {"config": {...every setting, "settings": the result-shaping ones...},
-     "markdown": {"table1": "...", "table2": "...", "robustness": "..."},   # those that ran
+     "markdown": {"table1": "...", "table1_per_phantom": "...", "table2": "...",
+                  "robustness": "...", "stage1": "..."},                  # those that ran
      "tables": {"table1": [{"row", "n", "mean": {metric: float}, "std": {...},
                             "paper": {metric: float} | null}], ...},
      "targets": [{"name": str, "met": bool | null, "detail": str}],
@@ -33,13 +34,22 @@ from ultron.benchmark import stage1
 from ultron.benchmark.plan import TABLE1, BenchmarkConfig, Plan, Task, plan_benchmark
 from ultron.benchmark.ray_executor import check_executor
 from ultron.benchmark.runner import Outcome, default_threads, run_tasks
-from ultron.benchmark.tables import TARGETS, aggregate, cell_targets, json_safe, markdown_table
+from ultron.benchmark.tables import (
+    TARGETS,
+    aggregate,
+    cell_targets,
+    json_safe,
+    markdown_table,
+    per_phantom_markdown,
+)
 from ultron.device import resolve_device
 from ultron.errors import UltronInputError, argument_error
 from ultron.report.bench_report import write_benchmark_report
 
 BENCHMARK_JSON = "benchmark.json"
 TABLES_MD = "tables.md"
+#: The key of ``markdown``'s per-phantom Table 1 (CD vis. per phantom, mean over seeds).
+PER_PHANTOM = "table1_per_phantom"
 
 Log = Callable[[str], None]
 
@@ -166,7 +176,11 @@ def build_payload(
     targets = [t for name in plan.tables for t in TARGETS[name](tables[name])]
     if TABLE1 in plan.tables:
         targets += cell_targets(plan.cells, status, out)
-    markdown = {name: markdown_table(name, rows) for name, rows in tables.items()}
+    markdown = {}
+    for name, rows in tables.items():
+        markdown[name] = markdown_table(name, rows)
+        if name == TABLE1 and (per_phantom := per_phantom_markdown(plan.cells, status, out)):
+            markdown[PER_PHANTOM] = per_phantom
     stage1_summary = stage1.summarise(stage1.field_checks(plan, status))
     if stage1_summary["fields"]:  # simulated datasets carry the true T
         markdown[stage1.STAGE1] = stage1.markdown(stage1_summary)

@@ -374,6 +374,28 @@ def cell_targets(
     return [*targets, _target(name, not missed_rows, detail)]
 
 
+def per_phantom_markdown(
+    cells: Sequence[CellEntry], status: Mapping[str, str], out: Path, metric: str = "cd_visible"
+) -> str:
+    """GitHub markdown: Table 1's rows × phantoms, each the mean ``metric`` over the phantom's
+    seeds that succeeded (— where none measured it); empty when no cell measured it."""
+    figures = cell_figures(cells, status, out, metric)
+    phantoms = list(dict.fromkeys(c.phantom for c in cells if c.table == TABLE1))
+    if not figures or not phantoms:
+        return ""
+    lines = [
+        f"**Table 1 per phantom: {LABELS[metric]} (mm), mean over seeds**",
+        "",
+        "| row | " + " | ".join(phantoms) + " |",
+        "|---|" + "---:|" * len(phantoms),
+    ]
+    for name in row_names(TABLE1):
+        means = [_phantom_mean(figures.get(name, {}), p) for p in phantoms]
+        shown = ["—" if m is None else f"{m:.3f}" for m in means]
+        lines.append(f"| {name} | " + " | ".join(shown) + " |")
+    return "\n".join(lines)
+
+
 def _phantom_mean(figures: Mapping[tuple[str, int], float], phantom: str) -> float | None:
     values = [v for (p, _), v in figures.items() if p == phantom]
     return float(np.mean(values)) if values else None

@@ -51,7 +51,7 @@ from ultron.report.sections import (
 
 BENCHMARK_JSON = "benchmark.json"
 REPORT_NAME = "report.html"
-TABLE_ORDER = ("table1", "table2", "robustness")
+TABLE_ORDER = ("table1", "table1_per_phantom", "table2", "robustness")
 MAX_CURVES = 6
 
 
