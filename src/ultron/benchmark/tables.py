@@ -52,8 +52,7 @@ TITLES = {
 #: Below this share of the CD gap recovered by fine-tuning, the Table 2 target is missed.
 RECOVERY_TARGET = 0.5
 #: A gap between direct use and full training under this share of full training's CD is no
-#: gap to recover (the recovered share of a near-zero gap is noise: −50152 % on the full
-#: benchmark of 2026-11-26, a 0.002 mm gap).
+#: gap to recover: the recovered share of a near-zero gap is noise (docs/benchmark.md).
 NO_GAP_FRACTION = 0.01
 CD_MARGIN_TARGET = 0.26  # UltrON (10%) ≥ 26 % below ON (100%) and RoCoSDF (100%)
 HALF_LABELS_TOLERANCE = 0.10  # UltrON (5%) within 10 % of UltrON (10%)
