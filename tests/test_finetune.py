@@ -102,6 +102,10 @@ def test_model_meta_records_the_negatives_and_finetuning_keeps_them():
     # a network.pt written before the option existed was trained with T-weighted negatives
     old = {k: v for k, v in meta.items() if k != "negatives"}
     assert ThetaModel.from_meta(old).negatives == "weighted"
+    # and read its labels as stored; one written since reads the gap above a band as background
+    assert meta["label_outer_side_mm"] == model.label_outer_side_mm > 0
+    old = {k: v for k, v in meta.items() if k != "label_outer_side_mm"}
+    assert ThetaModel.from_meta(old).label_outer_side_mm == 0.0
 
 
 def test_freezing_keeps_last_two_layers_bit_identical(shapes):

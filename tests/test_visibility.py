@@ -11,7 +11,12 @@ from typer.testing import CliRunner
 
 from ultron.cli.main import app
 from ultron.data.dataset import ProbeGeometry, Sweep, SweepDataset
-from ultron.data.labels import gather_labelled_pixels, select_label_frames
+from ultron.data.labels import (
+    gather_labelled_pixels,
+    outer_side_rows,
+    select_label_frames,
+    surface_outer_side,
+)
 from ultron.data.truth import TRANSMISSION_FILE, load_true_transmission
 from ultron.errors import UltronInputError
 from ultron.fields import FieldConfig, GridFieldConfig
@@ -96,6 +101,35 @@ def fitted_case(tmp_path_factory) -> dict:
     fitted = fit_field(dataset, config, root / "field")
     yield {"root": root, "dataset": dataset, "fitted": fitted}
     torch.set_num_threads(previous)
+
+
+def test_training_data_reads_the_unsure_gap_above_a_band_as_background(fitted_case):
+    dataset, fitted = fitted_case["dataset"], fitted_case["fitted"]
+    sweep = dataset.sweeps[0]
+    labels = sweep.labels.copy()
+    # label --auto's way: unsure (255) in the two rows directly above each band
+    top = np.argmax(labels == 1, axis=1)  # (N, W): the band's first row per scanline
+    for k in (1, 2):
+        frames, cols = np.nonzero((top - k >= 0) & (labels[:, 0, :] != 255))
+        labels[frames, top[frames, cols] - k, cols] = 255
+    gapped = SweepDataset(PROBE, [Sweep("row", "row", sweep.images, sweep.probe_to_world, labels)])
+    selection = select_label_frames(gapped, 0.5, 0)
+    stored = occupancy_training_data(gapped, fitted, selection)
+    read = occupancy_training_data(gapped, fitted, selection, outer_side_mm=1.0)
+    rows = outer_side_rows(gapped, 1.0)
+    assert rows >= 2  # the test's gap is within reach
+    extra = sum(
+        int(surface_outer_side(labels[frames], rows).sum()) for frames in selection.frames.values()
+    )
+    assert extra > 0 and len(read.labels) == len(stored.labels) + extra
+    assert int(read.labels.sum()) == int(stored.labels.sum())  # the added pixels are background
+    # the labels as stored: nothing added (the gapless dataset gathers the same with either)
+    same = occupancy_training_data(dataset, fitted, selection, outer_side_mm=1.0)
+    assert torch.equal(same.labels, occupancy_training_data(dataset, fitted, selection).labels)
+    with pytest.raises(UltronInputError, match="label_outer_side_mm"):
+        UltronConfig(label_outer_side_mm=-1.0)
+    with pytest.raises(UltronInputError, match="label_outer_side_mm"):
+        UltronConfig(label_outer_side_mm=float("nan"))
 
 
 # ------------------------------------------------------------------------------ labels

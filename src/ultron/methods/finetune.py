@@ -174,8 +174,9 @@ def finetune_ultron(
         with timer.stage("labels"):
             selection = select_label_frames(dataset, config.label_fraction, config.seed)
             data = occupancy_training_data(
-                dataset, fitted, selection, visibility, truth, spec.context
-            )
+                dataset, fitted, selection, visibility, truth, spec.context,
+                spec.label_outer_side_mm,
+            )  # fmt: skip
         trainable = freeze_last_layers(model, config.frozen_layers)
         with timer.stage("finetune"):
             model, log = fit_occupancy(

@@ -28,6 +28,7 @@ Nothing here reads the reference mesh.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
@@ -37,7 +38,12 @@ import torch
 
 from ultron.data.dataset import SweepDataset
 from ultron.data.geometry import field_of_view_bounds_mm, median_frame_gap_mm
-from ultron.data.labels import FrameSelection, gather_labelled_pixels, select_label_frames
+from ultron.data.labels import (
+    OUTER_SIDE_MM,
+    FrameSelection,
+    gather_labelled_pixels,
+    select_label_frames,
+)
 from ultron.data.resolution import resolved_spacing_mm
 from ultron.device import evaluation_chunk, module_device
 from ultron.errors import UltronInputError, argument_error
@@ -66,7 +72,9 @@ from ultron.train.visibility import (
 @dataclass(frozen=True)
 class UltronConfig:
     """Settings of an UltrON reconstruction (``visibility``: the source of the loss's T,
-    ``context``: the neighbourhood f_ω reads besides θ(x))."""
+    ``context``: the neighbourhood f_ω reads besides θ(x), ``label_outer_side_mm``: how far
+    above a band of bone labels unsure pixels are read as background,
+    :func:`~ultron.data.labels.surface_outer_side`; 0: the labels as stored)."""
 
     occupancy: OccupancyTrainConfig = field(default_factory=OccupancyTrainConfig)
     voxel_mm: float | None = None
@@ -76,8 +84,14 @@ class UltronConfig:
     visibility: VisibilityConfig = field(default_factory=VisibilityConfig)
     observed: ObservedSurfaceConfig = field(default_factory=ObservedSurfaceConfig)
     context: ThetaContextConfig = field(default_factory=ThetaContextConfig)
+    label_outer_side_mm: float = OUTER_SIDE_MM
 
     def __post_init__(self) -> None:
+        if not (math.isfinite(self.label_outer_side_mm) and self.label_outer_side_mm >= 0):
+            raise argument_error(
+                "label_outer_side_mm",
+                f"expected a finite value ≥ 0, got {self.label_outer_side_mm}",
+            )
         if self.voxel_mm is not None and not self.voxel_mm > 0:
             raise argument_error("voxel_mm", f"expected > 0, got {self.voxel_mm}")
         if not isinstance(self.coarse_factor, int) or self.coarse_factor < 1:
@@ -96,6 +110,7 @@ class ThetaModel:
     context: ThetaContextConfig = field(default_factory=ThetaContextConfig)
     positive_weight: float | None = 1.0
     negatives: str = "observed"
+    label_outer_side_mm: float = OUTER_SIDE_MM
 
     def to_meta(self, channels: Sequence[str], visibility: VisibilityConfig) -> dict[str, Any]:
         """The ``meta`` of the network's ``network.pt`` (θ ``channels``, T's source)."""
@@ -106,18 +121,20 @@ class ThetaModel:
             "loss": self.loss,
             "positive_weight": self.positive_weight,
             "negatives": self.negatives,
+            "label_outer_side_mm": self.label_outer_side_mm,
             **visibility.to_dict(),
         }
 
     @classmethod
     def from_meta(cls, meta: dict[str, Any]) -> ThetaModel:
         """From ``network.pt``'s meta; missing keys are the pre-context defaults (θ alone,
-        balanced loss, background labels weighted by T)."""
+        balanced loss, background labels weighted by T, labels read as stored)."""
         return cls(
             loss=meta.get("loss", "ultron"),
             context=ThetaContextConfig.from_dict(meta.get("theta_context")),
             positive_weight=meta.get("positive_weight"),
             negatives=meta.get("negatives", "weighted"),
+            label_outer_side_mm=float(meta.get("label_outer_side_mm", 0.0)),
         )
 
 
@@ -181,16 +198,19 @@ def occupancy_training_data(
     visibility: VisibilityConfig | None = None,
     truth: Mapping[str, np.ndarray] | None = None,
     context: ThetaContextConfig | None = None,
+    outer_side_mm: float = 0.0,
 ) -> OccupancyTrainingData:
     """Per labelled pixel: f's input g(x) (:func:`~ultron.fields.context.theta_features` with
     ``context``, default θ and its neighbours at 1 and 2 mm), T (detached) from ``visibility``
     (default: the fitted field, computed in the same rendering pass as θ), label. ``truth``
     maps sweep names to the true T for the oracle
-    (:func:`~ultron.train.visibility.load_oracle_truth`)."""
+    (:func:`~ultron.train.visibility.load_oracle_truth`). ``outer_side_mm`` > 0 adds, as
+    background, the unsure pixels directly above each band of bone labels within that distance
+    (:func:`~ultron.data.labels.gather_labelled_pixels`)."""
     if fitted.theta_stats is None:
         raise UltronInputError("field", "theta_stats", "the field has no θ statistics (refit it)")
     fitted.check_probe(dataset.probe)
-    pixels = gather_labelled_pixels(dataset, selection)
+    pixels = gather_labelled_pixels(dataset, selection, outer_side_mm=outer_side_mm)
     theta, field_t = field_theta_transmission(dataset, fitted, pixels)
     transmission = pixel_transmission(
         visibility or VisibilityConfig(), dataset, pixels, truth=truth, field_transmission=field_t
@@ -318,8 +338,9 @@ def reconstruct_ultron(
     with timer.stage("labels"):
         selection = select_label_frames(dataset, label_fraction, seed)
         data = occupancy_training_data(
-            dataset, fitted, selection, config.visibility, truth, config.context
-        )
+            dataset, fitted, selection, config.visibility, truth, config.context,
+            config.label_outer_side_mm,
+        )  # fmt: skip
     with timer.stage("occupancy_fit"):
         device = fitted.device if device is None else device
         network, log = fit_occupancy(
@@ -339,6 +360,7 @@ def reconstruct_ultron(
         "n_bone_pixels": int(data.labels.sum()),
         **config.visibility.to_dict(),
         "theta_context": config.context.to_dict(),
+        "label_outer_side_mm": config.label_outer_side_mm,
         "transmission_stats": transmission_summary(data.transmission, data.labels),
         "occupancy_config": occupancy_config.to_dict(),
         "occupancy_log": log,
@@ -349,6 +371,7 @@ def reconstruct_ultron(
         config.context,
         occupancy_config.positive_weight,
         occupancy_config.negatives,
+        config.label_outer_side_mm,
     ).to_meta(fitted.channels, config.visibility)
     return Reconstruction(
         mesh=observation.kept,
