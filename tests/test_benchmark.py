@@ -35,9 +35,11 @@ from ultron.benchmark.plan import (
 )
 from ultron.benchmark.tables import (
     aggregate,
+    cell_figures,
     cell_targets,
     per_phantom_markdown,
     sparse_label_targets,
+    table1_phantoms,
     table1_targets,
     table2_targets,
     visible_targets,
@@ -545,7 +547,7 @@ def test_issue32_targets_mean_and_cell_by_cell(tmp_path: Path):
         (tmp_path / run_dir / "metrics.json").write_text(json.dumps(metrics))
         cells.append(CellEntry("table1", row, phantom, seed, f"run:{run_dir}", run_dir, True))
         status[f"run:{run_dir}"] = "ok"
-    loss, baselines = cell_targets(cells, status, tmp_path)
+    loss, baselines = cell_targets(cell_figures(cells, status, tmp_path))
     # L3 s0: 1 − 0.5 / 0.6 = 16.7 %; L3 s1: 6.7 % < 10 %; condyle: 25 %
     assert loss["met"] is False and loss["detail"].startswith("2 of 3 cells; missed: L3-s1")
     assert "0.700 vs 0.750 (6.7% below)" in loss["detail"]
@@ -553,16 +555,17 @@ def test_issue32_targets_mean_and_cell_by_cell(tmp_path: Path):
     assert baselines["met"] is False
     assert baselines["detail"] == "1 of 2 comparisons; missed: condyle: 0.300 vs ON (100%) 0.200"
     status["run:runs/L3-s1/UltrON (10%)"] = "failed"  # a failed cell is left out
-    loss, _ = cell_targets(cells, status, tmp_path)
+    loss, _ = cell_targets(cell_figures(cells, status, tmp_path))
     assert loss["met"] is True and loss["detail"] == "2 of 2 cells"
-    assert all(t["met"] is None for t in cell_targets([], {}, tmp_path))
-    table = per_phantom_markdown(cells, status, tmp_path).splitlines()
+    assert all(t["met"] is None for t in cell_targets(cell_figures([], {}, tmp_path)))
+    measured = cell_figures(cells, status, tmp_path)
+    table = per_phantom_markdown(measured, table1_phantoms(cells)).splitlines()
     assert table[2] == "| row | L3 | condyle |"
     # L3: the failed seed 1 is left out (0.50 alone); compounding (10%): (0.70 + 0.60) / 2
     assert "| UltrON (10%) | 0.500 | 0.300 |" in table
     assert "| compounding (10%) | 0.650 | — |" in table
     assert "| RoCoSDF (100%) | — | — |" in table
-    assert per_phantom_markdown([], {}, tmp_path) == ""
+    assert per_phantom_markdown({}, table1_phantoms(cells)) == ""
 
 
 @NEEDS_RAY

@@ -37,10 +37,12 @@ from ultron.benchmark.runner import Outcome, default_threads, run_tasks
 from ultron.benchmark.tables import (
     TARGETS,
     aggregate,
+    cell_figures,
     cell_targets,
     json_safe,
     markdown_table,
     per_phantom_markdown,
+    table1_phantoms,
 )
 from ultron.device import resolve_device
 from ultron.errors import UltronInputError, argument_error
@@ -174,12 +176,16 @@ def build_payload(
     status = {task_id: outcome["status"] for task_id, outcome in outcomes.items()}
     tables = {name: aggregate(name, plan.cells, status, out) for name in plan.tables}
     targets = [t for name in plan.tables for t in TARGETS[name](tables[name])]
-    if TABLE1 in plan.tables:
-        targets += cell_targets(plan.cells, status, out)
+    figures = {}
+    if TABLE1 in plan.tables:  # every cell's metrics.json read once, for both uses below
+        figures = cell_figures(plan.cells, status, out)
+        targets += cell_targets(figures)
     markdown = {}
     for name, rows in tables.items():
         markdown[name] = markdown_table(name, rows)
-        if name == TABLE1 and (per_phantom := per_phantom_markdown(plan.cells, status, out)):
+        if name == TABLE1 and (
+            per_phantom := per_phantom_markdown(figures, table1_phantoms(plan.cells))
+        ):
             markdown[PER_PHANTOM] = per_phantom
     stage1_summary = stage1.summarise(stage1.field_checks(plan, status))
     if stage1_summary["fields"]:  # simulated datasets carry the true T

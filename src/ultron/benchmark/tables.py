@@ -326,13 +326,11 @@ def cell_figures(
     return figures
 
 
-def cell_targets(
-    cells: Sequence[CellEntry], status: Mapping[str, str], out: Path
-) -> list[dict[str, Any]]:
-    """Issue 32's targets cell by cell, in CD vis.: UltrON (10%) ≥ 10 % below its ablation in
-    every phantom × seed, and below every baseline (:data:`BASELINE_ROWS`) on every phantom
-    (means over the phantom's seeds). A miss names its cells."""
-    figures = cell_figures(cells, status, out)
+def cell_targets(figures: Mapping[str, Mapping[tuple[str, int], float]]) -> list[dict[str, Any]]:
+    """Issue 32's targets cell by cell, on :func:`cell_figures`' CD vis.: UltrON (10%) ≥ 10 %
+    below its ablation in every phantom × seed, and below every baseline
+    (:data:`BASELINE_ROWS`) on every phantom (means over the phantom's seeds). A miss names its
+    cells."""
     u10, noloss = ULTRON_10.name, NOLOSS_10.name
     ours = figures.get(u10, {})
     name = f"{u10} CD vis. ≥ {LOSS_GAIN_TARGET:.0%} below {noloss} in every phantom × seed"
@@ -373,13 +371,19 @@ def cell_targets(
     return [*targets, _target(name, not missed_rows, detail)]
 
 
+def table1_phantoms(cells: Sequence[CellEntry]) -> list[str]:
+    """The phantoms of Table 1's cells, in the plan's order."""
+    return list(dict.fromkeys(c.phantom for c in cells if c.table == TABLE1))
+
+
 def per_phantom_markdown(
-    cells: Sequence[CellEntry], status: Mapping[str, str], out: Path, metric: str = "cd_visible"
+    figures: Mapping[str, Mapping[tuple[str, int], float]],
+    phantoms: Sequence[str],
+    metric: str = "cd_visible",
 ) -> str:
-    """GitHub markdown: Table 1's rows × phantoms, each the mean ``metric`` over the phantom's
-    seeds that succeeded (— where none measured it); empty when no cell measured it."""
-    figures = cell_figures(cells, status, out, metric)
-    phantoms = list(dict.fromkeys(c.phantom for c in cells if c.table == TABLE1))
+    """GitHub markdown: Table 1's rows × ``phantoms``, each the mean of :func:`cell_figures`'
+    ``metric`` over the phantom's seeds that succeeded (— where none measured it); empty when
+    no cell measured it."""
     if not figures or not phantoms:
         return ""
     lines = [

@@ -16,9 +16,10 @@ claims background only ≥ 1.5 mm above any echo that could be bone), the hole f
 the band's values into the gap and the surface moves out by about half the gap: figures in
 docs/real-sweeps.md#compounding-automatic-labels-the-surface-at-the-labels-top-edge).
 Interpolating signed distances between frames moves a contour smoothly from one frame to the
-next (shape-based interpolation), where interpolating 0/1 labels puts a step halfway. The volume written is the occupancy
-clip(0.5 + d / (2·clip_mm), 0, 1), so its 0.5 level is the zero of the signed distance; with
-``signed_distance=False`` it is the compounded label (mean or max of 0/1).
+next (shape-based interpolation), where interpolating 0/1 labels puts a step halfway. The
+volume written is the occupancy clip(0.5 + d / (2·clip_mm), 0, 1), so its 0.5 level is the
+zero of the signed distance; with ``signed_distance=False`` it is the compounded label (mean
+or max of 0/1).
 
 Hole filling, within ``hole_fill_radius_mm`` r: first PLUS's stick filler with sticks up to
 2r (:func:`~ultron.mesh.holes.fill_holes_stick`: linear interpolation between the two frames on
