@@ -18,6 +18,7 @@ from ultron.fields.sdf import SDFNetwork, SDFNetworkConfig
 from ultron.methods.finetune import (
     FinetuneConfig,
     ThetaModel,
+    check_theta_model,
     finetune_ultron,
     freeze_last_layers,
 )
@@ -226,6 +227,16 @@ def test_finetune_uses_the_given_or_the_models_transmission_source(shapes, tmp_p
                                       "--out", str(tmp_path / "y"), "--visibility", "magic"])  # fmt: skip
     assert result.exit_code == 2 and "visibility" in result.stderr
     assert not (tmp_path / "y").exists()
+
+
+@pytest.mark.parametrize("value", ["2", -1.0, float("nan"), float("inf"), True, None])
+def test_a_model_with_a_bad_label_outer_side_is_refused(value):
+    meta = {"input": "theta", "theta_channels": ["a"], "label_outer_side_mm": value}
+    fitted = type("Fitted", (), {"channels": ("a",)})()
+    with pytest.raises(
+        UltronInputError, match=r"net\.pt: label_outer_side_mm: expected a finite number"
+    ):
+        check_theta_model(OccupancyNetwork(), meta, fitted, "net.pt")
 
 
 def test_finetune_config_validation():
