@@ -46,6 +46,8 @@ def test_paper_preset_is_the_papers_configuration():
     assert occupancy.lr == 1e-4 and occupancy.seed == 2
     assert preset.ultron.context.radii_mm == ()  # θ(x) alone
     assert preset.ultron.observed.surface == "all"
+    assert preset.ultron.echo_support is None and preset.ultron.label_outer_side_mm == 0
+    assert pipeline_preset("fast").ultron.echo_support is not None  # ultron's own crop
     assert preset.on.occupancy.iters == 50_000 and preset.rocosdf_preset == "paper"
 
 

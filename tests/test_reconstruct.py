@@ -92,6 +92,7 @@ def test_ultron_end_to_end(tiny: Path, tmp_path: Path, monkeypatch):
     assert run["n_bone_pixels"] > 0
     assert run["transmission_source"] == "field" and run["diagnostic"] is False
     assert 0 <= run["transmission_stats"]["background_mean"] <= 1
+    assert run["echo_support"] is True and run["faces_kept"] <= run["faces_extracted"]
     mesh = load_mesh(tmp_path / "out" / "mesh.ply")
     assert len(mesh.faces) > 100
     # on this 64 × 48-pixel, 24-frame phantom (measured: UltrON CD vis. 1.52, MAD 1.48 mm; w/o

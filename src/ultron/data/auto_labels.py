@@ -184,6 +184,17 @@ def first_rows(mask: np.ndarray, none: int) -> np.ndarray:
     return np.where(mask.any(axis=0), np.argmax(mask, axis=0), none)
 
 
+def deep_shadow(
+    smoothed: np.ndarray, ref: float, axial_mm: float, config: AutoLabelConfig
+) -> np.ndarray:
+    """Bool (H, W): the pixels where the deep shadow holds — the mean of S over the
+    ``shadow_window_mm`` from the pixel down (at least half of it inside the frame) is at most
+    ``shadow_level``·S_ref (step 1 of the module docstring)."""
+    window = _rows(config.shadow_window_mm, axial_mm)
+    dark_mean, rows_in = window_mean(smoothed, window)
+    return (dark_mean <= config.shadow_level * ref) & (rows_in * 2 >= window)
+
+
 def frame_evidence(
     image: np.ndarray, probe: ProbeGeometry, config: AutoLabelConfig
 ) -> FrameEvidence:
@@ -196,9 +207,7 @@ def frame_evidence(
     ref = float(np.percentile(smoothed, 99.0))
     gap = _rows(config.gap_mm, axial, 0)
     beneath = max_below(smoothed, gap)
-    window = _rows(config.shadow_window_mm, axial)
-    dark_mean, rows_in = window_mean(smoothed, window)
-    dark = (dark_mean <= config.shadow_level * ref) & (rows_in * 2 >= window)
+    dark = deep_shadow(smoothed, ref, axial, config)
     onset = first_rows(dark, height)
     if ref <= 0:  # a blank frame: nothing is bone, nothing is lit
         blank = np.full(smoothed.shape, -np.inf, dtype=np.float32)

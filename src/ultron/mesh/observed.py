@@ -12,6 +12,12 @@ coordinates (lateral p_x, depth p_y, elevation p_z, mm):
 * the beam reaches it: the transmission T_k just above it — at the pixel row r = ⌊p_y/Δ⌋ of
   the nearest scanline, T being exclusive — is ≥ ``min_transmission``.
 
+With echo support (:mod:`ultron.mesh.echo_support`, UltrON's default) some frame must also
+show bone at the point: a frame for which the point lies in the image and slab and faces the
+transducer, whose support map is true at the point's pixel (row ⌊p_y/Δ⌉) — not necessarily the
+frame that observed it (each test errs with the tracked pose; requiring both of one frame
+dropped true surface on the simulated L3, docs/real-sweeps.md).
+
 A point is observed when some frame observes it. This is the criterion the simulated labels
 follow (a visible echo under an unshadowed beam), so with the simulator's true T it gives the
 part of the reference that *can* be seen; with the transmission a reconstruction estimated,
@@ -72,12 +78,22 @@ def observed_points(
     slab_half_thickness_mm: float,
     max_incidence_deg: float = DEFAULT_MAX_INCIDENCE_DEG,
     min_transmission: float = DEFAULT_MIN_TRANSMISSION,
+    support: np.ndarray | None = None,
 ) -> np.ndarray:
     """Boolean (P,) mask of the points (P, 3) with outward ``normals`` (P, 3) that some frame
     observes (module docstring). ``transmission`` is T per frame, (N, H, W) in [0, 1], in the
-    order of ``probe_to_world`` (N, 4, 4); a list of per-sweep arrays is concatenated."""
+    order of ``probe_to_world`` (N, 4, 4); a list of per-sweep arrays is concatenated.
+    ``support`` (N, H, W) bool, when given, is each frame's echo support
+    (:func:`~ultron.mesh.echo_support.echo_support_maps`): a point then also needs some frame
+    that supports its pixel (module docstring)."""
     poses = as_pose_tensor(probe_to_world).to(torch.float64).numpy()
     maps = _as_maps(transmission, poses.shape[0], probe)
+    if support is not None:
+        support = np.asarray(support)
+        if support.dtype != bool or support.shape != maps.shape:
+            raise argument_error(
+                "support", f"expected bool {maps.shape}, got {support.dtype} {support.shape}"
+            )
     points = np.asarray(points_mm, dtype=np.float64)
     normal = np.asarray(normals, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != 3:
@@ -92,7 +108,7 @@ def observed_points(
         raise argument_error("min_transmission", "expected a value in [0, 1]")
     return _observed_vertices(
         points, normal, poses, maps, probe, slab_half_thickness_mm, max_incidence_deg,
-        min_transmission,
+        min_transmission, support,
     )  # fmt: skip
 
 
@@ -105,10 +121,12 @@ def _observed_vertices(
     half_thickness_mm: float,
     max_incidence_deg: float,
     min_transmission: float,
+    support: np.ndarray | None = None,
 ) -> np.ndarray:
     """The criterion, vectorised over points per chunk of frames (inputs validated)."""
     cos_min = math.cos(math.radians(max_incidence_deg))
     visible = np.zeros(len(v), dtype=bool)
+    shown = np.zeros(len(v), dtype=bool) if support is not None else np.ones(len(v), dtype=bool)
     # Candidates by a sorted projection on the sweep's mean elevation axis ē: a vertex in a
     # frame's image slab has |(v − t)·ẑ| ≤ h and |v − t| ≤ reach, so
     # |v·ē − t·ē| ≤ h + reach·|ẑ − ē| (exactly the vertices the full test would keep).
@@ -130,7 +148,7 @@ def _observed_vertices(
         z = _dot3(v[candidates], axes[:, :, 2]) - np.einsum("fi,fi->f", origin, axes[:, :, 2])
         ci, fi = np.nonzero(np.abs(z) <= half_thickness_mm)
         vi = candidates[ci]
-        keep = ~visible[vi]  # a vertex already seen needs no second frame
+        keep = ~(visible[vi] & shown[vi])  # a vertex already seen (and shown) needs no more
         vi, fi = vi[keep], fi[keep]
         d = v[vi] - origin[fi]
         x = np.einsum("ki,ki->k", d, axes[fi, :, 0])
@@ -144,7 +162,10 @@ def _observed_vertices(
         col = np.minimum(np.clip(np.rint(cols), 0, None), probe.width_px - 1).astype(int)
         lit = t_maps[start + fi, row, col].astype(np.float64) >= min_transmission
         visible[vi[lit]] = True
-    return visible
+        if support is not None:
+            at = np.minimum(np.clip(np.rint(rows), 0, None), probe.height_px - 1).astype(int)
+            shown[vi[support[start + fi, at, col]]] = True
+    return visible & shown
 
 
 def _dot3(points: np.ndarray, directions: np.ndarray) -> np.ndarray:
@@ -223,8 +244,10 @@ def observe_surface(
     slab_half_thickness_mm: float,
     config: ObservedSurfaceConfig,
     source: str,
+    support: np.ndarray | None = None,
 ) -> SurfaceObservation:
     """Which vertices of ``mesh`` some frame observed, and the part kept by ``config.surface``.
+    ``support``: each frame's echo support, as in :func:`observed_points`.
 
     ``transmission`` is T per frame as in :func:`observed_points`, or None for T ≡ 1 (a method
     without a transmission: a vertex is then observed when some frame's beam faces it);
@@ -236,6 +259,7 @@ def observe_surface(
     vertices = np.asarray(mesh.vertices, dtype=np.float64).reshape(-1, 3)
     info: dict[str, Any] = {"surface": config.to_dict(), "faces_extracted": len(mesh.faces)}
     info["observation_transmission"] = source
+    info["echo_support"] = support is not None
     everything = np.arange(len(vertices), dtype=np.int64)
     if len(mesh.faces) == 0:
         observed = np.zeros(len(vertices), dtype=bool)
@@ -245,7 +269,7 @@ def observe_surface(
         transmission = np.broadcast_to(np.ones((1, *probe.image_shape), np.float32), shape)
     observed = observed_points(
         vertices, np.asarray(mesh.vertex_normals), poses, probe, transmission,
-        slab_half_thickness_mm, config.max_incidence_deg, config.min_transmission,
+        slab_half_thickness_mm, config.max_incidence_deg, config.min_transmission, support,
     )  # fmt: skip
     if config.surface == "all":
         return SurfaceObservation(

@@ -15,7 +15,10 @@
    f(g(x)) on a grid over the scanned region (voxel = the finer pixel spacing), zero outside
    every frame's field of view, and mesh it. 5. Keep the observed surface
    (:mod:`ultron.mesh.observed`, ``surface="observed"``, the default): the faces that some frame
-   saw facing the probe with a transmission ≥ 0.3 above them. With a working T the
+   saw facing the probe with a transmission ≥ 0.3 above them and, with ``echo_support`` (the
+   default), that some frame shows as bone — an echo ``label --auto``'s detector scores as bone
+   or a deep shadow beginning under it (:mod:`ultron.mesh.echo_support`): a surface f(θ) puts in
+   lit soft tissue that no frame shows as bone is not observed. With a working T the
    compensated loss leaves f unconstrained in deep shadow *by design* (the paper's Fig. 1c: the
    shape is defined only where it was observed), so f(θ) may call a whole shadow column bone;
    its walls and floors are surface nobody observed, and are dropped. The occupancy volume
@@ -49,6 +52,7 @@ from ultron.device import evaluation_chunk, module_device
 from ultron.errors import UltronInputError, argument_error
 from ultron.fields.context import ThetaContextConfig, theta_features
 from ultron.fields.occupancy import OccupancyNetwork
+from ultron.mesh.echo_support import EchoSupportConfig, echo_support_maps
 from ultron.mesh.extract import ExtractionConfig, extract_surface_tiles
 from ultron.mesh.grid import GridSpec, field_of_view_volume_mm3, meshing_voxel_mm
 from ultron.mesh.observed import ObservedSurfaceConfig, SurfaceObservation, observe_surface
@@ -74,7 +78,9 @@ class UltronConfig:
     """Settings of an UltrON reconstruction (``visibility``: the source of the loss's T,
     ``context``: the neighbourhood f_ω reads besides θ(x), ``label_outer_side_mm``: how far
     above a band of bone labels unsure pixels are read as background,
-    :func:`~ultron.data.labels.surface_outer_side`; 0: the labels as stored)."""
+    :func:`~ultron.data.labels.surface_outer_side`; 0: the labels as stored;
+    ``echo_support``: a frame observes only the surface it shows as bone,
+    :mod:`ultron.mesh.echo_support`; None: T alone decides)."""
 
     occupancy: OccupancyTrainConfig = field(default_factory=OccupancyTrainConfig)
     voxel_mm: float | None = None
@@ -85,8 +91,14 @@ class UltronConfig:
     observed: ObservedSurfaceConfig = field(default_factory=ObservedSurfaceConfig)
     context: ThetaContextConfig = field(default_factory=ThetaContextConfig)
     label_outer_side_mm: float = OUTER_SIDE_MM
+    echo_support: EchoSupportConfig | None = field(default_factory=EchoSupportConfig)
 
     def __post_init__(self) -> None:
+        if self.echo_support is not None and not isinstance(self.echo_support, EchoSupportConfig):
+            raise argument_error(
+                "echo_support",
+                f"expected an EchoSupportConfig or None, got {type(self.echo_support).__name__}",
+            )
         if not (math.isfinite(self.label_outer_side_mm) and self.label_outer_side_mm >= 0):
             raise argument_error(
                 "label_outer_side_mm",
@@ -292,7 +304,7 @@ def keep_observed_surface(
     meshing grid, ``voxel_mm``).
     """
     source = "oracle" if config.visibility.source == "oracle" else "field"
-    maps = None
+    maps = support = None
     if len(mesh.faces):
         visibility = replace(config.visibility, source=source)
         total, maps = dataset.n_frames, []
@@ -301,6 +313,8 @@ def keep_observed_surface(
             counted = None if advance is None else (lambda d, _, o=offset: advance(o + d, total))
             maps.append(frame_transmission(visibility, dataset, sweep.name, fitted=fitted,
                                            truth=truth, advance=counted))  # fmt: skip
+        if config.echo_support is not None:
+            support = echo_support_maps(dataset, config.echo_support)
     return observe_surface(
         mesh,
         dataset.all_poses(),
@@ -309,6 +323,7 @@ def keep_observed_surface(
         elevation_half_thickness_mm(dataset, voxel_mm),
         config.observed,
         source,
+        support,
     )
 
 

@@ -72,6 +72,7 @@ def pipeline_preset(name: str = "fast", seed: int = 0) -> PipelinePreset:
         context=ThetaContextConfig(radii_mm=()),
         observed=ObservedSurfaceConfig(surface="all"),
         label_outer_side_mm=0.0,
+        echo_support=None,
     )
     on = ONConfig()
     on = replace(on, occupancy=replace(on.occupancy, iters=PAPER_OCCUPANCY_ITERS))

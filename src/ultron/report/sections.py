@@ -210,7 +210,8 @@ def evidence_html(run_dir: Path, title: str) -> str:
     )
     caption = (
         f"{title}: vertices observed by some frame (in its image and elevational slab, facing "
-        "the probe, T ≥ 0.3 above them; T ≡ 1 for methods without a transmission) in blue, "
+        "the probe, T ≥ 0.3 above them; T ≡ 1 for methods without a transmission; for UltrON "
+        "also showing bone there: an echo or a shadow's onset, run.json's echo_support) in blue, "
         "inferred ones in orange; right, each vertex's distance to the nearest labelled bone "
         f"pixel the method used (colour clipped at the 95th percentile). {kept} Both are PLY "
         "vertex properties: observed (0/1) and label_distance_mm."

@@ -1,0 +1,119 @@
+"""Where a frame's B-mode shows bone: the echo support of a reconstructed surface.
+
+A bone surface leaves two marks on the scanlines that cross it: a bright echo that nothing
+beneath outshines, and the acoustic shadow that begins under it. Per frame (row 0 at the
+transducer, one scanline per column), with the evidence of ``label --auto``'s detector
+(:func:`ultron.data.auto_labels.frame_evidence`: S the smoothed frame, S_ref its 99th
+percentile, E the bone score, and the deep shadow D where the mean of S over the next
+``shadow_window_mm`` is at most ``shadow_level``·S_ref), pixel (r, c) *shows bone* when
+
+    E(r, c) > 0   or   ( S̄(r, c) > ``shadow_level``·S_ref  and
+                          min{r' ≥ r : D(r', c)} − r ≤ ``shadow_onset_mm`` / Δz ),
+
+(a bone echo, or lit tissue under which the deep shadow begins within ``shadow_onset_mm``; the
+shadow itself shows nothing: S̄ is S's mean over the window from the pixel down, clipped to the
+frame). The frame's end counts as an onset (the minimum over no rows is
+H): within ``shadow_onset_mm`` of its last row a frame cannot show whether a shadow follows, so
+it gives no evidence against bone there, and the deep walls at the bottom of the frames keep
+their support. A pixel is *supported* when some pixel of its column within
+±``depth_window_mm`` shows bone (a maximum filter along the scanline: the tracked pose and the
+surface's depth each err by about a millimetre). A blank frame (S_ref = 0) supports nothing.
+
+UltrON keeps the part of its iso-surface that some frame observed (:mod:`ultron.mesh.observed`)
+and, with echo support on, that some frame supports: a surface f(θ) places in lit soft tissue
+that no frame shows as bone is dropped with the shadow walls. Measured in docs/real-sweeps.md
+(echo support of UltrON's surface).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import numpy as np
+from scipy import ndimage
+
+from ultron.data.auto_labels import (
+    AutoLabelConfig,
+    deep_shadow,
+    frame_evidence,
+    next_rows,
+    window_mean,
+)
+from ultron.data.dataset import ProbeGeometry, SweepDataset
+from ultron.errors import argument_error
+
+
+@dataclass(frozen=True)
+class EchoSupportConfig:
+    """Echo support (module docstring): the depth window and the shadow's onset in mm; the
+    detector's evidence from ``detector`` (``label --auto``'s defaults)."""
+
+    depth_window_mm: float = 1.0
+    shadow_onset_mm: float = 4.0
+    detector: AutoLabelConfig = field(default_factory=AutoLabelConfig)
+
+    def __post_init__(self) -> None:
+        for name in ("depth_window_mm", "shadow_onset_mm"):
+            value = getattr(self, name)
+            if not (isinstance(value, int | float) and math.isfinite(value) and value >= 0):
+                raise argument_error(name, f"expected a finite length ≥ 0 mm, got {value!r}")
+        if not isinstance(self.detector, AutoLabelConfig):
+            raise argument_error(
+                "detector", f"expected an AutoLabelConfig, got {type(self.detector).__name__}"
+            )
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def echo_support_map(
+    image: np.ndarray, probe: ProbeGeometry, config: EchoSupportConfig | None = None
+) -> np.ndarray:
+    """Bool (H, W): the pixels of a uint8 frame (H, W) that are supported (module docstring)."""
+    cfg = config or EchoSupportConfig()
+    image = np.asarray(image)
+    if image.dtype != np.uint8 or image.shape != probe.image_shape:
+        raise argument_error(
+            "image",
+            f"expected a uint8 frame of {probe.image_shape}, got {image.dtype} {image.shape}",
+        )
+    axial = probe.axial_spacing_mm
+    evidence = frame_evidence(image, probe, cfg.detector)
+    ref = float(np.percentile(evidence.smoothed, 99.0))
+    if ref <= 0:
+        return np.zeros(image.shape, dtype=bool)
+    dark = deep_shadow(evidence.smoothed, ref, axial, cfg.detector)
+    # in the shadow: dark over what is left of the window (at the frame's end too)
+    window = max(1, round(cfg.detector.shadow_window_mm / axial))
+    shadowed = window_mean(evidence.smoothed, window)[0] <= cfg.detector.shadow_level * ref
+    rows = np.arange(image.shape[0])[:, None]
+    shows = evidence.score > 0
+    onset = next_rows(dark)  # H (the frame's end) where no shadow follows in the frame
+    shows |= ~shadowed & ((onset - rows) * axial <= cfg.shadow_onset_mm)
+    reach = round(cfg.depth_window_mm / axial)
+    if reach == 0:
+        return shows
+    return ndimage.maximum_filter1d(shows, 2 * reach + 1, axis=0, mode="constant")
+
+
+def echo_support_maps(
+    dataset: SweepDataset,
+    config: EchoSupportConfig | None = None,
+    advance: Callable[[int, int], None] | None = None,
+) -> np.ndarray:
+    """Bool (N, H, W): :func:`echo_support_map` of every frame of ``dataset``, its sweeps in
+    order (as :meth:`~ultron.data.dataset.SweepDataset.all_poses`); ``advance`` is told the
+    frames done, of all."""
+    total = dataset.n_frames
+    out = np.empty((total, *dataset.probe.image_shape), dtype=bool)
+    done = 0
+    for sweep in dataset.sweeps:
+        for image in sweep.images:
+            out[done] = echo_support_map(np.asarray(image), dataset.probe, config)
+            done += 1
+            if advance is not None:
+                advance(done, total)
+    return out

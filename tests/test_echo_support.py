@@ -1,0 +1,124 @@
+"""Echo support (:mod:`ultron.mesh.echo_support`) and its use in the observed-surface crop."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+from ultron.data.dataset import ProbeGeometry
+from ultron.errors import UltronInputError
+from ultron.mesh.echo_support import EchoSupportConfig, echo_support_map
+from ultron.mesh.observed import ObservedSurfaceConfig, observe_surface, observed_points
+
+#: 100 rows × 80 columns of 0.5 mm: a 40 mm wide, 50 mm deep probe (as test_auto_labels).
+PROBE = ProbeGeometry(width_mm=40.0, depth_mm=50.0, height_px=100, width_px=80)
+LINE_ROW = 40
+
+
+def _frame(line: bool, shadow: bool, seed: int = 0) -> np.ndarray:
+    """Rayleigh speckle (mean ≈ 90 grey levels); with ``line`` a bright 2-pixel line at
+    ``LINE_ROW``, with ``shadow`` weak noise under that row."""
+    rng = np.random.default_rng(seed)
+    image = np.clip(rng.rayleigh(72.0, size=PROBE.image_shape), 0, 255)
+    if line:
+        image[LINE_ROW : LINE_ROW + 2] = 250.0
+    if shadow:
+        image[LINE_ROW + 2 :] = rng.uniform(0, 8, size=image[LINE_ROW + 2 :].shape)
+    return image.astype(np.uint8)
+
+
+def test_a_bone_echo_is_supported_within_the_window_and_nothing_else():
+    support = echo_support_map(_frame(line=True, shadow=True), PROBE)
+    window = 2  # 1 mm of 0.5 mm rows
+    assert support[LINE_ROW].all() and support[LINE_ROW + 1].all()
+    # lit speckle more than the shadow onset (4 mm = 8 rows) plus the window above: not bone
+    assert not support[: LINE_ROW - 8 - window - 1].any()
+    # deep in the shadow (beyond the window under the echo): the shadow itself shows nothing
+    assert not support[LINE_ROW + 2 + window + 1 :].any()
+
+
+def test_a_shadow_alone_supports_the_tissue_above_its_onset():
+    image = _frame(line=False, shadow=True)  # a dim interface: no echo, but a shadow
+    support = echo_support_map(image, PROBE, EchoSupportConfig(depth_window_mm=0.0))
+    onset = LINE_ROW + 2
+    rows = np.flatnonzero(support.all(axis=1))
+    assert rows.max() < onset  # the shadow itself is not supported
+    assert rows.min() >= onset - 8  # at most 4 mm above the onset (8 rows) …
+    assert rows.min() <= onset - 6  # … and most of those 4 mm
+
+
+def test_speckle_without_bone_and_a_blank_frame_are_unsupported():
+    support = echo_support_map(_frame(line=True, shadow=False), PROBE)
+    bottom = PROBE.height_px - 8 - 2  # the last 4 mm and the 1 mm window: see below
+    assert support[:bottom].mean() < 0.01
+    assert not echo_support_map(np.zeros(PROBE.image_shape, np.uint8), PROBE).any()
+
+
+def test_the_frames_last_millimetres_give_no_evidence_against_bone():
+    support = echo_support_map(_frame(line=False, shadow=False), PROBE)
+    # within 4 mm (8 rows) of the last row no frame can show whether a shadow follows
+    assert support[PROBE.height_px - 8 :].all()
+    assert not support[: PROBE.height_px - 8 - 2 - 1].any()
+
+
+def test_bad_inputs_name_the_argument():
+    with pytest.raises(UltronInputError, match="image"):
+        echo_support_map(np.zeros((10, 10), np.uint8), PROBE)
+    with pytest.raises(UltronInputError, match="depth_window_mm"):
+        EchoSupportConfig(depth_window_mm=-1.0)
+    with pytest.raises(UltronInputError, match="detector"):
+        EchoSupportConfig(detector={"gap_mm": 1.0})  # type: ignore[arg-type]
+
+
+def _plate_seen_from_above(depth_mm: float):
+    """A 20 mm plate, 0.4 mm across the elevational slab, facing up at ``depth_mm`` under a
+    probe looking down (−z), the probe's image plane x–z, its origin at z = 0; the pose and
+    T ≡ 1."""
+    plate = trimesh.creation.box((20.0, 0.4, 0.1))
+    plate.apply_translation((0.0, 0.0, -depth_mm))
+    pose = np.eye(4)
+    pose[:3, :3] = np.array([[1.0, 0, 0], [0, 0, 1.0], [0, -1.0, 0]])  # probe +y = world −z
+    t_maps = np.ones((1, *PROBE.image_shape), np.float32)
+    return plate, pose[None], t_maps
+
+
+def test_observed_points_need_the_same_frames_support():
+    plate, poses, t_maps = _plate_seen_from_above(depth_mm=LINE_ROW * 0.5)
+    top = np.asarray(plate.vertices)[:, 2] > -LINE_ROW * 0.5
+    args = (plate.vertices, plate.vertex_normals, poses, PROBE, t_maps, 0.5)
+    assert observed_points(*args)[top].all()
+    nothing = np.zeros_like(t_maps, dtype=bool)
+    assert not observed_points(*args, support=nothing).any()
+    echo = np.zeros_like(nothing)
+    echo[0, LINE_ROW - 1 : LINE_ROW + 2] = True  # the plate's rows, ± a row
+    seen = observed_points(*args, support=echo)
+    assert seen[top].all() and not seen[~top].any()
+    with pytest.raises(UltronInputError, match="support"):
+        observed_points(*args, support=echo[0])
+
+
+def test_observe_surface_records_the_echo_support():
+    plate, poses, t_maps = _plate_seen_from_above(depth_mm=LINE_ROW * 0.5)
+    config = ObservedSurfaceConfig()
+    plain = observe_surface(plate, poses, PROBE, t_maps, 0.5, config, "field")
+    assert plain.info["echo_support"] is False and plain.observed.any()
+    nothing = np.zeros_like(t_maps, dtype=bool)
+    cropped = observe_surface(plate, poses, PROBE, t_maps, 0.5, config, "field", nothing)
+    assert cropped.info["echo_support"] is True
+    assert not cropped.observed.any() and cropped.info["surface_fallback"] == "all"
+
+
+def test_the_frame_that_shows_bone_need_not_be_the_one_that_observed():
+    plate, poses, t_maps = _plate_seen_from_above(depth_mm=LINE_ROW * 0.5)
+    top = np.asarray(plate.vertices)[:, 2] > -LINE_ROW * 0.5
+    two_poses = np.concatenate([poses, poses])
+    lit_then_dark = np.concatenate([t_maps, np.zeros_like(t_maps)])  # frame 1: T = 0
+    echo_in_1 = np.zeros_like(lit_then_dark, dtype=bool)
+    echo_in_1[1, LINE_ROW - 1 : LINE_ROW + 2] = True  # only the unlit frame shows the echo
+    args = (plate.vertices, plate.vertex_normals, two_poses, PROBE)
+    seen = observed_points(*args, lit_then_dark, 0.5, support=echo_in_1)
+    assert seen[top].all()
+    # shown as bone but lit in no frame: not observed
+    dark = np.zeros_like(lit_then_dark)
+    assert not observed_points(*args, dark, 0.5, support=echo_in_1).any()
