@@ -86,6 +86,9 @@ def test_request_takes_the_preset_and_options_win():
     assert preset_request(positive_weight="3").method_config.occupancy.positive_weight == 3
     assert preset_request(visibility="labels").method_config.visibility.source == "labels"
     assert preset_request(oracle=True).method_config.visibility.source == "oracle"
+    assert preset_request(echo_support=False).method_config.echo_support is None
+    on_again = preset_request("paper", "ultron", echo_support=True).method_config.echo_support
+    assert on_again is not None and on_again == pipeline_preset("fast").ultron.echo_support
     fast = preset_request()
     assert fast.method_config == UltronConfig(occupancy=OccupancyTrainConfig(seed=fast.seed))
     assert preset_request(method="on").method_config == ONConfig()
@@ -128,3 +131,25 @@ def test_evaluation_chunk_grows_only_off_the_cpu():
     assert evaluation_chunk(torch.device("cpu"), 1000) == 1000
     assert evaluation_chunk(None, 1000) == 1000
     assert evaluation_chunk(torch.device("cuda"), 1000) == 1000 * ACCELERATOR_CHUNK_FACTOR
+
+
+@pytest.mark.parametrize(
+    ("preset", "flag", "expected"),
+    [("fast", "--no-echo-support", False), ("paper", "--echo-support", True)],
+)
+def test_cli_echo_support_flag_wins_over_the_preset(
+    preset, flag, expected, tmp_path: Path, monkeypatch
+):
+    import ultron.pipeline.run
+
+    seen = {}
+
+    def fake_run(dataset, request, out, *args, **kwargs):
+        seen["request"] = request
+        return {"metrics": None, "timings_s": {}}
+
+    monkeypatch.setattr(ultron.pipeline.run, "reconstruct", fake_run)
+    args = ["reconstruct", str(tmp_path), "--out", str(tmp_path / "o"), "--preset", preset, flag]
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 0, result.output
+    assert (seen["request"].method_config.echo_support is not None) is expected

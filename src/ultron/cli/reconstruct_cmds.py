@@ -132,6 +132,14 @@ Negatives = Annotated[
         " weighted).",
     ),
 ]
+EchoSupport = Annotated[
+    bool | None,
+    typer.Option(
+        "--echo-support/--no-echo-support",
+        help="ultron*: keep only surface some frame shows as bone — a bone echo or the onset of"
+        " a shadow within ±1 mm (default: the preset's: on; paper: off).",
+    ),
+]
 AllowOtherField = Annotated[
     bool,
     typer.Option(
@@ -182,6 +190,7 @@ def reconstruct(
     theta_context: ThetaContext = None,
     positive_weight: PositiveWeight = None,
     negatives: Negatives = None,
+    echo_support: EchoSupport = None,
     allow_other_field: AllowOtherField = False,
     max_memory: MaxMemory = None,
     mesh_coordinates: MeshCoordinates = "lps",
@@ -208,7 +217,7 @@ def reconstruct(
         preset, method, label_fraction, seed, points=points, occupancy_iters=occupancy_iters,
         visibility=visibility, oracle=oracle_transmission, surface=surface,
         theta_context=theta_context, positive_weight=positive_weight, negatives=negatives,
-        mesh_coordinates=mesh_coordinates, device=device,
+        echo_support=echo_support, mesh_coordinates=mesh_coordinates, device=device,
     )  # fmt: skip
     lines = StageLines()
     with _field_progress() as update:

@@ -22,6 +22,7 @@ from dataclasses import dataclass, replace
 
 from ultron.errors import argument_error
 from ultron.fields.context import ThetaContextConfig
+from ultron.mesh.echo_support import EchoSupportConfig
 from ultron.mesh.observed import ObservedSurfaceConfig
 from ultron.methods.catalog import FIELD_METHODS
 from ultron.methods.on_method import ONConfig
@@ -101,6 +102,7 @@ def preset_request(
     theta_context: str | None = None,
     positive_weight: str | None = None,
     negatives: str | None = None,
+    echo_support: bool | None = None,
     mesh_coordinates: str = "lps",
     device: str = "cpu",
 ) -> ReconstructionRequest:
@@ -108,7 +110,9 @@ def preset_request(
     the preset's): ``occupancy_iters`` for UltrON and ON, ``visibility`` / ``oracle`` the
     source of T (:func:`~ultron.train.visibility.visibility_config`; UltrON's alone),
     ``surface``, ``theta_context`` (radii in mm, comma-separated, or ``none``),
-    ``positive_weight`` (a number or ``balanced``), ``negatives``; metrics on ``points``
+    ``positive_weight`` (a number or ``balanced``), ``negatives``, ``echo_support`` (UltrON's
+    observed crop asks some frame to show bone, :mod:`ultron.mesh.echo_support`); metrics on
+    ``points``
     points per surface. The request carries ``method``'s settings alone
     (:meth:`~ultron.methods.registry.Method.config_of`)."""
     chosen = get_method(method)
@@ -132,6 +136,8 @@ def preset_request(
         ultron = replace(ultron, observed=replace(ultron.observed, surface=surface))
     if theta_context is not None:
         ultron = replace(ultron, context=ThetaContextConfig.parse(theta_context))
+    if echo_support is not None:
+        ultron = replace(ultron, echo_support=EchoSupportConfig() if echo_support else None)
     return ReconstructionRequest(
         method=method,
         label_fraction=label_fraction,
