@@ -140,12 +140,17 @@ def _rows(mm: float, spacing_mm: float, minimum: int = 1) -> int:
 @dataclass(frozen=True)
 class FrameEvidence:
     """Step 1 of one frame (H, W): the smoothed image S, the bone score E, the first row per
-    column where bone is possible (H: none) and the deep shadow's onset row (H: none)."""
+    column where bone is possible (H: none) and the deep shadow's onset row (H: none); S_ref,
+    the deep shadow D (:func:`shadow_masks`) and the pixels whose window from there down,
+    clipped to the frame, is as dark (``shadowed``, D without the coverage rule)."""
 
     smoothed: np.ndarray
     score: np.ndarray
     first_possible: np.ndarray
     shadow_onset: np.ndarray
+    ref: float
+    dark: np.ndarray
+    shadowed: np.ndarray
 
 
 def window_mean(values: np.ndarray, length: int) -> tuple[np.ndarray, np.ndarray]:
@@ -184,15 +189,17 @@ def first_rows(mask: np.ndarray, none: int) -> np.ndarray:
     return np.where(mask.any(axis=0), np.argmax(mask, axis=0), none)
 
 
-def deep_shadow(
+def shadow_masks(
     smoothed: np.ndarray, ref: float, axial_mm: float, config: AutoLabelConfig
-) -> np.ndarray:
-    """Bool (H, W): the pixels where the deep shadow holds — the mean of S over the
+) -> tuple[np.ndarray, np.ndarray]:
+    """Bool (H, W) twice, from one window mean: the deep shadow D — the mean of S over the
     ``shadow_window_mm`` from the pixel down (at least half of it inside the frame) is at most
-    ``shadow_level``·S_ref (step 1 of the module docstring)."""
+    ``shadow_level``·S_ref (step 1 of the module docstring) — and the pixels where that mean,
+    the window clipped to the frame, is at most the level (D without the half-window rule)."""
     window = _rows(config.shadow_window_mm, axial_mm)
     dark_mean, rows_in = window_mean(smoothed, window)
-    return (dark_mean <= config.shadow_level * ref) & (rows_in * 2 >= window)
+    shadowed = dark_mean <= config.shadow_level * ref
+    return shadowed & (rows_in * 2 >= window), shadowed
 
 
 def frame_evidence(
@@ -207,11 +214,12 @@ def frame_evidence(
     ref = float(np.percentile(smoothed, 99.0))
     gap = _rows(config.gap_mm, axial, 0)
     beneath = max_below(smoothed, gap)
-    dark = deep_shadow(smoothed, ref, axial, config)
+    dark, shadowed = shadow_masks(smoothed, ref, axial, config)
     onset = first_rows(dark, height)
     if ref <= 0:  # a blank frame: nothing is bone, nothing is lit
         blank = np.full(smoothed.shape, -np.inf, dtype=np.float32)
-        return FrameEvidence(smoothed, blank, np.zeros(smoothed.shape[1], int), onset * 0)
+        no_rows = np.zeros(smoothed.shape[1], int)
+        return FrameEvidence(smoothed, blank, no_rows, onset * 0, ref, dark, shadowed)
     rows = np.arange(height)[:, None]
     # the deep shadow's nearest onset at or below the echo's tail, mm under the echo
     tail = np.minimum(np.arange(height) + gap, height - 1)
@@ -225,7 +233,8 @@ def frame_evidence(
     score = np.where(eligible, score, np.minimum(score, -config.min_score)).astype(np.float32)
     possible = room & casts_shadow & (smoothed >= config.possible_bright * ref)
     possible &= smoothed >= beneath
-    return FrameEvidence(smoothed, score, first_rows(possible, height), onset)
+    first = first_rows(possible, height)
+    return FrameEvidence(smoothed, score, first, onset, ref, dark, shadowed)
 
 
 # ------------------------------------------------------------------------------- surface

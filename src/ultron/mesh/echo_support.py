@@ -28,20 +28,13 @@ that no frame shows as bone is dropped with the shadow walls. Measured in docs/r
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
 import numpy as np
 from scipy import ndimage
 
-from ultron.data.auto_labels import (
-    AutoLabelConfig,
-    deep_shadow,
-    frame_evidence,
-    next_rows,
-    window_mean,
-)
+from ultron.data.auto_labels import AutoLabelConfig, frame_evidence, next_rows
 from ultron.data.dataset import ProbeGeometry, SweepDataset
 from ultron.errors import argument_error
 
@@ -82,38 +75,26 @@ def echo_support_map(
         )
     axial = probe.axial_spacing_mm
     evidence = frame_evidence(image, probe, cfg.detector)
-    ref = float(np.percentile(evidence.smoothed, 99.0))
-    if ref <= 0:
+    if evidence.ref <= 0:
         return np.zeros(image.shape, dtype=bool)
-    dark = deep_shadow(evidence.smoothed, ref, axial, cfg.detector)
-    # in the shadow: dark over what is left of the window (at the frame's end too)
-    window = max(1, round(cfg.detector.shadow_window_mm / axial))
-    shadowed = window_mean(evidence.smoothed, window)[0] <= cfg.detector.shadow_level * ref
     rows = np.arange(image.shape[0])[:, None]
     shows = evidence.score > 0
-    onset = next_rows(dark)  # H (the frame's end) where no shadow follows in the frame
-    shows |= ~shadowed & ((onset - rows) * axial <= cfg.shadow_onset_mm)
+    onset = next_rows(evidence.dark)  # H (the frame's end) where no shadow follows in the frame
+    # lit (not in the shadow, the window clipped at the frame's end) over a near onset
+    shows |= ~evidence.shadowed & ((onset - rows) * axial <= cfg.shadow_onset_mm)
     reach = round(cfg.depth_window_mm / axial)
     if reach == 0:
         return shows
     return ndimage.maximum_filter1d(shows, 2 * reach + 1, axis=0, mode="constant")
 
 
-def echo_support_maps(
-    dataset: SweepDataset,
-    config: EchoSupportConfig | None = None,
-    advance: Callable[[int, int], None] | None = None,
-) -> np.ndarray:
+def echo_support_maps(dataset: SweepDataset, config: EchoSupportConfig | None = None) -> np.ndarray:
     """Bool (N, H, W): :func:`echo_support_map` of every frame of ``dataset``, its sweeps in
-    order (as :meth:`~ultron.data.dataset.SweepDataset.all_poses`); ``advance`` is told the
-    frames done, of all."""
-    total = dataset.n_frames
-    out = np.empty((total, *dataset.probe.image_shape), dtype=bool)
+    order (as :meth:`~ultron.data.dataset.SweepDataset.all_poses`)."""
+    out = np.empty((dataset.n_frames, *dataset.probe.image_shape), dtype=bool)
     done = 0
     for sweep in dataset.sweeps:
         for image in sweep.images:
             out[done] = echo_support_map(np.asarray(image), dataset.probe, config)
             done += 1
-            if advance is not None:
-                advance(done, total)
     return out
