@@ -78,7 +78,8 @@ def main() -> None:
         loop_s.append(time.perf_counter() - start)
 
     timer = StageTimer()
-    mesh_occupancy(occupancy_function(fitted, model, spec.context), dataset, config.meshing, timer)
+    fn = occupancy_function(fitted, model, spec.context)
+    mesh_occupancy(fn, dataset, config.meshing.meshing, timer)
 
     print(f"\ndataset {dataset_dir}; field {field_dir}; torch threads {torch.get_num_threads()}")
     print(

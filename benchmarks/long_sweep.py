@@ -170,11 +170,11 @@ def run_all(args: argparse.Namespace) -> list[dict]:
 def meshing_lines(dataset, voxel_mm: float | None) -> list[str]:
     """The meshing grid at ``voxel_mm`` and the tiles of it the field of view reaches."""
     from ultron.mesh.tiles import field_of_view_tiles, tile_for_factor
-    from ultron.methods.ultron_method import UltronConfig, elevation_half_thickness_mm, scan_grid
+    from ultron.methods.ultron_method import MeshingConfig, elevation_half_thickness_mm, scan_grid
     from ultron.pipeline.resources import meshing_memory
 
     grid = scan_grid(dataset, voxel_mm)
-    factor = UltronConfig().coarse_factor
+    factor = MeshingConfig().coarse_factor
     tile = tile_for_factor(factor)
     half = elevation_half_thickness_mm(dataset, grid.voxel_mm)
     mask = field_of_view_tiles(grid.coarsened(factor), dataset.all_poses(), dataset.probe, half,

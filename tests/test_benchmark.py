@@ -101,7 +101,7 @@ def tiny_config(**changes) -> BenchmarkConfig:
             max_check_frames=4, confidence_prior_weight=0.0,
         ),
         "ultron": ultron,
-        "on": replace(on, meshing=ultron),
+        "on": replace(on, meshing=ultron.meshing),
         "metrics": MetricsConfig(n_points=2000, repeats=1),
         "cell_reports": False,  # each run's report.html: tests/test_report.py
     }  # fmt: skip

@@ -138,7 +138,10 @@ def test_iters_zero_equals_direct_application(shapes, tmp_path):
     dataset, fitted = SweepDataset.load(shapes["new"]), load_field(shapes["field"])
     context = ThetaModel.from_meta(meta).context
     _, volume, _ = mesh_occupancy(
-        occupancy_function(fitted, network, context), dataset, config.meshing, StageTimer()
+        occupancy_function(fitted, network, context),
+        dataset,
+        config.meshing.meshing,
+        StageTimer(),
     )
     import nibabel
 

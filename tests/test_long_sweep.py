@@ -12,7 +12,7 @@ from ultron.errors import UltronInputError
 from ultron.mesh.extract import extract_surface_tiles
 from ultron.mesh.tiles import evaluate_tiles, field_of_view_tiles
 from ultron.methods.ultron_method import (
-    UltronConfig,
+    MeshingConfig,
     elevation_half_thickness_mm,
     mesh_occupancy,
     scan_grid,
@@ -93,7 +93,7 @@ def two_femurs(points: torch.Tensor) -> torch.Tensor:
 def test_a_long_sweep_is_meshed_in_its_field_of_view_tiles():
     dataset = two_legs()
     assert sum(s.n_frames for s in dataset.sweeps) >= 1000
-    config = UltronConfig(voxel_mm=1.5)
+    config = MeshingConfig(voxel_mm=1.5)
     grid = scan_grid(dataset, config.voxel_mm)
     extent = np.asarray(grid.shape) * grid.voxel_mm
     assert extent[2] >= 400 and extent[0] > 200  # 47 cm long, both legs in one box
@@ -120,7 +120,7 @@ def test_a_long_sweep_is_meshed_in_its_field_of_view_tiles():
 def test_mesh_occupancy_of_a_long_sweep():
     dataset = two_legs()
     mesh, volume, grid = mesh_occupancy(
-        two_femurs, dataset, UltronConfig(voxel_mm=1.5), StageTimer()
+        two_femurs, dataset, MeshingConfig(voxel_mm=1.5), StageTimer()
     )
     assert volume.shape == grid.shape == scan_grid(dataset, 1.5).shape  # under the budget
     assert len(mesh.split(only_watertight=False)) == 2

@@ -17,7 +17,7 @@ from ultron.methods.compounding_method import CompoundingMethodConfig
 from ultron.methods.on_method import ONConfig
 from ultron.methods.registry import METHODS, MethodInputs, get_method
 from ultron.methods.rocosdf import RoCoSDFConfig
-from ultron.methods.ultron_method import UltronConfig
+from ultron.methods.ultron_method import MeshingConfig, UltronConfig
 from ultron.pipeline.run import ReconstructionRequest, run_method
 from ultron.timing import StageTimer
 
@@ -83,6 +83,35 @@ class _Stages:
     ultron = UltronConfig(voxel_mm=0.7)
     on = replace(ONConfig(), meshing=replace(ONConfig().meshing, voxel_mm=0.9))
     rocosdf_preset = "paper"
+
+
+def test_on_records_only_the_meshing_it_uses():
+    """ON's meshing settings are a MeshingConfig — the four fields mesh_occupancy reads — not
+    an UltronConfig whose loss, crop and echo settings ON never uses; UltrON's mirror its own
+    fields, so both mesh the same way by default."""
+    on = ONConfig()
+    assert isinstance(on.meshing, MeshingConfig)
+    assert {f for f in vars(on.meshing)} == {
+        "voxel_mm",
+        "coarse_factor",
+        "chunk_points",
+        "extraction",
+    }
+    ultron = UltronConfig(voxel_mm=0.7, coarse_factor=4, chunk_points=1000)
+    assert ultron.meshing == MeshingConfig(0.7, 4, 1000, ultron.extraction)
+    assert UltronConfig().meshing == on.meshing
+
+
+@pytest.mark.parametrize(
+    ("changes", "argument"),
+    [({"voxel_mm": 0.0}, "voxel_mm"), ({"coarse_factor": 0}, "coarse_factor"),
+     ({"chunk_points": 0}, "chunk_points"), ({"chunk_points": True}, "chunk_points")],
+)  # fmt: skip
+def test_meshing_settings_refuse_bad_values(changes, argument):
+    with pytest.raises(UltronInputError, match=argument):
+        MeshingConfig(**changes)
+    with pytest.raises(UltronInputError, match=argument):
+        UltronConfig(**changes)
 
 
 def test_each_method_owns_its_settings_meshing_voxel_and_loss():

@@ -200,7 +200,7 @@ def finetune_ultron(
         }
     model.eval()
     mesh, volume, grid = mesh_occupancy(
-        occupancy_function(fitted, model, spec.context), dataset, config.meshing, timer,
+        occupancy_function(fitted, model, spec.context), dataset, config.meshing.meshing, timer,
         module_device(model),
     )  # fmt: skip
     with timer.stage("mesh_observed"):

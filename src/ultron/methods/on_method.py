@@ -26,7 +26,12 @@ from ultron.data.labels import gather_labelled_pixels, select_label_frames
 from ultron.device import module_device
 from ultron.errors import argument_error
 from ultron.fields.occupancy import OccupancyNetworkConfig
-from ultron.methods.ultron_method import Reconstruction, TrainedModel, UltronConfig, mesh_occupancy
+from ultron.methods.ultron_method import (
+    MeshingConfig,
+    Reconstruction,
+    TrainedModel,
+    mesh_occupancy,
+)
 from ultron.timing import StageTimer
 from ultron.train.occupancy import OccupancyTrainConfig, OccupancyTrainingData, fit_occupancy
 
@@ -39,10 +44,10 @@ def _on_training() -> OccupancyTrainConfig:
 
 @dataclass(frozen=True)
 class ONConfig:
-    """Settings of the ON baseline; meshing settings are shared with UltrON's config."""
+    """Settings of the ON baseline: its training and its meshing (UltrON's, by default)."""
 
     occupancy: OccupancyTrainConfig = field(default_factory=_on_training)
-    meshing: UltronConfig = field(default_factory=UltronConfig)
+    meshing: MeshingConfig = field(default_factory=MeshingConfig)
 
     def __post_init__(self) -> None:
         if self.occupancy.loss != "bce":

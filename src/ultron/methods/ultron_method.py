@@ -74,6 +74,31 @@ from ultron.train.visibility import (
 
 
 @dataclass(frozen=True)
+class MeshingConfig:
+    """How an occupancy function is meshed (:func:`mesh_occupancy`): the voxel (None: the
+    scan grid's, :func:`scan_grid`), the coarse-to-fine evaluation's factor, the points per
+    evaluation chunk on a CPU and the iso-surface extraction. UltrON's, its ablation's,
+    fine-tuning's and ON's."""
+
+    voxel_mm: float | None = None
+    coarse_factor: int = 2
+    chunk_points: int = 65_536
+    extraction: ExtractionConfig = field(default_factory=ExtractionConfig)
+
+    def __post_init__(self) -> None:
+        if self.voxel_mm is not None and not self.voxel_mm > 0:
+            raise argument_error("voxel_mm", f"expected > 0, got {self.voxel_mm}")
+        if not isinstance(self.coarse_factor, int) or self.coarse_factor < 1:
+            raise argument_error(
+                "coarse_factor", f"expected a positive integer, got {self.coarse_factor!r}"
+            )
+        if isinstance(self.chunk_points, bool) or not isinstance(self.chunk_points, int):
+            raise argument_error("chunk_points", f"expected an integer, got {self.chunk_points!r}")
+        if self.chunk_points < 1:
+            raise argument_error("chunk_points", f"expected ≥ 1, got {self.chunk_points}")
+
+
+@dataclass(frozen=True)
 class UltronConfig:
     """Settings of an UltrON reconstruction (``visibility``: the source of the loss's T,
     ``context``: the neighbourhood f_ω reads besides θ(x), ``label_outer_side_mm``: how far
@@ -104,12 +129,12 @@ class UltronConfig:
                 "label_outer_side_mm",
                 f"expected a finite value ≥ 0, got {self.label_outer_side_mm}",
             )
-        if self.voxel_mm is not None and not self.voxel_mm > 0:
-            raise argument_error("voxel_mm", f"expected > 0, got {self.voxel_mm}")
-        if not isinstance(self.coarse_factor, int) or self.coarse_factor < 1:
-            raise argument_error(
-                "coarse_factor", f"expected a positive integer, got {self.coarse_factor!r}"
-            )
+        _ = self.meshing  # its checks (MeshingConfig)
+
+    @property
+    def meshing(self) -> MeshingConfig:
+        """The meshing part of these settings (:func:`mesh_occupancy`)."""
+        return MeshingConfig(self.voxel_mm, self.coarse_factor, self.chunk_points, self.extraction)
 
 
 @dataclass(frozen=True)
@@ -245,7 +270,7 @@ def occupancy_function(fitted, network: OccupancyNetwork, context: ThetaContextC
 
 
 def mesh_occupancy(
-    fn, dataset: SweepDataset, config: UltronConfig, timer: StageTimer, device=None
+    fn, dataset: SweepDataset, config: MeshingConfig, timer: StageTimer, device=None
 ) -> tuple:
     """Evaluate ``fn`` on the scan grid inside the field of view and extract the surface;
     returns (mesh, occupancy volume, the volume's grid). ``device``: where ``fn`` computes,
@@ -362,7 +387,7 @@ def reconstruct_ultron(
             data, occupancy_config, progress=timer.fit_progress, device=device
         )
     fn = occupancy_function(fitted, network, config.context)
-    mesh, volume, grid = mesh_occupancy(fn, dataset, config, timer, module_device(network))
+    mesh, volume, grid = mesh_occupancy(fn, dataset, config.meshing, timer, module_device(network))
     with timer.stage("mesh_observed"):
         observation = keep_observed_surface(
             mesh, dataset, fitted, config, grid.voxel_mm, truth, timer.counter("frames")

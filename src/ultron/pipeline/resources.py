@@ -52,7 +52,7 @@ from ultron.mesh.compounding import CHUNK_PIXELS, CompoundingConfig, compounding
 from ultron.mesh.grid import GridSpec, grid_shape
 from ultron.mesh.tiles import MAX_VOLUME_VOXELS, reached_tiles, tile_for_factor, volume_factor
 from ultron.methods.ultron_method import (
-    UltronConfig,
+    MeshingConfig,
     elevation_half_thickness_mm,
     scan_grid,
     scan_voxel_mm,
@@ -168,7 +168,7 @@ def meshing_memory(dataset: SweepDataset, voxel_mm: float | None) -> MeshingMemo
     fov, volume = n_voxels, n_voxels
     if n_voxels <= MAX_COUNTED_VOXELS:
         grid = scan_grid(dataset, voxel)
-        factor = UltronConfig().coarse_factor
+        factor = MeshingConfig().coarse_factor
         tile = tile_for_factor(factor)
         half = elevation_half_thickness_mm(dataset, voxel)
         tiles = reached_tiles(grid, dataset.all_poses(), dataset.probe, half, tile, factor)
