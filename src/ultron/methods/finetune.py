@@ -26,7 +26,6 @@ the fine-tuned ``network.pt`` (itself a valid MODEL_DIR).
 from __future__ import annotations
 
 import copy
-import math
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -135,12 +134,12 @@ def check_theta_model(network: nn.Module, meta: dict[str, Any], fitted, where: s
         raise UltronInputError(
             where, "theta_channels", f"the model takes {channels}, the field gives {list(fitted.channels)}"
         )  # fmt: skip
-    outer = meta.get("label_outer_side_mm", 0.0)
-    if isinstance(outer, bool) or not isinstance(outer, int | float) or not 0 <= outer < math.inf:
-        raise UltronInputError(
-            where, "label_outer_side_mm", f"expected a finite number ≥ 0 (mm), got {outer!r:.60}"
-        )
-    model = ThetaModel.from_meta(meta)
+    try:
+        model = ThetaModel.from_meta(meta)
+    except UltronInputError as exc:  # a recorded entry ThetaModel refuses: name the file
+        if exc.where != "argument":
+            raise
+        raise UltronInputError(where, exc.field, exc.problem) from None
     expected = model.context.n_inputs(len(channels))
     if network.config.in_dim != expected:
         raise UltronInputError(

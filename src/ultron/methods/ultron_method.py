@@ -73,6 +73,16 @@ from ultron.train.visibility import (
 )
 
 
+def check_outer_side_mm(value: object) -> None:
+    """``label_outer_side_mm`` (UltrON's settings, a network's recorded meta) must be a finite
+    number ≥ 0 (mm); otherwise an error naming it."""
+    number = isinstance(value, int | float) and not isinstance(value, bool)
+    if not (number and math.isfinite(value) and value >= 0):
+        raise argument_error(
+            "label_outer_side_mm", f"expected a finite number ≥ 0 (mm), got {value!r:.60}"
+        )
+
+
 @dataclass(frozen=True)
 class MeshingConfig:
     """How an occupancy function is meshed (:func:`mesh_occupancy`): the voxel (None: the
@@ -124,11 +134,7 @@ class UltronConfig:
                 "echo_support",
                 f"expected an EchoSupportConfig or None, got {type(self.echo_support).__name__}",
             )
-        if not (math.isfinite(self.label_outer_side_mm) and self.label_outer_side_mm >= 0):
-            raise argument_error(
-                "label_outer_side_mm",
-                f"expected a finite value ≥ 0, got {self.label_outer_side_mm}",
-            )
+        check_outer_side_mm(self.label_outer_side_mm)
         _ = self.meshing  # its checks (MeshingConfig)
 
     @property
@@ -149,6 +155,10 @@ class ThetaModel:
     negatives: str = "observed"
     label_outer_side_mm: float = OUTER_SIDE_MM
 
+    def __post_init__(self) -> None:
+        check_outer_side_mm(self.label_outer_side_mm)
+        object.__setattr__(self, "label_outer_side_mm", float(self.label_outer_side_mm))
+
     def to_meta(self, channels: Sequence[str], visibility: VisibilityConfig) -> dict[str, Any]:
         """The ``meta`` of the network's ``network.pt`` (θ ``channels``, T's source)."""
         return {
@@ -165,13 +175,14 @@ class ThetaModel:
     @classmethod
     def from_meta(cls, meta: dict[str, Any]) -> ThetaModel:
         """From ``network.pt``'s meta; missing keys are the pre-context defaults (θ alone,
-        balanced loss, background labels weighted by T, labels read as stored)."""
+        balanced loss, background labels weighted by T, labels read as stored); a bad entry
+        is an argument error naming it."""
         return cls(
             loss=meta.get("loss", "ultron"),
             context=ThetaContextConfig.from_dict(meta.get("theta_context")),
             positive_weight=meta.get("positive_weight"),
             negatives=meta.get("negatives", "weighted"),
-            label_outer_side_mm=float(meta.get("label_outer_side_mm", 0.0)),
+            label_outer_side_mm=meta.get("label_outer_side_mm", 0.0),
         )
 
 
