@@ -442,3 +442,20 @@ def test_preview_draws_pixels_where_the_geometry_puts_them(tiny_dataset: SweepDa
     assert png.startswith(b"\x89PNG\r\n\x1a\n")
     with pytest.raises(UltronInputError, match="frames_per_sweep"):
         preview_png(tiny_dataset, frames_per_sweep=0)
+
+
+def test_simulate_to_writes_the_dataset_and_its_preview(tmp_path):
+    from ultron.pipeline.simulate import simulate_to
+
+    config = SimulationConfig(sweeps=("row",), scan=ScanConfig(frames_per_sweep=3), voxel_mm=0.6)
+    config = config.replace(height_px=32, width_px=24)
+    result = simulate_to(config, tmp_path / "sim", preview=True)
+    assert result.out == tmp_path / "sim" and result.seconds > 0
+    assert SweepDataset.load(tmp_path / "sim").n_frames == result.dataset.n_frames == 3
+    assert result.preview == tmp_path / "sim" / "preview.png"
+    assert result.preview.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert simulate_to(config, tmp_path / "plain").preview is None
+    assert not (tmp_path / "plain" / "preview.png").exists()
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(UltronInputError, match=r"file: --out: exists and is not a directory"):
+        simulate_to(config, tmp_path / "file")

@@ -19,7 +19,7 @@ from ultron.cli.common import (
 )
 
 if TYPE_CHECKING:
-    from ultron.data.dataset import SweepDataset
+    from ultron.pipeline.simulate import SimulatedDataset
 
 
 def _check_numbers(
@@ -135,19 +135,8 @@ def simulate(
         seed, frames, step_mm, probe_width_mm, depth_mm, height_px, width_px, pose_noise_mm,
         pose_noise_deg, label_noise_mm, label_missing, label_errors, voxel_mm,
     )  # fmt: skip
-    from ultron.outputs import check_output_dir
-
-    check_output_dir(out)
-
-    import time
-
-    from ultron.phantom import (
-        AnnotationConfig,
-        ScanConfig,
-        SimulationConfig,
-        TrackingNoise,
-        simulate_dataset,
-    )
+    from ultron.phantom import AnnotationConfig, ScanConfig, SimulationConfig, TrackingNoise
+    from ultron.pipeline.simulate import simulate_to
 
     config = SimulationConfig(
         phantom=phantom,
@@ -164,23 +153,18 @@ def simulate(
             jitter_mm=label_noise_mm, missing_fraction=label_missing, error_rate=label_errors
         ),
     )
-    start = time.perf_counter()
     with stage_progress("simulating") as report:
-        dataset = simulate_dataset(config, out=out, progress=report)
-    _print_written(dataset, phantom, out, time.perf_counter() - start, preview)
+        result = simulate_to(config, out, preview, progress=report)
+    _print_written(result, phantom)
 
 
-def _print_written(
-    dataset: SweepDataset, phantom: str, out: Path, elapsed_s: float, preview: bool
-) -> None:
-    """What ``simulate`` wrote (and OUT/preview.png, written here when asked)."""
-    from ultron.phantom.preview import write_preview
-
-    probe = dataset.probe
+def _print_written(result: SimulatedDataset, phantom: str) -> None:
+    """What ``simulate`` wrote."""
+    dataset, out, probe = result.dataset, result.out, result.dataset.probe
     console.print(
         f"simulated {phantom}: {len(dataset.sweeps)} sweeps, {dataset.n_frames} frames of"
         f" {probe.height_px}×{probe.width_px} ({probe.width_mm:g} mm × {probe.depth_mm:g} mm)"
-        f" in {elapsed_s:.1f} s → {out}",
+        f" in {result.seconds:.1f} s → {out}",
         highlight=False,
         soft_wrap=True,
     )
@@ -192,9 +176,8 @@ def _print_written(
         highlight=False,
         soft_wrap=True,
     )
-    if preview:
-        path = write_preview(dataset, out / "preview.png")
-        console.print(f"preview: {path}", highlight=False, soft_wrap=True)
+    if result.preview is not None:
+        console.print(f"preview: {result.preview}", highlight=False, soft_wrap=True)
 
 
 def register(app: typer.Typer) -> None:
