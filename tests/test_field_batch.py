@@ -133,25 +133,50 @@ def test_field_loss_is_device_work_alone(tiny_l3, scatterers, prior, hold, paper
     assert total.device == META and not loss.requires_grad and not mse.requires_grad
 
 
-def test_a_failed_capture_warns_and_fits_eagerly(tiny_l3):
-    """Where no CUDA graph can be captured (here: a CPU build, whose CUDAGraph cannot be
-    made), the objective says why in one warning and computes the eager loss."""
-    dataset = SweepDataset.load(tiny_l3)
+def _objective_inputs(dataset_dir, device: torch.device):
+    """A tiny field on ``device``, its fit config and step, and one batch's inputs there."""
+    dataset = SweepDataset.load(dataset_dir)
     config = quick_field_config(confidence_prior_weight=0.0)
     cube = UnitCube((0.0, 20.0, 0.0), 40.0)
     module, _ = build_field(config.field, cube.half_extent_mm, 0.5, seed=0)
-    frames = FrameSet.from_dataset(dataset, None, config.holdout_every)
+    frames = FrameSet.from_dataset(dataset, None, config.holdout_every).to(device)
+    module = module.to(device)
     batch = draw_batch(module, frames, cube, config, torch.Generator().manual_seed(0))
-    inputs = batch_inputs(batch, frames, config, torch.device("cpu"))
-    step_mm = frames.probe.axial_spacing_mm
-    with pytest.warns(RuntimeWarning, match="CUDA graph capture failed") as caught:
-        graphed = FieldObjective(module, config.render, config, step_mm, graphs=True)(inputs)
-    assert len(caught) == 1
+    inputs = batch_inputs(batch, frames, config, device)
+    return module, config, frames.probe.axial_spacing_mm, inputs
+
+
+def _fallback_equals_eager(module, config, step_mm, inputs, reason: str) -> None:
+    with pytest.warns(RuntimeWarning, match=f"CUDA graph capture failed.*{reason}") as caught:
+        objective = FieldObjective(module, config.render, config, step_mm, graphs=True)
+        graphed = objective(inputs)
+        objective(inputs)  # the fall-back is remembered: no second capture, no second warning
+    assert len(caught) == 1 and not objective.graphed
     eager = FieldObjective(module, config.render, config, step_mm)(inputs)
     assert all(torch.equal(a, b) for a, b in zip(graphed, eager, strict=True))
 
 
+def test_graphs_asked_for_a_cpu_field_warn_and_fit_eagerly(tiny_l3):
+    """A field that is not on a CUDA device cannot be captured, on any build (a CUDA build
+    would otherwise record its CPU work as an empty graph): one warning, the eager loss."""
+    parts = _objective_inputs(tiny_l3, torch.device("cpu"))
+    _fallback_equals_eager(*parts, reason="the field is on cpu, not a CUDA device")
+
+
 # ---------------------------------------------------------------------------------- GPU
+@pytest.mark.skipif(NO_CUDA, reason="needs a CUDA device")
+def test_a_failed_capture_on_cuda_warns_and_fits_eagerly(tiny_l3, monkeypatch):
+    """An operation a CUDA graph cannot capture (here: the capture made to raise as PyTorch
+    does) leaves a CUDA fit eager, with one warning quoting PyTorch's first line."""
+
+    def refuse(*args, **kwargs):
+        raise RuntimeError("operation not permitted when stream is capturing\nmore detail")
+
+    monkeypatch.setattr(torch.cuda, "make_graphed_callables", refuse)
+    parts = _objective_inputs(tiny_l3, torch.device("cuda"))
+    _fallback_equals_eager(*parts, reason="operation not permitted when stream is capturing")
+
+
 @pytest.mark.skipif(NO_CUDA, reason="needs a CUDA device")
 @pytest.mark.parametrize("preset", ["fast", "paper"])
 def test_graphed_fit_steps_equal_the_eager_ones_on_cuda(tiny_l3, preset):

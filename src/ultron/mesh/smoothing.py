@@ -144,8 +144,10 @@ def projected_jacobi(
 def _torch_csr(matrix: sparse.csr_matrix) -> torch.Tensor:
     """``matrix`` as a torch CSR tensor (32-bit indices where they fit: the faster kernel)."""
     index = np.int32 if matrix.nnz < np.iinfo(np.int32).max else np.int64
-    with warnings.catch_warnings():  # "Sparse CSR tensor support is in beta state"
-        warnings.filterwarnings("ignore", message="Sparse CSR tensor support", category=UserWarning)
+    with warnings.catch_warnings():  # "… is in beta state"; "Sparse invariant checks are
+        # implicitly disabled" (torch 2.11, although check_invariants is given)
+        for message in ("Sparse CSR tensor support", "Sparse invariant checks"):
+            warnings.filterwarnings("ignore", message=message, category=UserWarning)
         return torch.sparse_csr_tensor(
             torch.from_numpy(matrix.indptr.astype(index)),
             torch.from_numpy(matrix.indices.astype(index)),

@@ -12,7 +12,6 @@ graphed loss compute the same thing from the same batch.
 
 from __future__ import annotations
 
-import contextlib
 import warnings
 from dataclasses import dataclass, replace
 
@@ -245,30 +244,35 @@ class FieldObjective:
         return self._eager[hold_scattering]
 
     def _capture(self, inputs: dict[str, torch.Tensor], hold_scattering: float | None) -> None:
+        if self._device.type != "cuda":  # a CUDA build would "capture" CPU work as no kernels
+            self._fall_back(f"the field is on {self._device}, not a CUDA device")
+            return
         names = _names(inputs)
         sample = tuple(inputs[name].clone() for name in names)
         positional = _Positional(self._loss(hold_scattering), names)
-        cuda = self._device.type == "cuda"
+        # The capture makes the parameters' gradient accumulators on its own stream (its warm-up
+        # backward already does), and its outputs keep them; the replayed backward's gradients
+        # reach them in order, so PyTorch's warning that their streams differ (on stderr from
+        # the warm-up on) says nothing here.
+        quiet = getattr(torch.autograd.graph, "set_warn_on_accumulate_grad_stream_mismatch", None)
+        if quiet is not None:
+            quiet(False)
         try:
-            with torch.cuda.device(self._device) if cuda else contextlib.nullcontext():
+            with torch.cuda.device(self._device):
                 self._graphed[hold_scattering] = torch.cuda.make_graphed_callables(
                     positional, sample, allow_unused_input=True
                 )
-            # The capture made the parameters' gradient accumulators on its own stream, and its
-            # outputs keep them; the replayed backward's gradients reach them already in order,
-            # so PyTorch's warning that their streams differ says nothing here.
-            quiet = getattr(
-                torch.autograd.graph, "set_warn_on_accumulate_grad_stream_mismatch", None
-            )
-            if quiet is not None:
-                quiet(False)
         except RuntimeError as error:  # an operation that a CUDA graph cannot capture
-            self.failed = str(error).splitlines()[0][:200]
-            warnings.warn(
-                f"field fit: CUDA graph capture failed ({self.failed}); fitting without graphs",
-                RuntimeWarning,
-                stacklevel=3,
-            )
+            self._fall_back(str(error).splitlines()[0][:200])
+
+    def _fall_back(self, reason: str) -> None:
+        """Fit eagerly from now on, saying why in one warning."""
+        self.failed = reason
+        warnings.warn(
+            f"field fit: CUDA graph capture failed ({reason}); fitting without graphs",
+            RuntimeWarning,
+            stacklevel=4,
+        )
 
 
 def _names(inputs: dict[str, torch.Tensor]) -> tuple[str, ...]:
