@@ -77,7 +77,9 @@ def test_the_memory_a_run_plans_for_respects_the_address_space_limit() -> None:
     # build of torch and a many-threaded OpenBLAS map gigabytes before any work).
     code = "from ultron.pipeline.resources import memory_limit; "
     probe = code + "print(open('/proc/self/statm').read())"
-    mapped = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True)
+    mapped = subprocess.run(
+        [sys.executable, "-c", probe], capture_output=True, text=True, check=True, timeout=300
+    )
     limit_bytes = int(mapped.stdout.split()[0]) * resource.getpagesize() + 4 * 1024**3
     code += "limit, name = memory_limit(); print(limit); print(name)"
     result = _run_limited(f"-v {limit_bytes // 1024}", code)
