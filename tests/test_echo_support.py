@@ -122,3 +122,39 @@ def test_the_frame_that_shows_bone_need_not_be_the_one_that_observed():
     # shown as bone but lit in no frame: not observed
     dark = np.zeros_like(lit_then_dark)
     assert not observed_points(*args, dark, 0.5, support=echo_in_1).any()
+
+
+def test_the_labelled_surface_is_observed_within_the_support_distance():
+    plate, poses, t_maps = _plate_seen_from_above(depth_mm=LINE_ROW * 0.5)
+    dark = np.zeros_like(t_maps)  # no beam reaches the plate: no frame observes it
+    vertices = np.asarray(plate.vertices)
+    corner = vertices[np.argmax(vertices[:, 0] + vertices[:, 1] + vertices[:, 2])]
+    label = (corner + np.array([0.0, 0.0, 0.7]))[None]  # 0.7 mm above one top corner
+    near = np.linalg.norm(vertices - label, axis=1) <= 1.0  # 0.7, 0.81, 0.8, 0.89 mm: 4 corners
+    assert near.sum() == 4
+    config = ObservedSurfaceConfig(label_support_mm=1.0)
+    seen = observe_surface(plate, poses, PROBE, dark, 0.5, config, "field", None, label)
+    assert (seen.observed == near).all() and seen.info["label_supported_vertices"] == 4
+    tight = observe_surface(
+        plate, poses, PROBE, dark, 0.5, ObservedSurfaceConfig(label_support_mm=0.75), "field",
+        None, label,
+    )  # fmt: skip
+    assert tight.observed.sum() == 1
+    off = ObservedSurfaceConfig(label_support_mm=0.0)
+    assert not observe_surface(
+        plate, poses, PROBE, dark, 0.5, off, "field", None, label
+    ).observed.any()
+    unlabelled = observe_surface(plate, poses, PROBE, dark, 0.5, config, "field")
+    assert not unlabelled.observed.any() and "label_supported_vertices" not in unlabelled.info
+    assert unlabelled.info["surface"]["label_support_mm"] == 0  # what was applied
+    assert seen.info["surface"]["label_support_mm"] == 1.0
+    lit = observe_surface(plate, poses, PROBE, t_maps, 0.5, config, "field", None, label)
+    top = vertices[:, 2] > -LINE_ROW * 0.5  # what the lit frame observes (facing the probe)
+    assert (lit.observed == (top | near)).all()
+    assert lit.info["label_supported_vertices"] == np.count_nonzero(near & ~top) == 2
+
+
+@pytest.mark.parametrize("value", [-1.0, float("nan"), float("inf"), True, "1"])
+def test_a_bad_label_support_distance_names_it(value):
+    with pytest.raises(UltronInputError, match="label_support_mm"):
+        ObservedSurfaceConfig(label_support_mm=value)

@@ -8,8 +8,10 @@ import pytest
 from conftest import make_pose
 from ultron.data.dataset import ProbeGeometry, Sweep, SweepDataset
 from ultron.data.labels import (
+    FrameSelection,
     count_labelled_pixels,
     gather_labelled_pixels,
+    labelled_surface_points_mm,
     select_label_frames,
     surface_outer_side,
 )
@@ -153,3 +155,27 @@ def test_gathered_outer_side_reads_as_background(dataset):
     for bad in (-1.0, float("nan"), "2"):
         with pytest.raises(UltronInputError, match="outer_side_mm"):
             gather_labelled_pixels(gapped, selection, outer_side_mm=bad)
+
+
+def test_labelled_surface_points_are_the_top_of_each_bone_band():
+    probe = ProbeGeometry(5.0, 4.0, 4, 5)  # 1 mm pixels: pixel (r, c) at x = c − 2.5, y = r
+    labels = np.full((3, 4, 5), 255, np.uint8)
+    labels[0, 1:3, 3] = 1  # a band whose top is row 1
+    labels[0, 0, 0] = 1  # a band that starts at the transducer
+    labels[0, [0, 2, 3], 4] = 1  # two bands in one column ...
+    labels[0, 1, 4] = 0  # ... with background between them
+    labels[1, 0, :] = 0  # a selected frame without bone
+    labels[2, 3, 1] = 1  # bone in a frame that is not selected
+    poses = np.stack([make_pose(translation=(0.0, 0.0, float(i))) for i in range(3)])
+    data = SweepDataset(probe, [Sweep("a", "row", np.zeros((3, 4, 5), np.uint8), poses, labels)])
+    points = labelled_surface_points_mm(data, FrameSelection(0.5, 0, {"a": np.array([0, 1])}))
+    got = sorted(map(tuple, points.round(9).tolist()))
+    assert got == [(-2.5, 0.0, 0.0), (0.5, 1.0, 0.0), (1.5, 0.0, 0.0), (1.5, 2.0, 0.0)]
+    assert labelled_surface_points_mm(
+        data, FrameSelection(0.5, 0, {"a": np.array([2])})
+    ).tolist() == [[-1.5, 3.0, 2.0]]
+    assert labelled_surface_points_mm(data, FrameSelection(0.5, 0, {"a": np.array([1])})).shape == (
+        0,
+        3,
+    )
+    assert labelled_surface_points_mm(data, None).shape == (0, 3)

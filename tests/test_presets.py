@@ -47,7 +47,9 @@ def test_paper_preset_is_the_papers_configuration():
     assert preset.ultron.context.radii_mm == ()  # θ(x) alone
     assert preset.ultron.observed.surface == "all"
     assert preset.ultron.echo_support is None and preset.ultron.label_outer_side_mm == 0
+    assert preset.ultron.observed.label_support_mm == 0
     assert pipeline_preset("fast").ultron.echo_support is not None  # ultron's own crop
+    assert pipeline_preset("fast").ultron.observed.label_support_mm == 1.0
     assert preset.on.occupancy.iters == 50_000 and preset.rocosdf_preset == "paper"
 
 
@@ -87,6 +89,7 @@ def test_request_takes_the_preset_and_options_win():
     assert preset_request(visibility="labels").method_config.visibility.source == "labels"
     assert preset_request(oracle=True).method_config.visibility.source == "oracle"
     assert preset_request(echo_support=False).method_config.echo_support is None
+    assert preset_request(label_support_mm=0.5).method_config.observed.label_support_mm == 0.5
     on_again = preset_request("paper", "ultron", echo_support=True).method_config.echo_support
     assert on_again is not None and on_again == pipeline_preset("fast").ultron.echo_support
     fast = preset_request()
@@ -153,3 +156,26 @@ def test_cli_echo_support_flag_wins_over_the_preset(
     result = CliRunner().invoke(app, args)
     assert result.exit_code == 0, result.output
     assert (seen["request"].method_config.echo_support is not None) is expected
+
+
+@pytest.mark.parametrize(("value", "expected"), [("0", 0.0), ("2.5", 2.5), ("-1", None)])
+def test_cli_label_support_reaches_the_request_or_exits_2(
+    value, expected, tmp_path: Path, monkeypatch
+):
+    import ultron.pipeline.run
+
+    seen = {}
+
+    def fake_run(dataset, request, out, *args, **kwargs):
+        seen["request"] = request
+        return {"metrics": None, "timings_s": {}}
+
+    monkeypatch.setattr(ultron.pipeline.run, "reconstruct", fake_run)
+    args = ["reconstruct", str(tmp_path), "--out", str(tmp_path / "o"), "--label-support", value]
+    result = CliRunner().invoke(app, args)
+    if expected is None:
+        assert result.exit_code == 2 and "--label-support" in result.output
+        assert "request" not in seen
+    else:
+        assert result.exit_code == 0, result.output
+        assert seen["request"].method_config.observed.label_support_mm == expected

@@ -140,6 +140,15 @@ EchoSupport = Annotated[
         " a shadow within ±1 mm (default: the preset's: on; paper: off).",
     ),
 ]
+LabelSupport = Annotated[
+    float | None,
+    typer.Option(
+        "--label-support",
+        metavar="MM",
+        help="ultron*: surface within MM of a labelled bone surface counts as observed"
+        " (default: the preset's: 1 mm; paper: 0, off).",
+    ),
+]
 AllowOtherField = Annotated[
     bool,
     typer.Option(
@@ -191,6 +200,7 @@ def reconstruct(
     positive_weight: PositiveWeight = None,
     negatives: Negatives = None,
     echo_support: EchoSupport = None,
+    label_support: LabelSupport = None,
     allow_other_field: AllowOtherField = False,
     max_memory: MaxMemory = None,
     mesh_coordinates: MeshCoordinates = "lps",
@@ -204,6 +214,7 @@ def reconstruct(
     apply_threads(threads)
     _check_common(label_fraction, seed, field_iters, points, max_memory)
     check_count("--occupancy-iters", occupancy_iters, 0)
+    check_range("--label-support", label_support, low=0.0)
     check_choice("--mesh-coordinates", mesh_coordinates, MESH_COORDINATES)
     device = check_device(device)
 
@@ -217,7 +228,8 @@ def reconstruct(
         preset, method, label_fraction, seed, points=points, occupancy_iters=occupancy_iters,
         visibility=visibility, oracle=oracle_transmission, surface=surface,
         theta_context=theta_context, positive_weight=positive_weight, negatives=negatives,
-        echo_support=echo_support, mesh_coordinates=mesh_coordinates, device=device,
+        echo_support=echo_support, label_support_mm=label_support,
+        mesh_coordinates=mesh_coordinates, device=device,
     )  # fmt: skip
     lines = StageLines()
     with _field_progress() as update:

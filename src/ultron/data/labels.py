@@ -301,3 +301,26 @@ def bone_points_mm(dataset: SweepDataset, selection: FrameSelection | None) -> n
     except UltronInputError:  # the selected frames have no annotated pixel
         return np.zeros((0, 3))
     return pixels.world_mm(dataset)
+
+
+def labelled_surface_points_mm(
+    dataset: SweepDataset, selection: FrameSelection | None
+) -> np.ndarray:
+    """World positions (P, 3) float64 mm of the labelled surface in the selected frames: the top
+    pixel of every band of bone labels, i.e. each bone pixel (r, c) whose upper neighbour
+    (r − 1, c) is not bone (or r = 0) — where the annotation convention puts the surface
+    (:func:`surface_outer_side`). (0, 3) when ``selection`` is None or holds no bone label."""
+    parts: list[tuple[np.ndarray, ...]] = []
+    if selection is None:
+        return np.zeros((0, 3))
+    for sweep_index, frames, labels in _selected_labels(dataset, selection):
+        bone = labels == LABEL_TARGET
+        top = bone.copy()
+        top[..., 1:, :] &= ~bone[..., :-1, :]
+        f, r, c = np.nonzero(top)
+        parts.append((np.full(f.shape, sweep_index), frames[f], r, c))
+    if sum(p[0].size for p in parts) == 0:
+        return np.zeros((0, 3))
+    cat = [np.concatenate(p).astype(np.int64) for p in zip(*parts, strict=True)]
+    pixels = LabelledPixels(*cat, label=np.ones(cat[0].shape, dtype=np.uint8))
+    return pixels.world_mm(dataset)

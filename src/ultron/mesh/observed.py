@@ -18,6 +18,13 @@ transducer, whose support map is true at the point's pixel (row ⌊p_y/Δ⌉) �
 frame that observed it (each test errs with the tracked pose; requiring both of one frame
 dropped true surface on the simulated L3, docs/real-sweeps.md).
 
+With label support (``label_support_mm`` > 0 and the labelled surface given, UltrON's default)
+a point within that distance of the labelled surface — the top edge of a band of bone labels
+in a frame the method trained on (:func:`~ultron.data.labels.labelled_surface_points_mm`) — is
+observed as well: the annotator saw bone there. The field's T decays with depth through real
+tissue, so a deep wall the annotator labelled can fall below ``min_transmission`` (figures in
+docs/real-sweeps.md).
+
 A point is observed when some frame observes it. This is the criterion the simulated labels
 follow (a visible echo under an unshadowed beam), so with the simulator's true T it gives the
 part of the reference that *can* be seen; with the transmission a reconstruction estimated,
@@ -38,12 +45,15 @@ import torch
 from ultron.data.dataset import ProbeGeometry
 from ultron.data.geometry import as_pose_tensor, probe_mm_to_pixel
 from ultron.errors import argument_error
+from ultron.mesh.evidence import nearest_distance_mm
 
 _FRAMES_PER_CHUNK = 8
 
 #: Defaults of the criterion: the simulated annotator's (incidence ≤ 70°, T ≥ 0.3).
 DEFAULT_MAX_INCIDENCE_DEG = 70.0
 DEFAULT_MIN_TRANSMISSION = 0.3
+#: Distance (mm) from the labelled surface within which a point counts as observed.
+DEFAULT_LABEL_SUPPORT_MM = 1.0
 #: What a reconstruction keeps of its surface: only the observed part, or all of it.
 SURFACES = ("observed", "all")
 
@@ -51,11 +61,14 @@ SURFACES = ("observed", "all")
 @dataclass(frozen=True)
 class ObservedSurfaceConfig:
     """Which part of a reconstructed surface is kept: ``observed`` (the faces whose vertices
-    some frame observes, by this criterion) or ``all`` (the closed iso-surface as extracted)."""
+    some frame observes, by this criterion) or ``all`` (the closed iso-surface as extracted).
+    ``label_support_mm``: how close to the labelled surface a point counts as observed (0: the
+    labels do not count; used only where the caller gives the labelled surface)."""
 
     surface: str = "observed"
     max_incidence_deg: float = DEFAULT_MAX_INCIDENCE_DEG
     min_transmission: float = DEFAULT_MIN_TRANSMISSION
+    label_support_mm: float = DEFAULT_LABEL_SUPPORT_MM
 
     def __post_init__(self) -> None:
         if self.surface not in SURFACES:
@@ -64,6 +77,11 @@ class ObservedSurfaceConfig:
             raise argument_error("max_incidence_deg", "expected an angle in [0, 90]")
         if not (math.isfinite(self.min_transmission) and 0 <= self.min_transmission <= 1):
             raise argument_error("min_transmission", "expected a value in [0, 1]")
+        support = self.label_support_mm
+        if isinstance(support, bool) or not isinstance(support, int | float):
+            raise argument_error("label_support_mm", f"expected a distance in mm, got {support!r}")
+        if not (math.isfinite(support) and support >= 0):
+            raise argument_error("label_support_mm", f"expected a finite value ≥ 0, got {support}")
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -245,9 +263,14 @@ def observe_surface(
     config: ObservedSurfaceConfig,
     source: str,
     support: np.ndarray | None = None,
+    labelled_surface_mm: np.ndarray | None = None,
 ) -> SurfaceObservation:
     """Which vertices of ``mesh`` some frame observed, and the part kept by ``config.surface``.
     ``support``: each frame's echo support, as in :func:`observed_points`.
+    ``labelled_surface_mm`` (P, 3): the labelled surface, whose neighbourhood within
+    ``config.label_support_mm`` counts as observed (module docstring); None: the labels do not
+    count (``info["surface"]`` then records 0). ``info["label_supported_vertices"]`` counts the
+    vertices only it observes.
 
     ``transmission`` is T per frame as in :func:`observed_points`, or None for T ≡ 1 (a method
     without a transmission: a vertex is then observed when some frame's beam faces it);
@@ -257,7 +280,10 @@ def observe_surface(
     """
     poses = as_pose_tensor(probe_to_world)
     vertices = np.asarray(mesh.vertices, dtype=np.float64).reshape(-1, 3)
-    info: dict[str, Any] = {"surface": config.to_dict(), "faces_extracted": len(mesh.faces)}
+    surface = config.to_dict()
+    if labelled_surface_mm is None:
+        surface["label_support_mm"] = 0.0  # what was applied: no labelled surface given
+    info: dict[str, Any] = {"surface": surface, "faces_extracted": len(mesh.faces)}
     info["observation_transmission"] = source
     info["echo_support"] = support is not None
     everything = np.arange(len(vertices), dtype=np.int64)
@@ -271,6 +297,10 @@ def observe_surface(
         vertices, np.asarray(mesh.vertex_normals), poses, probe, transmission,
         slab_half_thickness_mm, config.max_incidence_deg, config.min_transmission, support,
     )  # fmt: skip
+    if labelled_surface_mm is not None and config.label_support_mm > 0:
+        near = nearest_distance_mm(vertices, labelled_surface_mm) <= config.label_support_mm
+        info["label_supported_vertices"] = int(np.count_nonzero(near & ~observed))
+        observed = observed | near
     if config.surface == "all":
         return SurfaceObservation(
             mesh, observed, mesh, everything, info | {"faces_kept": len(mesh.faces)}

@@ -204,7 +204,9 @@ def finetune_ultron(
     )  # fmt: skip
     with timer.stage("mesh_observed"):
         meshing = replace(config.meshing, visibility=visibility)
-        observation = keep_observed_surface(mesh, dataset, fitted, meshing, grid.voxel_mm, truth)
+        observation = keep_observed_surface(
+            mesh, dataset, fitted, meshing, grid.voxel_mm, truth, selection=selection
+        )
     info |= observation.info
     info["grid"] = grid.to_dict()
     meta = spec.to_meta(fitted.channels, visibility)

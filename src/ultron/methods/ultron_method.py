@@ -18,7 +18,9 @@
    saw facing the probe with a transmission ≥ 0.3 above them and, with ``echo_support`` (the
    default), that some frame shows as bone — an echo ``label --auto``'s detector scores as bone
    or a deep shadow beginning under it (:mod:`ultron.mesh.echo_support`): a surface f(θ) puts in
-   lit soft tissue that no frame shows as bone is not observed. With a working T the
+   lit soft tissue that no frame shows as bone is not observed. So are the faces within 1 mm
+   of the labelled surface of the frames f trained on (``observed.label_support_mm``): the
+   annotator saw bone there, even where the field's T has decayed. With a working T the
    compensated loss leaves f unconstrained in deep shadow *by design* (the paper's Fig. 1c: the
    shape is defined only where it was observed), so f(θ) may call a whole shadow column bone;
    its walls and floors are surface nobody observed, and are dropped. The occupancy volume
@@ -45,6 +47,7 @@ from ultron.data.labels import (
     OUTER_SIDE_MM,
     FrameSelection,
     gather_labelled_pixels,
+    labelled_surface_points_mm,
     select_label_frames,
 )
 from ultron.data.resolution import resolved_spacing_mm
@@ -330,17 +333,20 @@ def keep_observed_surface(
     voxel_mm: float,
     truth: Mapping[str, np.ndarray] | None = None,
     advance: Advanced | None = None,
+    selection: FrameSelection | None = None,
 ) -> SurfaceObservation:
     """Which vertices of ``mesh`` some frame observed, and the part kept (module docstring,
     step 5; :func:`~ultron.mesh.observed.observe_surface`). ``advance`` is told the frames
-    whose T is rendered so far, of all frames.
+    whose T is rendered so far, of all frames. ``selection``: the frames whose labels the
+    network trained on; their labelled surface counts as observed within
+    ``config.observed.label_support_mm`` (None: the labels do not count).
 
     Each frame's T comes from the oracle (diagnostic runs) or the fitted field; the elevational
     slab is the one the field-of-view mask uses (0.75 × the frame gap, ≥ one voxel of the
     meshing grid, ``voxel_mm``).
     """
     source = "oracle" if config.visibility.source == "oracle" else "field"
-    maps = support = None
+    maps = support = labelled = None
     if len(mesh.faces):
         visibility = replace(config.visibility, source=source)
         total, maps = dataset.n_frames, []
@@ -351,6 +357,8 @@ def keep_observed_surface(
                                            truth=truth, advance=counted))  # fmt: skip
         if config.echo_support is not None:
             support = echo_support_maps(dataset, config.echo_support)
+        if selection is not None and config.observed.label_support_mm > 0:
+            labelled = labelled_surface_points_mm(dataset, selection)
     return observe_surface(
         mesh,
         dataset.all_poses(),
@@ -360,6 +368,7 @@ def keep_observed_surface(
         config.observed,
         source,
         support,
+        labelled,
     )
 
 
@@ -401,8 +410,9 @@ def reconstruct_ultron(
     mesh, volume, grid = mesh_occupancy(fn, dataset, config.meshing, timer, module_device(network))
     with timer.stage("mesh_observed"):
         observation = keep_observed_surface(
-            mesh, dataset, fitted, config, grid.voxel_mm, truth, timer.counter("frames")
-        )
+            mesh, dataset, fitted, config, grid.voxel_mm, truth, timer.counter("frames"),
+            selection,
+        )  # fmt: skip
     info = {
         **observation.info,
         "selection": selection.to_dict(),

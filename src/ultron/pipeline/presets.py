@@ -71,7 +71,7 @@ def pipeline_preset(name: str = "fast", seed: int = 0) -> PipelinePreset:
     ultron = UltronConfig(
         occupancy=occupancy,
         context=ThetaContextConfig(radii_mm=()),
-        observed=ObservedSurfaceConfig(surface="all"),
+        observed=ObservedSurfaceConfig(surface="all", label_support_mm=0.0),
         label_outer_side_mm=0.0,
         echo_support=None,
     )
@@ -103,6 +103,7 @@ def preset_request(
     positive_weight: str | None = None,
     negatives: str | None = None,
     echo_support: bool | None = None,
+    label_support_mm: float | None = None,
     mesh_coordinates: str = "lps",
     device: str = "cpu",
 ) -> ReconstructionRequest:
@@ -111,7 +112,9 @@ def preset_request(
     source of T (:func:`~ultron.train.visibility.visibility_config`; UltrON's alone),
     ``surface``, ``theta_context`` (radii in mm, comma-separated, or ``none``),
     ``positive_weight`` (a number or ``balanced``), ``negatives``, ``echo_support`` (UltrON's
-    observed crop asks some frame to show bone, :mod:`ultron.mesh.echo_support`); metrics on
+    observed crop asks some frame to show bone, :mod:`ultron.mesh.echo_support`),
+    ``label_support_mm`` (surface that near the labelled surface counts as observed,
+    :mod:`ultron.mesh.observed`); metrics on
     ``points``
     points per surface. The request carries ``method``'s settings alone
     (:meth:`~ultron.methods.registry.Method.config_of`)."""
@@ -138,6 +141,9 @@ def preset_request(
         ultron = replace(ultron, context=ThetaContextConfig.parse(theta_context))
     if echo_support is not None:
         ultron = replace(ultron, echo_support=EchoSupportConfig() if echo_support else None)
+    if label_support_mm is not None:
+        observed = replace(ultron.observed, label_support_mm=label_support_mm)
+        ultron = replace(ultron, observed=observed)
     return ReconstructionRequest(
         method=method,
         label_fraction=label_fraction,
