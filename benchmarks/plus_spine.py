@@ -13,7 +13,10 @@ own (``os.wait4``'s rusage, as ``benchmarks/long_sweep.py`` measures them):
 
 For both surfaces it prints where they are against the evidence: the p95 / median distance of
 the kept surface's vertices to the nearest bone label (run.json's ``surface_evidence``; issue
-31's target: UltrON within 1.5× of compounding). Nothing is tuned here. It prints markdown and
+31's target: UltrON within 1.5× of compounding), and how many vertices lie more than 2 and 3 mm
+from every label. The percentiles fall when surface near the labels is added; the counts do
+not, so they show whether false surface was removed or only diluted (a count depends on the
+mesh's resolution: compare a method with itself across releases, not two methods). Nothing is tuned here. It prints markdown and
 writes ``OUT/plus_spine.json``; a stage whose output exists is not run again.
 
 Usage::
@@ -91,16 +94,18 @@ def main() -> None:
     log = [json.loads(line) for line in (args.out / "field" / "train_log.jsonl").open()]
     checks = [(e["step"], e["holdout_psnr"], e["holdout_ssim"]) for e in log if "holdout_psnr" in e]
     field_json = json.loads((args.out / "field" / "field.json").read_text())
-    evidence = {}
+    evidence, beyond = {}, {}
     for method in ("compounding", "ultron"):
         run = json.loads((args.out / method / "run.json").read_text())
         evidence[method] = run["surface_evidence"]["mesh"]["label_distance_mm"]
+        beyond[method] = run["surface_evidence"]["mesh"].get("vertices_beyond_mm")
     result = {
         "stages": rows,
         "fit_shape": field_json["train"]["fit_shape"],
         "held_out": checks,
         "baselines_psnr": held_out_baselines(args.out / "dataset", args.out / "field"),
         "label_distance_mm": evidence,
+        "vertices_beyond_mm": beyond,
     }
     (args.out / "plus_spine.json").write_text(json.dumps(result, indent=2))
     print("\n| stage | wall (s) | peak RSS (GiB) |\n|---|---|---|")
@@ -112,9 +117,12 @@ def main() -> None:
         print(f"| {step} | {value:.2f} | {ssim:.3f} |")
     baselines = ", ".join(f"{k} {v:.2f} dB" for k, v in result["baselines_psnr"].items())
     print(f"copying onto the held-out frames: {baselines}")
-    print("\n| surface | label distance median (mm) | p95 (mm) |\n|---|---|---|")
+    print("\n| surface | label distance median (mm) | p95 (mm) | vertices > 2 / > 3 mm |")
+    print("|---|---|---|---|")
     for method, stats in evidence.items():
-        print(f"| {method} | {stats['median']:.2f} | {stats['p95']:.2f} |")
+        far = beyond[method]  # None: a run from before run.json counted them
+        counts = "—" if far is None else f"{far['2']} / {far['3']}"
+        print(f"| {method} | {stats['median']:.2f} | {stats['p95']:.2f} | {counts} |")
     ratio = evidence["ultron"]["p95"] / evidence["compounding"]["p95"]
     print(f"UltrON's p95 is {ratio:.2f}× compounding's (issue 31's target: ≤ 1.5×)")
 

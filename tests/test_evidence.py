@@ -101,6 +101,7 @@ def test_surface_evidence_summary_and_attributes() -> None:
     assert summary["vertices"] == 4 and summary["observed_share"] == 0.5
     assert summary["label_distance_mm"]["median"] == 3.0
     assert summary["label_distance_mm"]["max"] == 10.0
+    assert summary["vertices_beyond_mm"] == {"2": 2, "3": 2}  # 4 and 10 mm; 2 mm is not beyond
     attributes = evidence.vertex_attributes()
     assert attributes["observed"].dtype == np.uint8 and attributes["observed"].tolist() == [
         1, 1, 0, 0
@@ -108,6 +109,7 @@ def test_surface_evidence_summary_and_attributes() -> None:
     assert attributes["label_distance_mm"].dtype == np.float32
     no_labels = surface_evidence(vertices, np.zeros(4, bool), np.zeros((0, 3))).summary()
     assert no_labels["label_distance_mm"] is None and no_labels["observed_share"] == 0.0
+    assert no_labels["vertices_beyond_mm"] is None
     with pytest.raises(UltronError, match="observed"):
         surface_evidence(vertices, np.zeros(3, bool), vertices)
     with pytest.raises(UltronError, match="label_distance_mm"):

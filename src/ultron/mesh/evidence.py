@@ -26,6 +26,9 @@ from ultron.errors import argument_error
 
 #: The PLY vertex properties (and their types) that carry the evidence.
 VERTEX_PROPERTIES = {"observed": np.uint8, "label_distance_mm": np.float32}
+#: Distances (mm) from the labelled bone beyond which run.json counts a surface's vertices: a
+#: count, unlike the percentiles, does not fall when surface near the labels is added.
+FAR_FROM_LABELS_MM = (2.0, 3.0)
 
 
 def nearest_distance_mm(points_mm: np.ndarray, targets_mm: np.ndarray) -> np.ndarray:
@@ -68,18 +71,22 @@ class SurfaceEvidence:
 
     def summary(self) -> dict[str, Any]:
         """run.json's account: vertex count, share observed, label distance median / 95th
-        percentile / max over the vertices with a finite distance (None when there is none)."""
+        percentile / max over the vertices with a finite distance (None when there is none),
+        and how many vertices lie farther than each of :data:`FAR_FROM_LABELS_MM` from every
+        label (``vertices_beyond_mm``; None without labels)."""
         n = int(self.observed.size)
         finite = np.asarray(self.label_distance_mm, dtype=np.float64)
         finite = finite[np.isfinite(finite)]
-        stats = None
+        stats = beyond = None
         if finite.size:
             stats = {"median": float(np.median(finite)), "p95": float(np.percentile(finite, 95)),
                      "max": float(finite.max())}  # fmt: skip
+            beyond = {f"{d:g}": int(np.count_nonzero(finite > d)) for d in FAR_FROM_LABELS_MM}
         return {
             "vertices": n,
             "observed_share": float(self.observed.mean()) if n else math.nan,
             "label_distance_mm": stats,
+            "vertices_beyond_mm": beyond,
         }
 
 
