@@ -310,9 +310,9 @@ def labelled_surface_points_mm(
     pixel of every band of bone labels, i.e. each bone pixel (r, c) whose upper neighbour
     (r − 1, c) is not bone (or r = 0) — where the annotation convention puts the surface
     (:func:`surface_outer_side`). (0, 3) when ``selection`` is None or holds no bone label."""
-    parts: list[tuple[np.ndarray, ...]] = []
     if selection is None:
         return np.zeros((0, 3))
+    parts: list[tuple[np.ndarray, ...]] = []
     for sweep_index, frames, labels in _selected_labels(dataset, selection):
         bone = labels == LABEL_TARGET
         top = bone.copy()

@@ -18,9 +18,10 @@
    saw facing the probe with a transmission ≥ 0.3 above them and, with ``echo_support`` (the
    default), that some frame shows as bone — an echo ``label --auto``'s detector scores as bone
    or a deep shadow beginning under it (:mod:`ultron.mesh.echo_support`): a surface f(θ) puts in
-   lit soft tissue that no frame shows as bone is not observed. So are the faces within 1 mm
-   of the labelled surface of the frames f trained on (``observed.label_support_mm``): the
-   annotator saw bone there, even where the field's T has decayed. With a working T the
+   lit soft tissue that no frame shows as bone is not observed. The faces within 1 mm of the
+   labelled surface of the frames f trained on are observed as well
+   (``observed.label_support_mm``): the annotator saw bone there, even where the field's T has
+   decayed. With a working T the
    compensated loss leaves f unconstrained in deep shadow *by design* (the paper's Fig. 1c: the
    shape is defined only where it was observed), so f(θ) may call a whole shadow column bone;
    its walls and floors are surface nobody observed, and are dropped. The occupancy volume
