@@ -291,16 +291,22 @@ def _checked_max_pixels(max_pixels: int) -> int:
     return max_pixels
 
 
+def _bone_pixels(dataset: SweepDataset, selection: FrameSelection | None) -> LabelledPixels | None:
+    """The bone-labelled pixels (label 1) of the selected frames; None when ``selection`` is
+    None or empty or its frames have no annotated pixel."""
+    if selection is None or selection.n_frames == 0:
+        return None
+    try:
+        return gather_labelled_pixels(dataset, selection, only=LABEL_TARGET)
+    except UltronInputError:  # the selected frames have no annotated pixel
+        return None
+
+
 def bone_points_mm(dataset: SweepDataset, selection: FrameSelection | None) -> np.ndarray:
     """World positions (P, 3) float64 mm of the bone-labelled pixels (label 1) of the selected
     frames; (0, 3) when ``selection`` is None or holds no bone label."""
-    if selection is None or selection.n_frames == 0:
-        return np.zeros((0, 3))
-    try:
-        pixels = gather_labelled_pixels(dataset, selection, only=LABEL_TARGET)
-    except UltronInputError:  # the selected frames have no annotated pixel
-        return np.zeros((0, 3))
-    return pixels.world_mm(dataset)
+    pixels = _bone_pixels(dataset, selection)
+    return np.zeros((0, 3)) if pixels is None else pixels.world_mm(dataset)
 
 
 def labelled_surface_points_mm(
@@ -310,17 +316,13 @@ def labelled_surface_points_mm(
     pixel of every band of bone labels, i.e. each bone pixel (r, c) whose upper neighbour
     (r − 1, c) is not bone (or r = 0) — where the annotation convention puts the surface
     (:func:`surface_outer_side`). (0, 3) when ``selection`` is None or holds no bone label."""
-    if selection is None:
+    pixels = _bone_pixels(dataset, selection)
+    if pixels is None:
         return np.zeros((0, 3))
-    parts: list[tuple[np.ndarray, ...]] = []
-    for sweep_index, frames, labels in _selected_labels(dataset, selection):
-        bone = labels == LABEL_TARGET
-        top = bone.copy()
-        top[..., 1:, :] &= ~bone[..., :-1, :]
-        f, r, c = np.nonzero(top)
-        parts.append((np.full(f.shape, sweep_index), frames[f], r, c))
-    if sum(p[0].size for p in parts) == 0:
-        return np.zeros((0, 3))
-    cat = [np.concatenate(p).astype(np.int64) for p in zip(*parts, strict=True)]
-    pixels = LabelledPixels(*cat, label=np.ones(cat[0].shape, dtype=np.uint8))
-    return pixels.world_mm(dataset)
+    bone_above = np.zeros(len(pixels), dtype=bool)
+    for sweep_index, sweep in enumerate(dataset.sweeps):
+        pick = np.flatnonzero((pixels.sweep_index == sweep_index) & (pixels.row > 0))
+        if pick.size:
+            above = sweep.labels[pixels.frame[pick], pixels.row[pick] - 1, pixels.col[pick]]
+            bone_above[pick] = above == LABEL_TARGET
+    return pixels.world_mm(dataset, np.flatnonzero(~bone_above))
