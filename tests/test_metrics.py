@@ -362,3 +362,31 @@ def test_crop_of_everything_gives_the_empty_figures(sphere):
     result = evaluate_meshes(far, sphere, config, reference_visible=sphere)
     assert result["crop"]["area_kept_mm2"] == 0.0
     assert math.isinf(result["mean"]["cd_visible"]) and result["mean"]["fscore_visible_1mm"] == 0.0
+
+
+def test_evaluate_files_writes_beside_the_mesh_and_names_a_crop_without_its_surface(
+    sphere, tmp_path: Path
+) -> None:
+    from ultron.errors import UltronError
+    from ultron.pipeline.evaluate import evaluate_files
+
+    shifted = sphere.copy()
+    shifted.apply_translation([0.5, 0.0, 0.0])
+    mesh, reference = tmp_path / "recon.ply", tmp_path / "ref.ply"
+    shifted.export(mesh)
+    sphere.export(reference)
+    config = MetricsConfig(n_points=5_000, repeats=1, seed=0)
+    with pytest.raises(UltronError, match="--crop-mm"):
+        evaluate_files(mesh, reference, MetricsConfig(n_points=100, repeats=1, crop_mm=5.0))
+    warnings: list[str] = []
+    done = evaluate_files(mesh, reference, config, warn=warnings.append)
+    assert done.out == tmp_path / "recon.metrics.json" and done.out.is_file()
+    assert done.result["mesh"] == str(mesh) and done.result["reference_visible"] is None
+    assert done.crop_line() is None and warnings == []  # the boxes overlap
+    # a 0.5 mm shift: every reconstructed point lies within 0.5 mm of the reference
+    assert 0.1 < done.result["mean"]["mad"] < 0.5
+    far = shifted.copy()
+    far.apply_translation([1000.0, 0.0, 0.0])
+    far.export(mesh)
+    evaluate_files(mesh, reference, config, out=tmp_path / "far.json", warn=warnings.append)
+    assert len(warnings) == 1 and str(mesh) in warnings[0]

@@ -45,40 +45,19 @@ def evaluate(
     check_count("--points", points)
     check_count("--repeats", repeats)
     check_seed("--seed", seed)
-    if crop_mm is not None and reference_visible is None:
-        raise argument_error("--crop-mm", "needs --reference-visible (the surface to crop to)")
     if crop_mm is not None and not 0 < crop_mm < float("inf"):
         raise argument_error("--crop-mm", f"expected a positive distance in mm, got {crop_mm}")
 
-    from ultron import atomic
-    from ultron.data.units import box_mismatch
-    from ultron.mesh.export import load_mesh
-    from ultron.metrics.surface import MetricsConfig, evaluate_meshes
-    from ultron.outputs import check_output_file
+    from ultron.metrics.surface import MetricsConfig
+    from ultron.pipeline.evaluate import evaluate_files
     from ultron.report.tables import metrics_column_table
 
-    target = check_output_file(out or mesh.with_name(mesh.stem + ".metrics.json"), "--out")
     config = MetricsConfig(n_points=points, repeats=repeats, seed=seed, crop_mm=crop_mm)
-    recon = load_mesh(mesh, allow_empty=True)
-    ref = load_mesh(reference)
-    visible = None if reference_visible is None else load_mesh(reference_visible)
-    if len(recon.vertices):
-        mismatch = box_mismatch(recon.bounds, ref.bounds, f"the mesh {mesh}", "the reference")
-        if mismatch is not None:
-            warning_line(mismatch)
-    result = evaluate_meshes(recon, ref, config, reference_visible=visible)
-    result["mesh"], result["reference"] = str(mesh), str(reference)
-    result["reference_visible"] = None if reference_visible is None else str(reference_visible)
-    console.print(metrics_column_table(result, title=f"{mesh.name} vs {reference.name} (mm)"))
-    if result["crop"] is not None:
-        crop = result["crop"]
-        console.print(
-            f"cropped to {crop_mm:g} mm of the visible reference: kept"
-            f" {crop['area_kept_mm2']:.0f} of {crop['area_mm2']:.0f} mm²"
-            f" ({crop['area_outside_mm2']:.0f} mm² outside, not measured)"
-        )
-    atomic.write_json(target, result)
-    console.print(f"wrote {target}")
+    done = evaluate_files(mesh, reference, config, reference_visible, out, warning_line)
+    console.print(metrics_column_table(done.result, title=f"{mesh.name} vs {reference.name} (mm)"))
+    if done.crop_line() is not None:
+        console.print(done.crop_line())
+    console.print(f"wrote {done.out}")
 
 
 def register(app: typer.Typer) -> None:
