@@ -117,12 +117,14 @@ def test_per_axis_planes_for_an_elongated_box_only() -> None:
     from ultron.fields.grid import GridField
 
     # 40 mm cube side / 1 mm cell: 41 nodes; a box 1/4 as wide in x and y as in z
-    elongated = GridFieldConfig(n_levels=1).resolved(20.0, 1.0, (0.25, 0.25, 1.0))
+    elongated = GridFieldConfig(n_levels=1, volume_cell_mm=None).resolved(
+        20.0, 1.0, (0.25, 0.25, 1.0)
+    )
     assert elongated.axis_extent == (0.25, 0.25, 1.0)
     assert elongated.axis_nodes() == [(11, 11, 41)]
     assert elongated.plane_shapes() == [((11, 11), (41, 11), (41, 11))]
     assert elongated.n_values() == 8 * (11 * 11 + 2 * 41 * 11)
-    compact = GridFieldConfig(n_levels=1).resolved(20.0, 1.0, (0.9, 0.8, 1.0))
+    compact = GridFieldConfig(n_levels=1, volume_cell_mm=None).resolved(20.0, 1.0, (0.9, 0.8, 1.0))
     assert compact.axis_extent is None and compact.n_values() == 3 * 8 * 41 * 41
     field = GridField(elongated, generator=torch.Generator().manual_seed(0))
     assert [tuple(p.shape) for p in field.planes[0]] == [(8, 11, 11), (8, 41, 11), (8, 41, 11)]

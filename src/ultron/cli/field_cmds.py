@@ -80,6 +80,15 @@ ConfidencePrior = Annotated[
         " map (0: off); default: preset's.",
     ),
 ]
+VolumeCell = Annotated[
+    float | None,
+    typer.Option(
+        "--volume-cell",
+        metavar="MM",
+        help="grid: cell of the dense 3D feature grid read beside the planes (0: none);"
+        " default: preset's (2 mm).",
+    ),
+]
 FitSeed = Annotated[int, typer.Option("--seed", help="Seed of initialisation and batches.")]
 HoldoutEvery = Annotated[
     int, typer.Option("--holdout-every", help="Hold out every K-th frame for checks (0: none).")
@@ -136,6 +145,7 @@ def fit_field_command(
     scattering_floor: ScatteringFloor = None,
     scattering_warmup: ScatteringWarmup = None,
     confidence_prior: ConfidencePrior = None,
+    volume_cell: VolumeCell = None,
     seed: FitSeed = 0,
     holdout_every: HoldoutEvery = 10,
     fit_shape: FitShape = "auto",
@@ -157,6 +167,7 @@ def fit_field_command(
     check_range("--scattering-floor", scattering_floor, 0.0, 1.0, high_open=True)
     check_count("--scattering-warmup", scattering_warmup, 0)
     check_range("--confidence-prior", confidence_prior, 0.0)
+    check_range("--volume-cell", volume_cell, 0.0)
     check_seed("--seed", seed)
     _check_holdout(holdout_every)
     check_count("--check-every", check_every)
@@ -174,6 +185,7 @@ def fit_field_command(
         "scattering_floor": scattering_floor,
         "scattering_warmup_iters": scattering_warmup,
         "confidence_prior_weight": confidence_prior,
+        "volume_cell_mm": volume_cell,
         "checkpoint_every": checkpoint_every,
     }
     config = field_preset(

@@ -44,6 +44,8 @@ class FieldConfig:
                 grid["resolutions"] = tuple(grid["resolutions"])
             if grid.get("axis_extent") is not None:
                 grid["axis_extent"] = tuple(grid["axis_extent"])
+            if grid.get("resolutions") is not None and "volume_nodes" not in grid:
+                grid["volume_cell_mm"] = None  # saved before the volume level existed: none
             return cls(
                 backend=data.get("backend", "grid"),
                 learn_density=bool(data.get("learn_density", False)),

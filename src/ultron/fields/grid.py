@@ -5,8 +5,15 @@ axis-aligned feature planes per level and combined by a Hadamard product (as in 
 
     f_ℓ(u) = P_ℓ^{xy}(x, y) ⊙ P_ℓ^{xz}(x, z) ⊙ P_ℓ^{yz}(y, z),
 
-which is a rank-limited trilinear-like 3D feature at the memory cost of 2D planes; the levels
-are concatenated and decoded by a small ReLU MLP into the raw θ outputs. The finest level's
+which is a rank-limited trilinear-like 3D feature at the memory cost of 2D planes. Beside them a
+coarse dense volume V (``volume_cell_mm``, C_V features per node) is read trilinearly,
+
+    f(u) = [f_1(u), …, f_L(u), V(u)],
+
+and the concatenation is decoded by a small ReLU MLP into the raw θ outputs. The volume holds
+what a product of projections cannot: a thin curved wall oblique to every axis makes each
+plane's projection of it a band, and their product fills the band's bounding region with
+wall-like features — beside and behind a real bone wall (docs/field.md, the volume level). The finest level's
 cell is at most the data's pixel size (``cell_mm``), so the field can hold pixel-scale detail.
 
 For a box far from a cube the planes span the data's box, not the whole cube: axis a covers
@@ -22,7 +29,7 @@ A dense 3D grid at that cell size would need (2·half_extent/cell)³ voxels (≈
 sweep), which does not fit a CPU budget; planes need 3·R² per level.
 
 Smoothness prior: the mean squared difference between neighbouring plane cells (total
-variation, squared), weighted by ``smoothness_weight``. Without it the pixel-scale planes
+variation, squared), and the volume's over its three axes, weighted by ``smoothness_weight``. Without it the pixel-scale planes
 memorise each training frame's speckle and render a noisy texture between frames. The default
 (1.0) was chosen among {1e-3, 1e-2, 0.1, 1, 10} by the held-out frames of the default
 simulated phantom (best SSIM; bone edges stay sharp), never on the l2 benchmark frames.
@@ -55,6 +62,10 @@ MAX_RESOLUTION = 2048
 PER_AXIS_SAVING = 2.0
 #: Side of the random window on which the smoothness prior is evaluated each step.
 TV_WINDOW = 96
+#: The dense volume's cell, mm (docs/decisions.md#grid-field-the-dense-volume-fieldsgridpy).
+DEFAULT_VOLUME_CELL_MM = 2.0
+#: Side of the random window on which the prior is evaluated on the dense volume each step.
+VOLUME_TV_WINDOW = 32
 #: Probability of evaluating the prior on a plane larger than the window in a given step.
 TV_LARGE_PLANE_PROBABILITY = 0.25
 
@@ -80,6 +91,11 @@ class GridFieldConfig:
     decoder_width: int = 16
     decoder_depth: int = 1
     smoothness_weight: float = 1.0
+    #: Cell (mm) of the dense feature volume read trilinearly beside the planes (None: none).
+    volume_cell_mm: float | None = DEFAULT_VOLUME_CELL_MM
+    volume_features: int = 4
+    #: Nodes (n_x, n_y, n_z) of that grid, filled in by :meth:`resolved`.
+    volume_nodes: tuple[int, int, int] | None = None
 
     def __post_init__(self) -> None:
         if self.resolutions is not None:
@@ -109,6 +125,24 @@ class GridFieldConfig:
                 raise argument_error(f"grid.{name}", f"expected a positive integer, got {value!r}")
         if self.smoothness_weight < 0:
             raise argument_error("grid.smoothness_weight", "expected ≥ 0")
+        if self.volume_cell_mm is not None and not (
+            math.isfinite(self.volume_cell_mm) and self.volume_cell_mm > 0
+        ):
+            raise argument_error(
+                "grid.volume_cell_mm", f"expected > 0 mm or None, got {self.volume_cell_mm!r}"
+            )
+        if not isinstance(self.volume_features, int) or self.volume_features < 1:
+            raise argument_error(
+                "grid.volume_features", f"expected a positive integer, got {self.volume_features!r}"
+            )
+        if self.volume_nodes is not None:
+            nodes = tuple(int(n) for n in self.volume_nodes)
+            if len(nodes) != 3 or not all(2 <= n <= MAX_RESOLUTION for n in nodes):
+                raise argument_error(
+                    "grid.volume_nodes",
+                    f"expected three sides in [2, {MAX_RESOLUTION}], got {nodes}",
+                )
+            object.__setattr__(self, "volume_nodes", nodes)
 
     def resolved(
         self,
@@ -120,6 +154,13 @@ class GridFieldConfig:
         not set, the planes' ``axis_extent`` (the data's box in unit-cube units)."""
         if self.resolutions is not None:
             return self
+        if self.volume_cell_mm is not None and self.volume_nodes is None:
+            planes = replace(self, volume_cell_mm=None).resolved(
+                half_extent_mm, pixel_mm, axis_extent
+            )
+            box = planes.axis_extent or (1.0, 1.0, 1.0)
+            nodes = tuple(math.ceil(2 * half_extent_mm * e / self.volume_cell_mm) + 1 for e in box)
+            return replace(planes, volume_cell_mm=self.volume_cell_mm, volume_nodes=nodes)
         cell = self.cell_mm if self.cell_mm is not None else pixel_mm
         finest = math.ceil(2 * half_extent_mm / cell) + 1
         if finest > MAX_RESOLUTION:
@@ -153,12 +194,14 @@ class GridFieldConfig:
         return [((ny, nx), (nz, nx), (nz, ny)) for nx, ny, nz in self.axis_nodes()]
 
     def n_values(self) -> int:
-        """The planes' values (features × nodes) over every level."""
+        """The planes' values (features × nodes) over every level, and the volume's."""
         channels = [self.features] + [self.coarse_features] * (len(self.resolutions or ()) - 1)
-        return sum(
+        planes = sum(
             c * sum(rows * cols for rows, cols in shapes)
             for c, shapes in zip(channels, self.plane_shapes(), strict=True)
         )
+        volume = self.volume_features * math.prod(self.volume_nodes or (0,))
+        return planes + volume
 
 
 class GridField(AcousticField):
@@ -194,6 +237,12 @@ class GridField(AcousticField):
                 nn.Parameter(1.0 + 0.1 * torch.randn(3, c, r, r, generator=generator))
                 for c, r in zip(channels, config.resolutions, strict=True)
             )
+        self.volume = None
+        if config.volume_nodes is not None:
+            nx, ny, nz = config.volume_nodes
+            shape = (1, config.volume_features, nz, ny, nx)
+            self.volume = nn.Parameter(0.1 * torch.randn(*shape, generator=generator))
+            channels = [*channels, config.volume_features]
         extent = config.axis_extent or (1.0, 1.0, 1.0)
         self.register_buffer("_axis_scale", torch.tensor([1.0 / e for e in extent]), False)
         layers: list[nn.Module] = []
@@ -229,6 +278,13 @@ class GridField(AcousticField):
             for plane in self.planes:
                 sampled = _bilinear(plane, coords)  # (3, C, 1, N)
                 parts.append(sampled[0, :, 0] * sampled[1, :, 0] * sampled[2, :, 0])  # (C, N)
+        if self.volume is not None:
+            where = torch.stack([x, y, z], dim=-1)[None, None, None]
+            parts.append(
+                F.grid_sample(
+                    self.volume, where, mode="bilinear", padding_mode="border", align_corners=True
+                )[0, :, 0, 0]
+            )
         feats = torch.cat(parts, dim=0).transpose(0, 1)
         return feats.reshape(*shape, feats.shape[-1])
 
@@ -261,6 +317,8 @@ class GridField(AcousticField):
         rows = iter(() if draws is None else draws)
         for planes in self._tv_levels():
             total = total + sum(_plane_tv_drawn(plane, rows) for plane in planes) / len(planes)
+        if self.volume is not None:
+            total = total + _volume_tv_drawn(self.volume, rows)
         return self.config.smoothness_weight * total
 
     def regularization_draws(self, generator: torch.Generator | None) -> torch.Tensor | None:
@@ -272,6 +330,13 @@ class GridField(AcousticField):
         shapes = [plane.shape[-2:] for planes in self._tv_levels() for plane in planes]
         windows = [_window_draw(rows, cols, generator) for rows, cols in shapes]
         table = [(i, j, int(keep)) for i, j, keep in filter(None, windows)]
+        if self.volume is not None and max(self.volume.shape[2:]) > VOLUME_TV_WINDOW:
+            table.append(
+                tuple(
+                    int(torch.randint(0, max(1, n - VOLUME_TV_WINDOW + 1), (), generator=generator))
+                    for n in self.volume.shape[2:]
+                )
+            )
         return torch.tensor(table, dtype=torch.int64) if table else None
 
     def _tv_levels(self) -> list[list[torch.Tensor]]:
@@ -332,6 +397,31 @@ def _plane_tv_drawn(plane: torch.Tensor, draws) -> torch.Tensor:
         first_row, first_col, kept = row.tolist()
         return _window_tv(plane, (first_row, first_col, bool(kept)))
     return _indexed_window_tv(plane, row)
+
+
+def _volume_tv_drawn(volume: torch.Tensor, draws) -> torch.Tensor:
+    """Squared TV of the (1, C, n_z, n_y, n_x) volume, the mean over its three axes' squared
+    neighbour differences — on a ``VOLUME_TV_WINDOW``³ window whose first corner is the next row
+    of ``draws`` when the volume is larger (an unbiased estimate of the whole volume's mean, at
+    a window's cost), else on the whole volume."""
+    if max(volume.shape[2:]) > VOLUME_TV_WINDOW:
+        row = next(draws)
+        for axis, start in zip((2, 3, 4), row, strict=True):
+            size = min(volume.shape[axis], VOLUME_TV_WINDOW)
+            if row.device.type == "cpu":
+                volume = volume.narrow(axis, int(start), size)
+            else:
+                index = start + torch.arange(size, device=volume.device)
+                volume = volume.index_select(axis, index)
+    return (
+        sum(
+            (volume.narrow(a, 1, volume.shape[a] - 1) - volume.narrow(a, 0, volume.shape[a] - 1))
+            .pow(2)
+            .mean()
+            for a in (2, 3, 4)
+        )
+        / 3
+    )
 
 
 def _indexed_window_tv(plane: torch.Tensor, row: torch.Tensor) -> torch.Tensor:

@@ -19,8 +19,8 @@ refuses such a run at once with a one-line error saying which input made it so:
    :func:`check_compounding_grid` once its frames are chosen (:func:`compounding_memory`);
 3. for a field that will be fitted (:func:`field_fit_memory`): the grid backend's planes
    (finest cell = pixel spacing at the fit resolution; at most ``fields.grid.MAX_RESOLUTION``
-   nodes per side) at :data:`FIELD_BYTES_PER_VALUE` bytes per plane value (weight, gradient,
-   Adam's two moments), the frames at the fit resolution (float32, twice with the confidence
+   nodes per side) and its dense volume at :data:`FIELD_BYTES_PER_VALUE` bytes per value
+   (weight, gradient, Adam's two moments), the frames at the fit resolution (float32, twice with the confidence
    prior's maps, plus the largest sweep's float32 copy while resampling), the larger of a
    training step's and a no-gradient render chunk's working memory (samples ×
    :data:`FIELD_TRAIN_BYTES_PER_SAMPLE` / :data:`FIELD_RENDER_BYTES_PER_SAMPLE`) and
@@ -257,14 +257,18 @@ class FieldFitMemory:
     frames: float
     working: float
     fixed: float = FIELD_FIXED_BYTES
+    #: Whether ``planes`` holds a dense volume's values too.
+    volume: bool = False
 
     @property
     def total(self) -> float:
         return self.planes + self.frames + self.working + self.fixed
 
     def describe(self) -> str:
-        """``planes of [237, 59] nodes per side 21.2 MiB, frames 28.1 MiB, …, fixed 64 MiB``."""
+        """``planes of [237, 59] nodes per side and volume 21.2 MiB, frames 28.1 MiB, …, fixed
+        64 MiB`` (the grid's values: its planes and, where it has one, its dense volume)."""
         planes = f"planes of {list(self.resolutions)} nodes per side" if self.resolutions else ""
+        planes += " and volume" if planes and self.volume else ""
         parts = [(planes, self.planes), ("frames", self.frames)]
         parts += [("working memory", self.working), ("fixed", self.fixed)]
         return ", ".join(f"{name} {_size(n)}" for name, n in parts if name)
@@ -300,7 +304,9 @@ def field_fit_memory(dataset: SweepDataset, config: FieldTrainConfig) -> FieldFi
         float(train) * FIELD_TRAIN_BYTES_PER_SAMPLE[backend],
         float(RENDER_CHUNK_FRAMES * rows * cols) * FIELD_RENDER_BYTES_PER_SAMPLE[backend],
     )
-    return FieldFitMemory(resolutions, float(values) * FIELD_BYTES_PER_VALUE, frames, working)
+    volume = backend == "grid" and grid_config.volume_nodes is not None
+    grid_bytes = float(values) * FIELD_BYTES_PER_VALUE
+    return FieldFitMemory(resolutions, grid_bytes, frames, working, volume=volume)
 
 
 def check_field_grid(

@@ -181,8 +181,8 @@ def field_preset(name: str = "default", **changes: Any) -> FieldTrainConfig:
     - ``paper``: Ultra-NeRF as published: the 8 × 128 MLP, the paper's heads, no curriculum,
       scatterers drawn every step, 75k iterations, lr 1e-4 decaying ×0.1 per 250k steps.
 
-    ``changes`` override fields (e.g. ``iterations``, ``seed``, ``backend``, ``heads``, or
-    ``scattering_floor`` of the heads); presets are built anew on every call, never mutated."""
+    ``changes`` override fields (e.g. ``iterations``, ``seed``, ``backend``, ``heads``,
+    ``scattering_floor`` of the heads, or ``volume_cell_mm`` of the grid, 0 for none); presets are built anew on every call, never mutated."""
     if name not in FIELD_PRESETS:
         raise argument_error("preset", f"expected one of {FIELD_PRESETS}, got {name!r}")
     if name == "paper":
@@ -204,7 +204,10 @@ def field_preset(name: str = "default", **changes: Any) -> FieldTrainConfig:
     if "scattering_floor" in changes:
         heads = changes.pop("heads", base.field.heads)
         changes["heads"] = replace(heads, scattering_floor=changes.pop("scattering_floor"))
-    field_changes = {k: changes.pop(k) for k in ("backend", "heads") if k in changes}
+    if "volume_cell_mm" in changes:  # 0 or None: no volume level
+        volume = changes.pop("volume_cell_mm") or None
+        changes["grid"] = replace(changes.pop("grid", base.field.grid), volume_cell_mm=volume)
+    field_changes = {k: changes.pop(k) for k in ("backend", "heads", "grid") if k in changes}
     if field_changes:
         changes["field"] = replace(base.field, **field_changes)
     return replace(base, **changes)
