@@ -111,3 +111,14 @@ def test_a_volume_round_trips_through_field_json() -> None:
 def test_bad_volume_settings_name_the_setting(changes: dict, name: str) -> None:
     with pytest.raises(UltronError, match=f"grid.{name}"):
         GridFieldConfig(**changes)
+
+
+def test_a_field_saved_before_the_volume_loads_without_one() -> None:
+    planes = GridFieldConfig(volume_cell_mm=None).resolved(60.0, 0.5)
+    saved = FieldConfig(grid=planes).to_dict()
+    for key in ("volume_cell_mm", "volume_features", "volume_nodes"):
+        del saved["grid"][key]  # field.json as written before the volume existed
+    loaded = FieldConfig.from_dict(json.loads(json.dumps(saved)))
+    assert loaded.grid.volume_cell_mm is None and loaded.grid.volume_nodes is None
+    assert loaded.grid.n_values() == planes.n_values()
+    assert GridField(loaded.grid).volume is None

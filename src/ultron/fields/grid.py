@@ -12,9 +12,10 @@ coarse dense volume V (``volume_cell_mm``, C_V features per node) is read trilin
 
 and the concatenation is decoded by a small ReLU MLP into the raw θ outputs. The volume holds
 what a product of projections cannot: a thin curved wall oblique to every axis makes each
-plane's projection of it a band, and their product fills the band's bounding region with
-wall-like features — beside and behind a real bone wall (docs/field.md, the volume level). The finest level's
-cell is at most the data's pixel size (``cell_mm``), so the field can hold pixel-scale detail.
+plane's projection of it a band, and their product fills the bands' bounding region with
+wall-like features — beside and behind a real bone wall (docs/decisions.md, "the dense
+volume"). The finest level's cell is at most the data's pixel size (``cell_mm``), so the field
+can hold pixel-scale detail; the volume's is coarse (2 mm), so it stays small.
 
 For a box far from a cube the planes span the data's box, not the whole cube: axis a covers
 [−e_a, e_a] of the unit cube (``axis_extent``, e = 1 on the box's longest axis) with nodes at
@@ -29,8 +30,8 @@ A dense 3D grid at that cell size would need (2·half_extent/cell)³ voxels (≈
 sweep), which does not fit a CPU budget; planes need 3·R² per level.
 
 Smoothness prior: the mean squared difference between neighbouring plane cells (total
-variation, squared), and the volume's over its three axes, weighted by ``smoothness_weight``. Without it the pixel-scale planes
-memorise each training frame's speckle and render a noisy texture between frames. The default
+variation, squared), and the volume's over its three axes, weighted by ``smoothness_weight``.
+Without it the pixel-scale planes memorise each training frame's speckle and render a noisy texture between frames. The default
 (1.0) was chosen among {1e-3, 1e-2, 0.1, 1, 10} by the held-out frames of the default
 simulated phantom (best SSIM; bone edges stay sharp), never on the l2 benchmark frames.
 Defaults (8 features per plane at the finest level, 4 at the coarser one, 2 levels ÷4, a
@@ -302,7 +303,9 @@ class GridField(AcousticField):
         whole-plane means (``generator`` draws it): a plane larger than ``TV_WINDOW`` is
         evaluated on one random window, and only with probability
         ``TV_LARGE_PLANE_PROBABILITY`` (then scaled by its inverse), because the gradient of a
-        window still costs a pass over the whole plane. The draws are made on ``generator``'s
+        window still costs a pass over the whole plane. The dense volume's squared TV (the mean
+        over its three axes) is added, on one random ``VOLUME_TV_WINDOW``³ window every step when
+        the volume is larger (:func:`_volume_tv_drawn`). The draws are made on ``generator``'s
         device (the fit's CPU generator), the penalty on the planes'.
 
         ``draws`` (instead of ``generator``): :meth:`regularization_draws`' table, moved to the
@@ -323,8 +326,9 @@ class GridField(AcousticField):
 
     def regularization_draws(self, generator: torch.Generator | None) -> torch.Tensor | None:
         """The random windows :meth:`regularization` draws from ``generator``, in its order: one
-        row (first row, first column, kept ∈ {0, 1}) per plane larger than ``TV_WINDOW``, int64
-        on the generator's device; None when no plane needs a draw."""
+        row (first row, first column, kept ∈ {0, 1}) per plane larger than ``TV_WINDOW``, then
+        one (first z, first y, first x) for a volume larger than ``VOLUME_TV_WINDOW``; int64 on
+        the generator's device; None when nothing needs a draw."""
         if self.config.smoothness_weight == 0:
             return None
         shapes = [plane.shape[-2:] for planes in self._tv_levels() for plane in planes]
