@@ -115,10 +115,19 @@ def test_bad_volume_settings_name_the_setting(changes: dict, name: str) -> None:
 
 def test_a_field_saved_before_the_volume_loads_without_one() -> None:
     planes = GridFieldConfig(volume_cell_mm=None).resolved(60.0, 0.5)
-    saved = FieldConfig(grid=planes).to_dict()
-    for key in ("volume_cell_mm", "volume_features", "volume_nodes"):
-        del saved["grid"][key]  # field.json as written before the volume existed
+    saved = FieldConfig(grid=planes).to_dict()  # as field.json was written before the volume
+    assert not any(key.startswith("volume") for key in saved["grid"])
     loaded = FieldConfig.from_dict(json.loads(json.dumps(saved)))
     assert loaded.grid.volume_cell_mm is None and loaded.grid.volume_nodes is None
     assert loaded.grid.n_values() == planes.n_values()
     assert GridField(loaded.grid).volume is None
+
+
+def test_without_a_volume_the_saved_settings_are_those_written_before_it() -> None:
+    # field.json and the field cache's key hold the same keys as before the volume existed
+    data = FieldConfig().to_dict()
+    assert not any(key.startswith("volume") for key in data["grid"])
+    assert FieldConfig.from_dict(data) == FieldConfig()
+    with_volume = FieldConfig(grid=GridFieldConfig(volume_cell_mm=2.0)).to_dict()
+    assert with_volume["grid"]["volume_cell_mm"] == 2.0
+    assert FieldConfig.from_dict(with_volume).grid.volume_cell_mm == 2.0

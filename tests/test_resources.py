@@ -196,8 +196,18 @@ def test_field_fit_memory_estimate(tiny_dataset: SweepDataset):
 
     _, _, module, resolved = _prepare(tiny_dataset, config)
     values = sum(p.numel() for p in module.planes.parameters())
-    assert memory.planes == (values + module.volume.numel()) * FIELD_BYTES_PER_VALUE
-    assert memory.volume and module.volume.numel() == 4 * math.prod(resolved.grid.volume_nodes)
+    assert memory.planes == values * FIELD_BYTES_PER_VALUE
+    assert not memory.volume and module.volume is None
+    with_volume = replace(
+        config, field=replace(config.field, grid=replace(config.field.grid, volume_cell_mm=2.0))
+    )
+    memory_volume = field_fit_memory(tiny_dataset, with_volume)
+    _, _, module, resolved = _prepare(tiny_dataset, with_volume)
+    assert memory_volume.volume and module.volume.numel() == 4 * math.prod(
+        resolved.grid.volume_nodes
+    )
+    assert memory_volume.planes == (values + module.volume.numel()) * FIELD_BYTES_PER_VALUE
+    assert "and volume" in memory_volume.describe() and "and volume" not in memory.describe()
     assert resolved.grid.axis_extent is not None and memory.resolutions == resolved.grid.resolutions
     (fine, coarse) = memory.resolutions
     assert values < 3 * (8 * fine**2 + 4 * coarse**2) / 2  # less than half the square planes

@@ -85,8 +85,8 @@ VolumeCell = Annotated[
     typer.Option(
         "--volume-cell",
         metavar="MM",
-        help="grid: cell of the dense 3D feature grid read beside the planes (0: none);"
-        " default: preset's (2 mm).",
+        help="grid: cell of a dense 3D feature grid read beside the planes (default 0: none;"
+        " 2 gained on the real fibula, lost on simulated vertebrae: docs/decisions.md).",
     ),
 ]
 FitSeed = Annotated[int, typer.Option("--seed", help="Seed of initialisation and batches.")]

@@ -34,6 +34,10 @@ class FieldConfig:
         data = asdict(self)
         if data["grid"]["resolutions"] is not None:
             data["grid"]["resolutions"] = list(data["grid"]["resolutions"])
+        if self.grid.volume_cell_mm is None and self.grid.volume_nodes is None:
+            # no volume: the keys of every field.json (and field cache key) written before it
+            for key in ("volume_cell_mm", "volume_features", "volume_nodes"):
+                del data["grid"][key]
         return data
 
     @classmethod
@@ -44,8 +48,8 @@ class FieldConfig:
                 grid["resolutions"] = tuple(grid["resolutions"])
             if grid.get("axis_extent") is not None:
                 grid["axis_extent"] = tuple(grid["axis_extent"])
-            if grid.get("resolutions") is not None and "volume_nodes" not in grid:
-                grid["volume_cell_mm"] = None  # saved before the volume level existed: none
+            if "volume_nodes" not in grid:  # no volume (or saved before it existed)
+                grid["volume_cell_mm"] = None
             return cls(
                 backend=data.get("backend", "grid"),
                 learn_density=bool(data.get("learn_density", False)),

@@ -14,8 +14,8 @@ and the concatenation is decoded by a small ReLU MLP into the raw θ outputs. Th
 what a product of projections cannot: a thin curved wall oblique to every axis makes each
 plane's projection of it a band, and their product fills the bands' bounding region with
 wall-like features — beside and behind a real bone wall (docs/decisions.md, "the dense
-volume"). The finest level's cell is at most the data's pixel size (``cell_mm``), so the field
-can hold pixel-scale detail; the volume's is coarse (2 mm), so it stays small.
+volume"; off by default). The finest level's cell is at most the data's pixel size (``cell_mm``),
+so the field can hold pixel-scale detail; the volume's is coarse (e.g. 2 mm), so it stays small.
 
 For a box far from a cube the planes span the data's box, not the whole cube: axis a covers
 [−e_a, e_a] of the unit cube (``axis_extent``, e = 1 on the box's longest axis) with nodes at
@@ -63,8 +63,6 @@ MAX_RESOLUTION = 2048
 PER_AXIS_SAVING = 2.0
 #: Side of the random window on which the smoothness prior is evaluated each step.
 TV_WINDOW = 96
-#: The dense volume's cell, mm (docs/decisions.md#grid-field-the-dense-volume-fieldsgridpy).
-DEFAULT_VOLUME_CELL_MM = 2.0
 #: Side of the random window on which the prior is evaluated on the dense volume each step.
 VOLUME_TV_WINDOW = 32
 #: Probability of evaluating the prior on a plane larger than the window in a given step.
@@ -92,8 +90,9 @@ class GridFieldConfig:
     decoder_width: int = 16
     decoder_depth: int = 1
     smoothness_weight: float = 1.0
-    #: Cell (mm) of the dense feature volume read trilinearly beside the planes (None: none).
-    volume_cell_mm: float | None = DEFAULT_VOLUME_CELL_MM
+    #: Cell (mm) of the dense feature volume read trilinearly beside the planes (None: none, the
+    #: default; docs/decisions.md#grid-field-the-dense-volume-an-option-fieldsgridpy).
+    volume_cell_mm: float | None = None
     volume_features: int = 4
     #: Nodes (n_x, n_y, n_z) of that grid, filled in by :meth:`resolved`.
     volume_nodes: tuple[int, int, int] | None = None
