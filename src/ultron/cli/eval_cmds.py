@@ -55,8 +55,9 @@ def evaluate(
     config = MetricsConfig(n_points=points, repeats=repeats, seed=seed, crop_mm=crop_mm)
     done = evaluate_files(mesh, reference, config, reference_visible, out, warning_line)
     console.print(metrics_column_table(done.result, title=f"{mesh.name} vs {reference.name} (mm)"))
-    if done.crop_line() is not None:
-        console.print(done.crop_line())
+    crop_line = done.crop_line()
+    if crop_line is not None:
+        console.print(crop_line)
     console.print(f"wrote {done.out}")
 
 

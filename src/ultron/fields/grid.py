@@ -31,9 +31,10 @@ sweep), which does not fit a CPU budget; planes need 3·R² per level.
 
 Smoothness prior: the mean squared difference between neighbouring plane cells (total
 variation, squared), and the volume's over its three axes, weighted by ``smoothness_weight``.
-Without it the pixel-scale planes memorise each training frame's speckle and render a noisy texture between frames. The default
-(1.0) was chosen among {1e-3, 1e-2, 0.1, 1, 10} by the held-out frames of the default
-simulated phantom (best SSIM; bone edges stay sharp), never on the l2 benchmark frames.
+Without it the pixel-scale planes memorise each training frame's speckle and render a noisy
+texture between frames. The default (1.0) was chosen among {1e-3, 1e-2, 0.1, 1, 10} by the
+held-out frames of the default simulated phantom (best SSIM; bone edges stay sharp), never on
+the l2 benchmark frames.
 Defaults (8 features per plane at the finest level, 4 at the coarser one, 2 levels ÷4, a
 16-wide one-layer decoder) were chosen for step time (grid_sample's backward, then the
 decoder, dominate it), checking on the simulated phantom's held-out frames that the fit stays
