@@ -39,6 +39,8 @@ CASES = [
     ("fit-field", "--fit-shape", "coarse"),
     ("fit-field", "--scattering-floor", "nan"),
     ("fit-field", "--scattering-floor", "1"),
+    ("fit-field", "--volume-cell", "-1"),
+    ("fit-field", "--volume-cell", "nan"),
     ("fit-field", "--scattering-floor", "-0.1"),
     ("fit-field", "--scattering-warmup", "-1"),
     ("fit-field", "--check-every", "0"),
