@@ -34,6 +34,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import statistics
 import time
 from dataclasses import replace
@@ -51,6 +52,7 @@ from ultron.phantom import SimulationConfig, simulate_dataset
 from ultron.pipeline.presets import pipeline_preset
 from ultron.pipeline.run import ReconstructionRequest, reconstruct
 from ultron.train.field_batch import FieldObjective
+from ultron.train.field_config import FieldTrainConfig
 from ultron.train.field_fit import _prepare, make_optimizer, training_objective
 from ultron.train.fit_shape import resolve_fit_shape
 from ultron.train.loop import descend
@@ -76,13 +78,27 @@ def timed(device: torch.device, fn, steps: int, warmup: int = 3) -> float:
     return statistics.median(times)
 
 
+def preset_field(preset: str, volume_cell_mm: float | None = None) -> FieldTrainConfig:
+    """``preset``'s field fit, with the grid field's dense volume at ``volume_cell_mm`` when
+    given (``ultron fit-field --volume-cell``; the MLP of the paper preset has none)."""
+    config = pipeline_preset(preset).field
+    if volume_cell_mm is None or config.field.backend != "grid":
+        return config
+    grid = replace(config.field.grid, volume_cell_mm=volume_cell_mm)
+    return replace(config, field=replace(config.field, grid=grid))
+
+
 def field_step(
-    dataset: SweepDataset, preset: str, device: torch.device, graphs: bool | None = None
+    dataset: SweepDataset,
+    preset: str,
+    device: torch.device,
+    graphs: bool | None = None,
+    volume_cell_mm: float | None = None,
 ):
     """One update of ``preset``'s field fit on ``device`` (a fresh field, seed 0), callable;
     replayed from CUDA graphs as the fit does (``graphs``, default: on a CUDA device)."""
     graphs = device.type == "cuda" if graphs is None else graphs
-    config = resolve_fit_shape(pipeline_preset(preset).field, dataset)
+    config = resolve_fit_shape(preset_field(preset, volume_cell_mm), dataset)
     frames, cube, module, _ = _prepare(dataset, config)
     frames, module = frames.to(device), module.to(device)
     optimizer = make_optimizer(module, config.lr)
@@ -97,8 +113,10 @@ def field_step(
     return step
 
 
-def field_step_seconds(dataset: SweepDataset, preset: str, device: torch.device, steps: int):
-    return timed(device, field_step(dataset, preset, device), steps)
+def field_step_seconds(
+    dataset: SweepDataset, preset: str, device: torch.device, steps: int, volume_cell_mm=None
+) -> float:
+    return timed(device, field_step(dataset, preset, device, None, volume_cell_mm), steps)
 
 
 #: Operations that only re-describe a tensor's memory (no kernel on any device).
@@ -109,7 +127,7 @@ VIEW_OPERATIONS = frozenset({
 })  # fmt: skip
 
 
-def field_step_operations(dataset: SweepDataset, preset: str) -> int:
+def field_step_operations(dataset: SweepDataset, preset: str, volume_cell_mm=None) -> int:
     """Tensor operations (views excluded) one field step of ``preset`` dispatches on the CPU,
     forward, backward and optimiser together: each is at least one kernel launch on a GPU,
     where a step this small is bound by launches, not arithmetic (docs/devices.md)."""
@@ -125,7 +143,7 @@ def field_step_operations(dataset: SweepDataset, preset: str) -> int:
                 self.operations += 1
             return func(*args, **(kwargs or {}))
 
-    step = field_step(dataset, preset, torch.device("cpu"))
+    step = field_step(dataset, preset, torch.device("cpu"), None, volume_cell_mm)
     step()  # the first step creates the optimiser's state
     counter = Count()
     with counter:
@@ -163,7 +181,12 @@ def occupancy_seconds(preset: str, device: torch.device, steps: int) -> tuple[fl
 
 
 def end_to_end(
-    dataset_dir: Path, preset: str, device: torch.device, out: Path, fraction: float = 1.0
+    dataset_dir: Path,
+    preset: str,
+    device: torch.device,
+    out: Path,
+    fraction: float = 1.0,
+    volume_cell_mm: float | None = None,
 ) -> dict:
     """Field fit + UltrON (10 %) + mesh + metrics through ``reconstruct``; stage seconds.
 
@@ -171,7 +194,8 @@ def end_to_end(
     ``extrapolated_s`` adds (1/fraction − 1) × their measured fitting seconds.
     """
     stages = pipeline_preset(preset)
-    field = replace(stages.field, iterations=max(1, round(stages.field.iterations * fraction)))
+    field = preset_field(preset, volume_cell_mm)
+    field = replace(field, iterations=max(1, round(field.iterations * fraction)))
     occupancy = stages.ultron.occupancy
     occupancy = replace(occupancy, iters=max(1, round(occupancy.iters * fraction)))
     request = ReconstructionRequest(
@@ -205,12 +229,18 @@ def main() -> None:
     parser.add_argument("--paper-fraction", type=float, default=1.0,
                         help="fraction of the paper preset's iterations run end to end; the "
                              "whole run is extrapolated from the measured fitting seconds")  # fmt: skip
+    parser.add_argument("--volume-cell", type=float, default=None, metavar="MM",
+                        help="the grid field's dense volume at MM (fit-field --volume-cell; "
+                             "the fast preset only)")  # fmt: skip
     args = parser.parse_args()
     if not 0 < args.paper_fraction <= 1:
         parser.error(f"--paper-fraction: expected a number in (0, 1], got {args.paper_fraction}")
     presets = [name.strip() for name in args.presets.split(",")]
     if not presets or not set(presets) <= {"fast", "paper"}:
         parser.error(f"--presets: expected fast and/or paper, got {args.presets!r}")
+    if args.volume_cell is not None and not args.volume_cell > 0:
+        parser.error(f"--volume-cell: expected a cell > 0 mm, got {args.volume_cell}")
+    volume = args.volume_cell
     names = args.devices or ("cpu,cuda" if torch.cuda.is_available() else "cpu")
     devices = [resolve_device(name) for name in names.split(",")]
     dataset_dir = args.out / f"{args.phantom}-s{args.seed}"
@@ -218,25 +248,27 @@ def main() -> None:
         simulate_dataset(SimulationConfig(phantom=args.phantom, seed=args.seed), out=dataset_dir)
     dataset = SweepDataset.load(dataset_dir)
     cache = args.out / "cache"
-    os.environ["ULTRON_CACHE"] = str(cache)  # fresh fits: end-to-end times include the field
+    shutil.rmtree(cache, ignore_errors=True)  # a fresh cache: end-to-end times fit the field
+    os.environ["ULTRON_CACHE"] = str(cache)
     results = {}
     for device in devices:
         row: dict = {"device": describe_device(device)}
         for preset in presets:
             stages = pipeline_preset(preset)
-            field_s = field_step_seconds(dataset, preset, device, args.steps)
+            field_s = field_step_seconds(dataset, preset, device, args.steps, volume)
             occupancy_s, finetune_s = occupancy_seconds(preset, device, max(args.steps, 20))
             estimate = (
                 field_s * stages.field.iterations + occupancy_s * stages.ultron.occupancy.iters
             )
             row[preset] = {"field_step_s": field_s, "occupancy_step_s": occupancy_s,
                            "finetune_100_s": finetune_s, "estimate_s": estimate,
-                           "field_step_operations": field_step_operations(dataset, preset)}  # fmt: skip
+                           "field_step_operations": field_step_operations(dataset, preset, volume),
+                           "volume_cell_mm": volume if preset == "fast" else None}  # fmt: skip
             if preset == "fast" or device.type == "cuda" or args.paper_end_to_end:
-                out = args.out / "runs" / f"{device.type}-{preset}"
+                out = args.out / "runs" / f"{device.type}-{preset}{'-volume' if volume else ''}"
                 fraction = args.paper_fraction if preset == "paper" else 1.0
                 try:
-                    e2e = end_to_end(dataset_dir, preset, device, out, fraction)
+                    e2e = end_to_end(dataset_dir, preset, device, out, fraction, volume)
                 except UltronError as error:  # e.g. too few iterations to find a surface
                     e2e = {"error": str(error), "fraction": fraction}
                 row[preset]["end_to_end"] = e2e

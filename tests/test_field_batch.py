@@ -17,6 +17,7 @@ from ultron.data.geometry import UnitCube
 from ultron.fields.factory import build_field
 from ultron.fields.grid import (
     TV_WINDOW,
+    VOLUME_TV_WINDOW,
     GridField,
     GridFieldConfig,
     _indexed_window_tv,
@@ -91,15 +92,18 @@ class HostTraffic(TorchDispatchMode):
 
 
 @pytest.mark.parametrize(
-    "scatterers, prior, hold, paper_field",
+    "scatterers, prior, hold, paper_field, volume_cell_mm",
     [
-        ("expected", 0.0, False, False),
-        ("sample", 1.0, False, False),
-        ("expected", 1.0, True, False),
-        ("sample", 0.0, False, True),
+        ("expected", 0.0, False, False, None),
+        ("sample", 1.0, False, False, None),
+        ("expected", 1.0, True, False, None),
+        ("sample", 0.0, False, True, None),
+        ("expected", 1.0, False, False, 0.5),  # a dense volume of > 32 nodes: windowed prior
     ],
 )
-def test_field_loss_is_device_work_alone(tiny_l3, scatterers, prior, hold, paper_field):
+def test_field_loss_is_device_work_alone(
+    tiny_l3, scatterers, prior, hold, paper_field, volume_cell_mm
+):
     """Forward and backward of the loss touch no host tensor and read nothing back — what a
     CUDA graph needs to capture them (checked on the meta device, where a host read fails)."""
     dataset = SweepDataset.load(tiny_l3)
@@ -107,6 +111,9 @@ def test_field_loss_is_device_work_alone(tiny_l3, scatterers, prior, hold, paper
         cell_mm=0.05, train_scatterers=scatterers, confidence_prior_weight=prior,
         scattering_tv_weight=0.1,
     )  # fmt: skip
+    if volume_cell_mm is not None:
+        grid = replace(config.field.grid, volume_cell_mm=volume_cell_mm)
+        config = replace(config, field=replace(config.field, grid=grid))
     if paper_field:  # Ultra-NeRF's MLP with its heads (no regulariser draws)
         config = replace(config, field=pipeline_preset("paper").field.field)
     cube = UnitCube((0.0, 20.0, 0.0), 40.0)
@@ -114,6 +121,8 @@ def test_field_loss_is_device_work_alone(tiny_l3, scatterers, prior, hold, paper
     frames = FrameSet.from_dataset(dataset, None, config.holdout_every)
     frames = (frames.with_confidence() if prior else frames).to(META)
     module = module.to(META)
+    if volume_cell_mm is not None:
+        assert max(module.config.volume_nodes) > VOLUME_TV_WINDOW
     batch = draw_batch(module, frames, cube, config, torch.Generator().manual_seed(0))
     assert (batch.draws is None) == paper_field and (batch.noise is None) == (
         scatterers != "sample"
@@ -178,15 +187,20 @@ def test_a_failed_capture_on_cuda_warns_and_fits_eagerly(tiny_l3, monkeypatch):
 
 
 @pytest.mark.skipif(NO_CUDA, reason="needs a CUDA device")
-@pytest.mark.parametrize("preset", ["fast", "paper"])
+@pytest.mark.parametrize("preset", ["fast", "paper", "fast-volume"])
 def test_graphed_fit_steps_equal_the_eager_ones_on_cuda(tiny_l3, preset):
     """Ten updates replayed from CUDA graphs (both curriculum phases, so two captures) give
-    the eager updates' losses and parameters on the same device, from the same batches."""
+    the eager updates' losses and parameters on the same device, from the same batches
+    (``fast-volume``: the grid field with its dense volume at 0.5 mm, its prior windowed)."""
     from ultron.train.field_fit import _prepare
     from ultron.train.fit_shape import resolve_fit_shape
 
     dataset = SweepDataset.load(tiny_l3)
-    config = resolve_fit_shape(pipeline_preset(preset).field, dataset)
+    config = pipeline_preset(preset.removesuffix("-volume")).field
+    if preset.endswith("-volume"):
+        grid = replace(config.field.grid, volume_cell_mm=0.5)
+        config = replace(config, field=replace(config.field, grid=grid))
+    config = resolve_fit_shape(config, dataset)
     frames, cube, module, _ = _prepare(dataset, config)
     frames = frames.to("cuda")
     render = config.render.rescaled(dataset.probe, frames.probe)
