@@ -33,6 +33,7 @@ from ultron.train.visibility import (
     VisibilityConfig,
     confidence_map,
     frame_transmission,
+    in_labelled_shadow,
     label_transmission,
     load_oracle_truth,
     pixel_transmission,
@@ -269,6 +270,53 @@ def test_whole_frame_sources_agree_with_the_pixel_lookup(fitted_case):
         frame_transmission(VisibilityConfig("oracle"), dataset, "row")
     with pytest.raises(UltronInputError, match="frames"):
         frame_transmission(VisibilityConfig("labels"), dataset, "row", np.array([10]))
+
+
+def test_summary_counts_what_the_observed_negatives_drop_in_the_labelled_shadow():
+    """Hand-worked: 5 background labels, 3 of them in the labels' shadow (T 0.05, 0.2, 0.6)
+    and 2 lit (0.25, 0.9); with τ = 0.3 the loss drops 3 of 5 background labels, 2 of the 3
+    in the labelled shadow; the bone label is not counted."""
+    t = torch.tensor([0.05, 0.2, 0.6, 0.25, 0.9, 0.1])
+    labels = torch.tensor([0, 0, 0, 0, 0, 1])
+    shadow = torch.tensor([True, True, True, False, False, True])
+    summary = transmission_summary(t, labels, shadow, observed_transmission=0.3)
+    assert summary["background_dropped"] == pytest.approx(3 / 5)
+    assert summary["labelled_shadow_background"] == 3
+    assert summary["labelled_shadow_dropped"] == pytest.approx(2 / 3)
+    assert summary["observed_transmission"] == 0.3
+    # no background label in the labelled shadow: the share is undefined (None), not 0
+    empty = transmission_summary(t, labels, torch.zeros(6, dtype=torch.bool), 0.3)
+    assert empty["labelled_shadow_background"] == 0 and empty["labelled_shadow_dropped"] is None
+    # without τ only the T < 0.1 share, as before
+    assert set(transmission_summary(t, labels, shadow)) == {
+        "bone_mean", "background_mean", "background_shadowed", "shadow_threshold",
+    }  # fmt: skip
+    with pytest.raises(UltronInputError, match="labelled_shadow"):
+        transmission_summary(t, labels, shadow[:5], observed_transmission=0.3)
+
+
+def test_the_labelled_shadow_lies_under_the_first_band(fitted_case):
+    """A pixel is in the labelled shadow where the annotation's own T < 0.1: more than
+    ln(10) · 1 mm under the band's last row (decay 1 mm, margin 0); nowhere in the band or
+    above it, and nowhere in a column without a bone label."""
+    dataset = fitted_case["dataset"]
+    pixels = gather_labelled_pixels(dataset, select_label_frames(dataset, 0.3, 0))
+    shadow = in_labelled_shadow(dataset, pixels).numpy()
+    labels = dataset.sweeps[0].labels
+    spacing = PROBE.axial_spacing_mm
+    last = np.array(
+        [
+            np.flatnonzero(labels[f, :, c] == 1).max()
+            for f, c in zip(pixels.frame, pixels.col, strict=True)
+        ]
+    )
+    below_mm = (pixels.row - last) * spacing
+    np.testing.assert_array_equal(shadow, below_mm > np.log(10.0))
+    assert shadow.any() and not shadow[pixels.label == 1].any()
+    data = occupancy_training_data(
+        dataset, fitted_case["fitted"], select_label_frames(dataset, 0.3, 0)
+    )
+    assert torch.equal(data.labelled_shadow, torch.from_numpy(shadow))
 
 
 # ----------------------------------------------------------------------------- oracle

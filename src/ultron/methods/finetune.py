@@ -194,7 +194,12 @@ def finetune_ultron(
             "n_label_frames": selection.n_frames,
             "n_labelled_pixels": len(data.labels),
             "n_bone_pixels": int(data.labels.sum()),
-            "transmission_stats": transmission_summary(data.transmission, data.labels),
+            "transmission_stats": transmission_summary(
+                data.transmission,
+                data.labels,
+                data.labelled_shadow,
+                config.training(spec).observed_transmission,
+            ),
             "occupancy_log": log,
         }
     model.eval()

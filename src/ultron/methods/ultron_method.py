@@ -72,6 +72,7 @@ from ultron.train.visibility import (
     VisibilityConfig,
     field_theta_transmission,
     frame_transmission,
+    in_labelled_shadow,
     pixel_transmission,
     transmission_summary,
 )
@@ -270,7 +271,8 @@ def occupancy_training_data(
     world = torch.from_numpy(pixels.world_mm(dataset))
     inputs = theta_features(fitted, world, context or ThetaContextConfig(), centre=theta)
     labels = torch.from_numpy(pixels.label.astype(np.uint8))
-    return OccupancyTrainingData(inputs, transmission.detach().float(), labels)
+    shadow = in_labelled_shadow(dataset, pixels)
+    return OccupancyTrainingData(inputs, transmission.detach().float(), labels, shadow)
 
 
 def occupancy_function(fitted, network: OccupancyNetwork, context: ThetaContextConfig):
@@ -423,7 +425,12 @@ def reconstruct_ultron(
         **config.visibility.to_dict(),
         "theta_context": config.context.to_dict(),
         "label_outer_side_mm": config.label_outer_side_mm,
-        "transmission_stats": transmission_summary(data.transmission, data.labels),
+        "transmission_stats": transmission_summary(
+            data.transmission,
+            data.labels,
+            data.labelled_shadow,
+            occupancy_config.observed_transmission,
+        ),
         "occupancy_config": occupancy_config.to_dict(),
         "occupancy_log": log,
         "grid": grid.to_dict(),

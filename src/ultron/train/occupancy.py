@@ -191,15 +191,24 @@ def parse_positive_weight(text: str) -> float | None:
 
 @dataclass(frozen=True)
 class OccupancyTrainingData:
-    """Precomputed per-pixel inputs (P, D), transmission T (P,) and labels y (P,) ∈ {0, 1}."""
+    """Precomputed per-pixel inputs (P, D), transmission T (P,) and labels y (P,) ∈ {0, 1};
+    ``labelled_shadow`` (P,) bool, when given, marks the pixels in the labels' own shadow
+    (:func:`ultron.train.visibility.in_labelled_shadow`) — a diagnostic the fit does not read."""
 
     inputs: torch.Tensor
     transmission: torch.Tensor
     labels: torch.Tensor
+    labelled_shadow: torch.Tensor | None = None
 
     def __post_init__(self) -> None:
         n = self.labels.shape[0]
-        if self.inputs.ndim != 2 or self.inputs.shape[0] != n or self.transmission.shape != (n,):
+        shadow_ok = self.labelled_shadow is None or self.labelled_shadow.shape == (n,)
+        if (
+            self.inputs.ndim != 2
+            or self.inputs.shape[0] != n
+            or self.transmission.shape != (n,)
+            or not shadow_ok
+        ):
             raise argument_error(
                 "training data",
                 f"inputs {tuple(self.inputs.shape)}, transmission {tuple(self.transmission.shape)}"

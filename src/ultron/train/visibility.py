@@ -452,20 +452,56 @@ def pixel_transmission(
     return torch.from_numpy(transmission)
 
 
-def transmission_summary(transmission: torch.Tensor, labels: torch.Tensor) -> dict[str, Any]:
+def in_labelled_shadow(dataset: SweepDataset, pixels: LabelledPixels) -> torch.Tensor:
+    """(P,) bool: the pixel lies in its scanline's *labelled* shadow — the annotation's own T
+    (:func:`label_transmission`, default margin and decay) is below ``SHADOW_T`` there, i.e.
+    more than ≈ 2.3 mm under the end of the scanline's first run of bone labels. Truth-free:
+    where the labels say the beam could not reach."""
+    t = pixel_transmission(VisibilityConfig("labels"), dataset, pixels)
+    return t < SHADOW_T
+
+
+def transmission_summary(
+    transmission: torch.Tensor,
+    labels: torch.Tensor,
+    labelled_shadow: torch.Tensor | None = None,
+    observed_transmission: float | None = None,
+) -> dict[str, Any]:
     """Mean T at bone and at background labels, and the share of background labels in shadow
-    (T < 0.1): how much the compensated loss can discount (recorded in run.json)."""
+    (T < 0.1): how much the compensated loss can discount (recorded in run.json).
+
+    With ``observed_transmission`` τ (the observed negatives' threshold) also the share of
+    background labels below τ — those the loss drops — and, with ``labelled_shadow`` (P,) bool
+    (:func:`in_labelled_shadow`), how many background labels lie in the labels' own shadow and
+    the share of them whose T < τ: whether the field's T calls the shadow the labels show,
+    without any truth (docs/stage2-transmission.md: the loss's gain follows it).
+    """
     t = transmission.detach().double()
     bone = labels.bool()
 
     def mean(mask: torch.Tensor) -> float | None:
         return float(t[mask].mean()) if bool(mask.any()) else None
 
+    def share_below(mask: torch.Tensor, level: float) -> float | None:
+        return float((t[mask] < level).double().mean()) if bool(mask.any()) else None
+
     background = ~bone
-    shadowed = float((t[background] < SHADOW_T).double().mean()) if bool(background.any()) else None
-    return {
+    summary: dict[str, Any] = {
         "bone_mean": mean(bone),
         "background_mean": mean(background),
-        "background_shadowed": shadowed,
+        "background_shadowed": share_below(background, SHADOW_T),
         "shadow_threshold": SHADOW_T,
     }
+    if observed_transmission is not None:
+        summary["observed_transmission"] = float(observed_transmission)
+        summary["background_dropped"] = share_below(background, observed_transmission)
+        if labelled_shadow is not None:
+            if labelled_shadow.shape != labels.shape:
+                raise argument_error(
+                    "labelled_shadow",
+                    f"expected shape {tuple(labels.shape)}, got {tuple(labelled_shadow.shape)}",
+                )
+            in_shadow = background & labelled_shadow.bool()
+            summary["labelled_shadow_background"] = int(in_shadow.sum())
+            summary["labelled_shadow_dropped"] = share_below(in_shadow, observed_transmission)
+    return summary
