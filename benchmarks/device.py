@@ -84,8 +84,7 @@ def preset_field(preset: str, volume_cell_mm: float | None = None) -> FieldTrain
     config = pipeline_preset(preset).field
     if volume_cell_mm is None or config.field.backend != "grid":
         return config
-    grid = replace(config.field.grid, volume_cell_mm=volume_cell_mm)
-    return replace(config, field=replace(config.field, grid=grid))
+    return config.with_volume(volume_cell_mm)
 
 
 def field_step(

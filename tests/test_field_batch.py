@@ -112,8 +112,7 @@ def test_field_loss_is_device_work_alone(
         scattering_tv_weight=0.1,
     )  # fmt: skip
     if volume_cell_mm is not None:
-        grid = replace(config.field.grid, volume_cell_mm=volume_cell_mm)
-        config = replace(config, field=replace(config.field, grid=grid))
+        config = config.with_volume(volume_cell_mm)
     if paper_field:  # Ultra-NeRF's MLP with its heads (no regulariser draws)
         config = replace(config, field=pipeline_preset("paper").field.field)
     cube = UnitCube((0.0, 20.0, 0.0), 40.0)
@@ -198,8 +197,7 @@ def test_graphed_fit_steps_equal_the_eager_ones_on_cuda(tiny_l3, preset):
     dataset = SweepDataset.load(tiny_l3)
     config = pipeline_preset(preset.removesuffix("-volume")).field
     if preset.endswith("-volume"):
-        grid = replace(config.field.grid, volume_cell_mm=0.5)
-        config = replace(config, field=replace(config.field, grid=grid))
+        config = config.with_volume(0.5)
     config = resolve_fit_shape(config, dataset)
     frames, cube, module, _ = _prepare(dataset, config)
     frames = frames.to("cuda")

@@ -198,9 +198,7 @@ def test_field_fit_memory_estimate(tiny_dataset: SweepDataset):
     values = sum(p.numel() for p in module.planes.parameters())
     assert memory.planes == values * FIELD_BYTES_PER_VALUE
     assert not memory.volume and module.volume is None
-    with_volume = replace(
-        config, field=replace(config.field, grid=replace(config.field.grid, volume_cell_mm=2.0))
-    )
+    with_volume = config.with_volume(2.0)
     memory_volume = field_fit_memory(tiny_dataset, with_volume)
     _, _, module, resolved = _prepare(tiny_dataset, with_volume)
     assert memory_volume.volume and module.volume.numel() == 4 * math.prod(

@@ -145,6 +145,12 @@ class FieldTrainConfig:
             return self.lr_decay_steps
         return self.iterations if self.field.backend == "grid" else PAPER_MLP_DECAY_STEPS
 
+    def with_volume(self, volume_cell_mm: float | None) -> FieldTrainConfig:
+        """This fit with the grid field's dense volume at ``volume_cell_mm`` (0 or None: no
+        volume), as a new configuration."""
+        grid = replace(self.field.grid, volume_cell_mm=volume_cell_mm or None)
+        return replace(self, field=replace(self.field, grid=grid))
+
     def to_dict(self) -> dict[str, Any]:
         data = asdict(self)
         data["field"] = self.field.to_dict()
@@ -204,13 +210,13 @@ def field_preset(name: str = "default", **changes: Any) -> FieldTrainConfig:
     if "scattering_floor" in changes:
         heads = changes.pop("heads", base.field.heads)
         changes["heads"] = replace(heads, scattering_floor=changes.pop("scattering_floor"))
-    if "volume_cell_mm" in changes:  # 0 or None: no volume level
-        volume = changes.pop("volume_cell_mm") or None
-        changes["grid"] = replace(changes.pop("grid", base.field.grid), volume_cell_mm=volume)
+    with_volume = "volume_cell_mm" in changes
+    volume = changes.pop("volume_cell_mm", None)
     field_changes = {k: changes.pop(k) for k in ("backend", "heads", "grid") if k in changes}
     if field_changes:
         changes["field"] = replace(base.field, **field_changes)
-    return replace(base, **changes)
+    config = replace(base, **changes)
+    return config.with_volume(volume) if with_volume else config
 
 
 def learning_rate_at(config: FieldTrainConfig, step: int) -> float:

@@ -209,10 +209,15 @@ class OccupancyTrainingData:
             or self.transmission.shape != (n,)
             or not shadow_ok
         ):
+            shadow = (
+                ""
+                if self.labelled_shadow is None
+                else (f", labelled_shadow {tuple(self.labelled_shadow.shape)}")
+            )
             raise argument_error(
                 "training data",
                 f"inputs {tuple(self.inputs.shape)}, transmission {tuple(self.transmission.shape)}"
-                f" and labels {tuple(self.labels.shape)} do not match",
+                f"{shadow} and labels {tuple(self.labels.shape)} do not match",
             )
         if n == 0:
             raise argument_error("training data", "no labelled pixels")
