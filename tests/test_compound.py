@@ -10,6 +10,7 @@ import nibabel as nib
 import numpy as np
 import pytest
 import torch
+from scipy import ndimage
 from typer.testing import CliRunner
 
 from conftest import make_pose, rotation_z
@@ -18,7 +19,12 @@ from ultron.data.dataset import ProbeGeometry, Sweep, SweepDataset
 from ultron.data.geometry import frame_pixels_world
 from ultron.errors import UltronInputError
 from ultron.mesh.grid import GridSpec
-from ultron.mesh.holes import STICK_DIRECTIONS, fill_holes_nearest, fill_holes_stick
+from ultron.mesh.holes import (
+    STICK_DIRECTIONS,
+    fill_holes_nearest,
+    fill_holes_stick,
+    filled_box,
+)
 from ultron.mesh.image_compounding import (
     ImageCompoundingConfig,
     compound_images,
@@ -150,6 +156,33 @@ def test_stick_hole_filling_equals_walking_every_stick(seed):
     expected, expected_new = _stick_fill_by_walking(volume, filled, length)
     assert new.any() and np.array_equal(new, expected_new)
     np.testing.assert_allclose(out, expected, rtol=1e-5, atol=1e-4)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_hole_fillers_work_on_the_filled_box_alone(seed):
+    # filled voxels in one corner region of a larger volume: the fillers crop to their box
+    # (and the nearest filler's distance around it); the result is the whole volume's
+    rng = np.random.default_rng(seed)
+    shape = (13, 11, 12)
+    filled = np.zeros(shape, bool)
+    filled[2:7, 3:8, 1:6] = rng.random((5, 5, 5)) < 0.15
+    volume = np.where(filled, rng.random(shape) * 100, 0).astype(np.float32)
+    assert filled_box(filled, 0) == tuple(
+        slice(int(i.min()), int(i.max()) + 1) for i in np.nonzero(filled)
+    )
+    out, new = fill_holes_stick(volume, filled, 5)
+    expected, expected_new = _stick_fill_by_walking(volume, filled, 5)
+    assert new.any() and np.array_equal(new, expected_new)
+    np.testing.assert_allclose(out, expected, rtol=1e-5, atol=1e-4)
+    distance, nearest = ndimage.distance_transform_edt(~filled, return_indices=True)
+    for radius in (1.5, 2.9):
+        out, new = fill_holes_nearest(volume, filled, radius)
+        assert np.array_equal(new, ~filled & (distance <= radius))
+        assert np.array_equal(out[new], volume[tuple(axis[new] for axis in nearest)])
+        assert np.array_equal(out[~new], volume[~new])
+    assert filled_box(np.zeros(shape, bool), 2) is None
+    out, new = fill_holes_stick(volume, np.zeros(shape, bool), 5)
+    assert not new.any() and np.array_equal(out, volume)
 
 
 def test_nearest_hole_filling():

@@ -91,6 +91,19 @@ def fill_holes_stick(
     filled = np.asarray(filled, dtype=bool)
     if volume.ndim != 3 or filled.shape != volume.shape:
         raise argument_error("filled", f"expected the volume's 3D shape {volume.shape}")
+    out, new = volume.copy(), np.zeros(volume.shape, dtype=bool)
+    box = filled_box(filled, 0)
+    if box is not None:  # a stick's hole lies between its two filled ends: in their box
+        at, values = _fill_sticks(volume[box], filled[box], length, plus_weights)
+        out[box][at], new[box][at] = values, True
+    return out, new
+
+
+def _fill_sticks(
+    volume: np.ndarray, filled: np.ndarray, length: int, plus_weights: bool
+) -> tuple[tuple[np.ndarray, ...], np.ndarray]:
+    """:func:`fill_holes_stick` on validated arrays: the indices of the holes it fills and
+    their values."""
     at = reachable_holes(filled, length)
     best = np.full(len(at[0]), np.inf, dtype=np.float32)
     total = np.zeros(len(at[0]), dtype=np.float32)
@@ -125,11 +138,21 @@ def fill_holes_stick(
         total = np.where(shorter, value, np.where(tied, total + value, total))
         count = np.where(shorter, 1.0, np.where(tied, count + 1.0, count)).astype(np.float32)
     found = count > 0
-    new = np.zeros(volume.shape, dtype=bool)
-    new[tuple(axis[found] for axis in at)] = True
-    out = volume.copy()
-    out[new] = total[found] / count[found]  # both in C order: ``at`` is sorted
-    return out, new
+    return tuple(axis[found] for axis in at), total[found] / count[found]
+
+
+def filled_box(filled: np.ndarray, margin: int) -> tuple[slice, ...] | None:
+    """Slices of the smallest box holding every voxel of ``filled``, grown by ``margin`` voxels
+    on each side within the volume; ``None`` when nothing is filled. Every hole either filler
+    can fill lies in it (a stick between its two filled ends; a nearest fill within its
+    distance), so they work on the box alone: on a sparse sweep it is a fraction of the grid."""
+    axes = [np.flatnonzero(filled.any(axis=tuple(b for b in range(3) if b != a))) for a in range(3)]
+    if len(axes[0]) == 0:
+        return None
+    return tuple(
+        slice(max(int(index[0]) - margin, 0), min(int(index[-1]) + 1 + margin, n))
+        for index, n in zip(axes, filled.shape, strict=True)
+    )
 
 
 def reachable_holes(filled: np.ndarray, length: int) -> tuple[np.ndarray, ...]:
@@ -155,10 +178,13 @@ def fill_holes_nearest(
     filled = np.asarray(filled, dtype=bool)
     if not max_distance_voxels >= 0:
         raise argument_error("max_distance_voxels", f"expected ≥ 0, got {max_distance_voxels}")
-    if not filled.any():
-        return volume.copy(), np.zeros_like(filled)
-    distance, nearest = ndimage.distance_transform_edt(~filled, return_indices=True)
-    new = ~filled & (distance <= max_distance_voxels)
-    out = volume.copy()
-    out[new] = volume[tuple(axis[new] for axis in nearest)]
+    out, new = volume.copy(), np.zeros_like(filled)
+    box = filled_box(filled, int(min(np.floor(max_distance_voxels), max(filled.shape))))
+    if box is None:
+        return out, new
+    inside = filled[box]
+    distance, nearest = ndimage.distance_transform_edt(~inside, return_indices=True)
+    found = ~inside & (distance <= max_distance_voxels)
+    out[box][found] = volume[box][tuple(axis[found] for axis in nearest)]
+    new[box] = found
     return out, new
