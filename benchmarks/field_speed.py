@@ -32,7 +32,8 @@ from pathlib import Path
 import torch
 
 from ultron.data.dataset import SweepDataset
-from ultron.data.geometry import UnitCube, field_of_view_bounds_mm
+from ultron.data.geometry import UnitCube
+from ultron.data.orientation import field_cube
 from ultron.fields import FieldConfig, build_field
 from ultron.train import FieldTrainConfig, FrameSet, fit_field
 from ultron.train.field_fit import make_optimizer, training_objective
@@ -114,7 +115,7 @@ def main() -> None:
                 f" {statistics.median(times):.4f} s, min {min(times):.4f} s"
             )
 
-    cube = UnitCube.from_bounds(field_of_view_bounds_mm(dataset.all_poses(), frames.probe))
+    cube, _ = field_cube(dataset.all_poses(), frames.probe, config.orientation)
     timers = {b: step_timer(b, frames, cube, config) for b in ("grid", "mlp")}
     for run in timers.values():  # warm-up
         run(), run()

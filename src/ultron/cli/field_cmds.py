@@ -11,6 +11,7 @@ from ultron.cli.common import (
     DeviceOption,
     ThreadsOption,
     apply_threads,
+    check_choice,
     check_count,
     check_device,
     check_range,
@@ -89,6 +90,16 @@ VolumeCell = Annotated[
         " 2 gained on the real fibula, lost on simulated vertebrae: docs/decisions.md).",
     ),
 ]
+ORIENTATIONS = ("auto", "world")  # ultron.data.orientation.ORIENTATIONS (lazy import)
+Orientation = Annotated[
+    str | None,
+    typer.Option(
+        "--orientation",
+        help="The field's axes: world (the tracker's, default) or auto (the sweep's where it"
+        " runs more than 5° oblique to the tracker's; measured worse on the real fibula:"
+        " docs/field.md).",
+    ),
+]
 FitSeed = Annotated[int, typer.Option("--seed", help="Seed of initialisation and batches.")]
 HoldoutEvery = Annotated[
     int, typer.Option("--holdout-every", help="Hold out every K-th frame for checks (0: none).")
@@ -146,6 +157,7 @@ def fit_field_command(
     scattering_warmup: ScatteringWarmup = None,
     confidence_prior: ConfidencePrior = None,
     volume_cell: VolumeCell = None,
+    orientation: Orientation = None,
     seed: FitSeed = 0,
     holdout_every: HoldoutEvery = 10,
     fit_shape: FitShape = "auto",
@@ -168,6 +180,8 @@ def fit_field_command(
     check_count("--scattering-warmup", scattering_warmup, 0)
     check_range("--confidence-prior", confidence_prior, 0.0)
     check_range("--volume-cell", volume_cell, 0.0)
+    if orientation is not None:
+        check_choice("--orientation", orientation, ORIENTATIONS)
     check_seed("--seed", seed)
     _check_holdout(holdout_every)
     check_count("--check-every", check_every)
@@ -186,6 +200,7 @@ def fit_field_command(
         "scattering_warmup_iters": scattering_warmup,
         "confidence_prior_weight": confidence_prior,
         "volume_cell_mm": volume_cell,
+        "orientation": orientation,
         "checkpoint_every": checkpoint_every,
     }
     config = field_preset(

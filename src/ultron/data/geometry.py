@@ -164,27 +164,38 @@ def field_of_view_bounds_mm(
 
     A frame is a planar rectangle, so its four corner pixels bound it exactly.
     """
+    corners = field_of_view_corners_mm(poses, probe)
+    return torch.stack([corners.min(dim=0).values, corners.max(dim=0).values])
+
+
+def field_of_view_corners_mm(
+    poses: np.ndarray | torch.Tensor | Sequence[np.ndarray], probe: ProbeGeometry
+) -> torch.Tensor:
+    """World points (4N, 3), float64, of the four corner pixel centres of every frame: the
+    convex hull of the field of view (a frame is a planar rectangle)."""
     tensor = as_pose_tensor(poses, "poses").to(torch.float64)
     rows = torch.tensor(
         [0.0, 0.0, probe.height_px - 1.0, probe.height_px - 1.0], dtype=torch.float64
     )
     cols = torch.tensor([0.0, probe.width_px - 1.0, 0.0, probe.width_px - 1.0], dtype=torch.float64)
-    corners = pixel_to_world(tensor, rows, cols, probe).reshape(-1, 3)
-    return torch.stack([corners.min(dim=0).values, corners.max(dim=0).values])
+    return pixel_to_world(tensor, rows, cols, probe).reshape(-1, 3)
 
 
 @dataclass(frozen=True)
 class UnitCube:
-    """Isotropic world-mm ↔ normalised-cube transform: u = (x − center_mm) / half_extent_mm.
+    """Isotropic world-mm ↔ normalised-cube transform: u = A (x − center_mm) / half_extent_mm.
 
     One scale for all axes (unlike the per-axis min-max of the original code, which distorts
     voxels and positional-encoding bandwidth). The box of interest maps inside [−1, 1]³.
-    Arithmetic is done in float64: float32 world coordinates mapped to float64 unit coordinates
-    and back are recovered bit-exactly, float64 ones to within a few ulp.
+    ``axes`` (rows: the cube's axes as world unit vectors, a rotation A) orients the cube;
+    None keeps the world's axes (A = I, and no product is taken). Arithmetic is done in
+    float64: with A = I, float32 world coordinates mapped to float64 unit coordinates and back
+    are recovered bit-exactly, float64 ones to within a few ulp.
     """
 
     center_mm: tuple[float, float, float]
     half_extent_mm: float
+    axes: tuple[tuple[float, float, float], ...] | None = None
 
     def __post_init__(self) -> None:
         if len(self.center_mm) != 3 or not all(np.isfinite(self.center_mm)):
@@ -193,6 +204,49 @@ class UnitCube:
             raise argument_error(
                 "half_extent_mm", f"expected a positive number, got {self.half_extent_mm}"
             )
+        if self.axes is not None:
+            axes = np.asarray(self.axes, dtype=np.float64)
+            if (
+                axes.shape != (3, 3)
+                or not np.isfinite(axes).all()
+                or not np.allclose(axes @ axes.T, np.eye(3), atol=1e-9)
+                or not np.linalg.det(axes) > 0
+            ):
+                raise argument_error("axes", f"expected a 3 × 3 rotation (rows), got {self.axes}")
+
+    @classmethod
+    def from_points(
+        cls,
+        points_mm: torch.Tensor | np.ndarray,
+        margin: float = 0.05,
+        axes: np.ndarray | None = None,
+    ) -> UnitCube:
+        """The cube along ``axes`` (None: the world's) centred on the box of ``points_mm``
+        (M, 3) in those axes, whose largest half-side, grown by ``margin``, maps to 1. With
+        ``axes=None`` it is :meth:`from_bounds` of the points' bounds."""
+        points = _as_points(points_mm)
+        if margin < 0:
+            raise argument_error("margin", f"expected ≥ 0, got {margin}")
+        rotation = None if axes is None else np.asarray(axes, dtype=np.float64)
+        local = points if rotation is None else points @ rotation.T
+        low, high = local.min(axis=0), local.max(axis=0)
+        center = (low + high) / 2
+        if rotation is not None:
+            center = center @ rotation
+        half = float((high - low).max() / 2 * (1 + margin))
+        oriented = None if rotation is None else tuple(tuple(float(v) for v in r) for r in rotation)
+        return cls(tuple(float(c) for c in center), max(half, 1e-6), oriented)
+
+    def points_extent(
+        self, points_mm: torch.Tensor | np.ndarray, margin: float = 0.05
+    ) -> tuple[float, float, float]:
+        """:meth:`box_extent` of the box of ``points_mm`` (M, 3) in this cube's axes."""
+        points = _as_points(points_mm) - np.asarray(self.center_mm)
+        if self.axes is not None:
+            points = points @ np.asarray(self.axes).T
+        half = np.abs(points).max(axis=0)
+        grown = half + margin * float(half.max())
+        return tuple(float(min(1.0, max(g / self.half_extent_mm, 1e-6))) for g in grown)
 
     @classmethod
     def from_bounds(cls, bounds_mm: torch.Tensor | np.ndarray, margin: float = 0.05) -> UnitCube:
@@ -219,27 +273,60 @@ class UnitCube:
     def _center(self, like: torch.Tensor) -> torch.Tensor:
         return torch.tensor(self.center_mm, dtype=torch.float64, device=like.device)
 
+    def _rotation(self, like: torch.Tensor) -> torch.Tensor:
+        return torch.tensor(self.axes, dtype=torch.float64, device=like.device)
+
     def to_unit(self, points_mm: torch.Tensor, dtype: torch.dtype | None = None) -> torch.Tensor:
         """World mm → unit cube; returns ``dtype`` (default: the input's floating dtype)."""
         points = torch.as_tensor(points_mm)
         out_dtype = dtype or (points.dtype if torch.is_floating_point(points) else torch.float64)
         unit = (points.to(torch.float64) - self._center(points)) / self.half_extent_mm
+        if self.axes is not None:
+            unit = unit @ self._rotation(unit).T
         return unit.to(out_dtype)
 
     def to_world(self, points_unit: torch.Tensor, dtype: torch.dtype | None = None) -> torch.Tensor:
         """Unit cube → world mm; returns ``dtype`` (default: the input's floating dtype)."""
         points = torch.as_tensor(points_unit)
         out_dtype = dtype or (points.dtype if torch.is_floating_point(points) else torch.float64)
-        world = points.to(torch.float64) * self.half_extent_mm + self._center(points)
+        points = points.to(torch.float64)
+        if self.axes is not None:
+            points = points @ self._rotation(points)
+        world = points * self.half_extent_mm + self._center(points)
         return world.to(out_dtype)
 
     def to_dict(self) -> dict[str, object]:
-        return {"center_mm": list(self.center_mm), "half_extent_mm": self.half_extent_mm}
+        data: dict[str, object] = {
+            "center_mm": list(self.center_mm),
+            "half_extent_mm": self.half_extent_mm,
+        }
+        if self.axes is not None:
+            data["axes"] = [list(row) for row in self.axes]
+        return data
 
     @classmethod
     def from_dict(cls, data: dict[str, object]) -> UnitCube:
+        """From :meth:`to_dict`'s form; a cube saved before ``axes`` existed had the world's."""
         center = data.get("center_mm")
         half = data.get("half_extent_mm")
+        axes = data.get("axes")
         if not isinstance(center, list | tuple) or not isinstance(half, int | float):
             raise argument_error("unit_cube", f"expected center_mm and half_extent_mm, got {data}")
-        return cls(tuple(float(c) for c in center), float(half))
+        if axes is not None and not (
+            isinstance(axes, list | tuple) and all(isinstance(r, list | tuple) for r in axes)
+        ):
+            raise argument_error("unit_cube", f"expected axes as three rows, got {axes}")
+        rows = None if axes is None else tuple(tuple(float(v) for v in r) for r in axes)
+        return cls(tuple(float(c) for c in center), float(half), rows)
+
+
+def _as_points(points_mm: torch.Tensor | np.ndarray) -> np.ndarray:
+    """``points_mm`` as a float64 (M, 3) array with M ≥ 1 of finite values."""
+    points = np.asarray(
+        points_mm.detach().cpu() if torch.is_tensor(points_mm) else points_mm, dtype=np.float64
+    )
+    if points.ndim != 2 or points.shape[1] != 3 or len(points) == 0:
+        raise argument_error("points_mm", f"expected (M, 3) with M ≥ 1, got {points.shape}")
+    if not np.isfinite(points).all():
+        raise argument_error("points_mm", "contains NaN or inf")
+    return points

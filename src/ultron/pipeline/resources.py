@@ -38,13 +38,14 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from ultron.data.dataset import ProbeGeometry, SweepDataset
-from ultron.data.geometry import UnitCube, field_of_view_bounds_mm
+from ultron.data.geometry import field_of_view_bounds_mm
 from ultron.data.labels import (
     FrameSelection,
     bone_points_mm,
     chunk_pixels_bound,
     count_labelled_pixels,
 )
+from ultron.data.orientation import field_cube
 from ultron.data.outliers import check_pose_outliers
 from ultron.errors import UltronInputError
 from ultron.memory import memory_limit
@@ -284,12 +285,9 @@ def field_fit_memory(dataset: SweepDataset, config: FieldTrainConfig) -> FieldFi
     resolutions: tuple[int, ...] = ()
     values = 0
     if backend == "grid":
-        bounds = field_of_view_bounds_mm(dataset.all_poses(), probe)
-        cube = UnitCube.from_bounds(bounds)
+        cube, extent = field_cube(dataset.all_poses(), probe, config.orientation)
         pixel = min(probe.axial_spacing_mm, probe.lateral_spacing_mm)
-        grid_config = config.field.grid.resolved(
-            cube.half_extent_mm, pixel, cube.box_extent(bounds)
-        )
+        grid_config = config.field.grid.resolved(cube.half_extent_mm, pixel, extent)
         resolutions = grid_config.resolutions or ()
         values = grid_config.n_values()
     rows, cols = probe.image_shape

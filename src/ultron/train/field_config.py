@@ -8,6 +8,7 @@ from dataclasses import asdict, dataclass, replace
 from dataclasses import field as dataclass_field
 from typing import Any
 
+from ultron.data.orientation import ORIENTATIONS
 from ultron.errors import argument_error
 from ultron.fields.factory import FieldConfig
 from ultron.fields.properties import HeadConfig
@@ -72,6 +73,10 @@ class FieldTrainConfig:
     scattering_warmup_iters: int = 0
     confidence_prior_weight: float = 1.0
     confidence_prior_margin: float = 0.3
+    #: The field's axes: "world" (the tracker's) or "auto" (the sweep's, where it runs
+    #: oblique to the world's: :mod:`ultron.data.orientation`; measured worse on the real
+    #: fibula, docs/field.md).
+    orientation: str = "world"
 
     def __post_init__(self) -> None:
         positive = ("iterations", "frames_per_batch", "patch_width", "check_every")
@@ -125,6 +130,10 @@ class FieldTrainConfig:
                 raise argument_error(name, "expected a finite value ≥ 0")
         if not 0 <= self.confidence_prior_margin < 1:
             raise argument_error("confidence_prior_margin", "expected a value in [0, 1)")
+        if self.orientation not in ORIENTATIONS:
+            raise argument_error(
+                "orientation", f"expected one of {ORIENTATIONS}, got {self.orientation!r}"
+            )
 
     @property
     def effective_scattering_warmup(self) -> int:
@@ -153,6 +162,8 @@ class FieldTrainConfig:
 
     def to_dict(self) -> dict[str, Any]:
         data = asdict(self)
+        if self.orientation == "world":  # as written before the option: the same cache keys
+            del data["orientation"]
         data["field"] = self.field.to_dict()
         shape = self.fit_shape
         data["fit_shape"] = list(shape) if isinstance(shape, tuple) else shape
@@ -161,9 +172,10 @@ class FieldTrainConfig:
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> FieldTrainConfig:
         """From field.json's ``train``; a field fitted before the confidence prior existed was
-        fitted without it (weight 0)."""
+        fitted without it (weight 0), one fitted before ``orientation`` on the world's axes."""
         values = dict(data)
         values.setdefault("confidence_prior_weight", 0.0)
+        values.setdefault("orientation", "world")  # fields fitted before it: the world's axes
         values["field"] = FieldConfig.from_dict(values.get("field", {}))
         values["render"] = RenderConfig.from_dict(values.get("render", {}))
         values.setdefault("fit_shape", None)  # fields fitted before "auto": their own size

@@ -38,7 +38,8 @@ import torch
 
 from ultron import atomic
 from ultron.data.dataset import ProbeGeometry, SweepDataset
-from ultron.data.geometry import UnitCube, field_of_view_bounds_mm
+from ultron.data.geometry import UnitCube
+from ultron.data.orientation import field_cube
 from ultron.device import describe_device, resolve_device
 from ultron.errors import UltronInputError, argument_error
 from ultron.fields.base import AcousticField
@@ -282,12 +283,9 @@ def _prepare(
         stage = getattr(progress, "stage", None)
         report = None if stage is None else (lambda done, n: stage("confidence maps", done, n))
         frames = frames.with_confidence(report, workers=default_workers())
-    bounds = field_of_view_bounds_mm(dataset.all_poses(), frames.probe)
-    cube = UnitCube.from_bounds(bounds)
+    cube, extent = field_cube(dataset.all_poses(), frames.probe, config.orientation)
     pixel_mm = min(frames.probe.axial_spacing_mm, frames.probe.lateral_spacing_mm)
-    module, resolved = build_field(
-        config.field, cube.half_extent_mm, pixel_mm, config.seed, cube.box_extent(bounds)
-    )
+    module, resolved = build_field(config.field, cube.half_extent_mm, pixel_mm, config.seed, extent)
     return frames, cube, module.train(), resolved
 
 
