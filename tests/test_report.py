@@ -358,3 +358,24 @@ def test_place_grid_puts_margins_and_gaps_in_inches():
     place_grid(fig, 2, 3, (1.0, 0.5, 0.8, 0.4), (0.6, 0.7), right_fraction=0.8)
     right = max(ax.get_position().x1 for ax in axes) * 10
     assert right == pytest.approx(8.0 - 0.5, abs=1e-9)
+
+
+def test_frames_are_reduced_by_whole_blocks_for_their_panel():
+    from ultron.report.plotting import display_factor, reduced_frame
+
+    assert display_factor(820, 216.0) == 3 and display_factor(100, 216.0) == 1
+    with pytest.raises(UltronInputError, match="panel_px"):
+        display_factor(820, 0.0)
+    image = np.arange(7 * 8, dtype=np.uint8).reshape(7, 8)
+    labels = np.zeros((7, 8), np.uint8)
+    labels[4, 1] = 1  # the centre of block (1, 0) for k = 3
+    mean, centre, extent = reduced_frame(image, labels, 3, (-4.0, 4.0, 7.0, 0.0))
+    assert mean.shape == (2, 2) and centre.shape == (2, 2)
+    assert mean[0, 0] == pytest.approx(image[:3, :3].mean()) and mean.dtype == np.float32
+    assert mean[1, 1] == pytest.approx(image[3:6, 3:6].mean())
+    np.testing.assert_array_equal(centre, [[0, 0], [1, 0]])
+    # 6 of 8 columns and 6 of 7 rows drawn: the extent covers exactly those pixels
+    assert extent == pytest.approx((-4.0, 2.0, 6.0, 0.0))
+    same, _, full = reduced_frame(image, None, 1, (-4.0, 4.0, 7.0, 0.0))
+    np.testing.assert_array_equal(same, image)
+    assert full == (-4.0, 4.0, 7.0, 0.0)

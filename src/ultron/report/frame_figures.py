@@ -13,10 +13,12 @@ from ultron.errors import argument_error
 from ultron.report.plotting import (
     check_dataset,
     check_frame_indices,
+    display_factor,
     figure_png,
     image_extent_mm,
     new_figure,
     place_grid,
+    reduced_frame,
     robust_limits,
     top_title,
 )
@@ -180,16 +182,18 @@ def label_masks_figure(
     extent = image_extent_mm(probe)
     aspect = probe.depth_mm / probe.width_mm
     fig = new_figure(2.4 * n_cols, (1.9 * aspect + 0.6) * n_rows + 0.6)
+    factor = display_factor(probe.width_px, 2.4 * fig.dpi)
     for k, (name, frame) in enumerate(picks):
         sweep = dataset.sweep(name)
         ax = fig.add_subplot(n_rows, n_cols, k + 1)
-        ax.imshow(sweep.images[frame], cmap="gray", vmin=0, vmax=255, extent=extent)
-        if sweep.labels is None:
+        labels = None if sweep.labels is None else sweep.labels[frame]
+        image, shown, shown_extent = reduced_frame(sweep.images[frame], labels, factor, extent)
+        ax.imshow(image, cmap="gray", vmin=0, vmax=255, extent=shown_extent)
+        if labels is None:
             note = "no labels"
             ax.text(0, probe.depth_mm * 0.08, note, color="yellow", ha="center", fontsize=7)
         else:
-            labels = sweep.labels[frame]
-            ax.imshow(_overlay(labels), extent=extent, interpolation="nearest")
+            ax.imshow(_overlay(shown), extent=shown_extent, interpolation="nearest")
             note = f"{int((labels == LABEL_TARGET).sum())} bone px"
             if (labels == LABEL_UNANNOTATED).all():
                 note = "not annotated"

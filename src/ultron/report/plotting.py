@@ -67,6 +67,37 @@ def image_extent_mm(probe: ProbeGeometry) -> tuple[float, float, float, float]:
     return (-probe.width_mm / 2, probe.width_mm / 2, probe.depth_mm, 0.0)
 
 
+def display_factor(width_px: int, panel_px: float) -> int:
+    """The integer factor k ≥ 1 by which a frame ``width_px`` columns wide can be reduced
+    before it is drawn into a panel ``panel_px`` pixels wide, keeping at least the panel's
+    own pixels (drawing resamples a frame far larger than its panel, at a cost that grows with
+    the frame)."""
+    if width_px < 1 or not panel_px > 0:
+        raise argument_error("panel_px", f"expected a positive panel and frame, got {panel_px}")
+    return max(1, int(width_px // panel_px))
+
+
+def reduced_frame(
+    image: np.ndarray, labels: np.ndarray | None, k: int, extent: tuple[float, float, float, float]
+) -> tuple[np.ndarray, np.ndarray | None, tuple[float, float, float, float]]:
+    """``image`` (H, W) as the mean of its k × k blocks, ``labels`` as each block's centre
+    pixel, and the ``imshow`` extent of the ⌊H/k⌋·k × ⌊W/k⌋·k pixels they cover (the
+    remainder rows and columns, fewer than k, are not drawn)."""
+    height, width = image.shape
+    rows, cols = height // k, width // k
+    blocks = image[: rows * k, : cols * k].reshape(rows, k, cols, k)
+    mean = blocks.mean(axis=(1, 3), dtype=np.float32)
+    centre = None if labels is None else labels[k // 2 : rows * k : k, k // 2 : cols * k : k]
+    left, right, bottom, top = extent
+    shown = (
+        left,
+        left + (right - left) * cols * k / width,
+        top + (bottom - top) * rows * k / height,
+        top,
+    )
+    return mean, centre, shown
+
+
 def check_dataset(dataset: SweepDataset) -> None:
     """Raise unless ``dataset`` is a :class:`SweepDataset`."""
     if not isinstance(dataset, SweepDataset):
