@@ -117,7 +117,7 @@ def test_per_axis_planes_for_an_elongated_box_only() -> None:
     from ultron.fields.grid import GridField
 
     # 40 mm cube side / 1 mm cell: 41 nodes; a box 1/4 as wide in x and y as in z
-    elongated = GridFieldConfig(n_levels=1, volume_cell_mm=None).resolved(
+    elongated = GridFieldConfig(n_levels=1, long_box_volume_mm=None).resolved(
         20.0, 1.0, (0.25, 0.25, 1.0)
     )
     assert elongated.axis_extent == (0.25, 0.25, 1.0)
@@ -140,6 +140,32 @@ def test_per_axis_planes_for_an_elongated_box_only() -> None:
     loss = field.raw(torch.rand(16, 3) * 0.5 - 0.25).sum() + field.regularization()
     loss.backward()
     assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in field.planes[0])
+
+
+def test_a_long_box_reads_a_dense_volume_a_compact_one_does_not() -> None:
+    from ultron.fields.factory import FieldConfig
+    from ultron.train.field_config import FieldTrainConfig
+
+    long_box = GridFieldConfig(n_levels=1).resolved(20.0, 1.0, (0.25, 0.25, 1.0))
+    # per-axis planes, and beside them the default 2 mm volume over the same box
+    assert long_box.axis_extent == (0.25, 0.25, 1.0) and long_box.volume_cell_mm == 2.0
+    assert long_box.volume_nodes == (6, 6, 21)  # ⌈2·20·e / 2⌉ + 1 per axis
+    assert long_box.n_values() == 8 * (11 * 11 + 2 * 41 * 11) + 4 * 6 * 6 * 21
+    # the same as asking for that volume on every box
+    every = GridFieldConfig(n_levels=1, volume_cell_mm=2.0)
+    assert every.resolved(20.0, 1.0, (0.25, 0.25, 1.0)) == long_box
+    compact = GridFieldConfig(n_levels=1).resolved(20.0, 1.0, (0.9, 0.8, 1.0))
+    assert compact.axis_extent is None and compact.volume_cell_mm is None
+    # --volume-cell 0: no volume on a long box either
+    none = FieldTrainConfig().with_volume(0).field.grid
+    assert none.volume_cell_mm is None and none.long_box_volume_mm is None
+    assert none.resolved(20.0, 1.0, (0.25, 0.25, 1.0)).volume_nodes is None
+    # a field.json written before the long-box volume: no volume, as it was fitted
+    old = FieldConfig().to_dict()
+    del old["grid"]["long_box_volume_mm"]
+    assert FieldConfig.from_dict(old).grid.long_box_volume_mm is None
+    with pytest.raises(UltronInputError, match="long_box_volume_mm"):
+        GridFieldConfig(long_box_volume_mm=0.0)
 
 
 def test_resample_frames_keeps_pixel_positions() -> None:

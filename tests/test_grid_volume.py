@@ -22,7 +22,7 @@ def test_volume_nodes_cover_the_planes_reach_at_the_cell() -> None:
     long = GridFieldConfig(volume_cell_mm=2.0).resolved(200.0, 0.3, (0.3, 0.5, 1.0))
     assert long.axis_extent == (0.3, 0.5, 1.0)
     assert long.volume_nodes == (61, 101, 201)  # ⌈400·e / 2⌉ + 1
-    planes_only = GridFieldConfig(volume_cell_mm=None).resolved(200.0, 0.3, (0.3, 0.5, 1.0))
+    planes_only = GridFieldConfig(long_box_volume_mm=None).resolved(200.0, 0.3, (0.3, 0.5, 1.0))
     assert long.resolutions == planes_only.resolutions
     assert long.n_values() == planes_only.n_values() + 4 * 61 * 101 * 201
     assert long.resolved(1.0, 1.0) == long  # resolved once, kept
@@ -75,7 +75,7 @@ def test_the_drawn_prior_takes_one_window_of_a_large_volume() -> None:
     field = GridField(config)
     draws = field.regularization_draws(torch.Generator().manual_seed(3))
     planes_only = GridField(
-        GridFieldConfig(volume_cell_mm=None).resolved(100.0, 0.3, (0.3, 0.5, 1.0))
+        GridFieldConfig(long_box_volume_mm=None).resolved(100.0, 0.3, (0.3, 0.5, 1.0))
     )
     plane_draws = planes_only.regularization_draws(torch.Generator().manual_seed(3))
     assert draws.shape[0] == plane_draws.shape[0] + 1  # the planes' rows, then the volume's

@@ -189,7 +189,9 @@ def test_field_grid(tiny_dataset: SweepDataset):
 
 def test_field_fit_memory_estimate(tiny_dataset: SweepDataset):
     """Planes, frames and working memory from the shapes alone (module doc 3)."""
-    config = FieldTrainConfig(fit_shape=(16, 12), frames_per_batch=4, patch_width=8)
+    default = FieldTrainConfig(fit_shape=(16, 12), frames_per_batch=4, patch_width=8)
+    assert field_fit_memory(tiny_dataset, default).volume  # a long box: the default volume
+    config = default.with_volume(0)  # the planes alone
     memory = field_fit_memory(tiny_dataset, config)
     # the planes the fit builds (per-axis here: the tiny dataset's box is far from a cube)
     from ultron.train.field_fit import _prepare

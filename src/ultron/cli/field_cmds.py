@@ -86,8 +86,9 @@ VolumeCell = Annotated[
     typer.Option(
         "--volume-cell",
         metavar="MM",
-        help="grid: cell of a dense 3D feature grid read beside the planes (default 0: none;"
-        " 2 gained on the real fibula, lost on simulated vertebrae: docs/decisions.md).",
+        help="grid: cell of a dense 3D feature grid read beside the planes on every box; 0:"
+        " none (default: 2 on a long box, a long bone's sweep; none on a compact one:"
+        " docs/decisions.md).",
     ),
 ]
 ORIENTATIONS = ("auto", "world")  # ultron.data.orientation.ORIENTATIONS (lazy import)

@@ -50,6 +50,7 @@ class FieldConfig:
                 grid["axis_extent"] = tuple(grid["axis_extent"])
             if "volume_nodes" not in grid:  # no volume (or saved before it existed)
                 grid["volume_cell_mm"] = None
+            grid.setdefault("long_box_volume_mm", None)  # saved before the long-box volume
             return cls(
                 backend=data.get("backend", "grid"),
                 learn_density=bool(data.get("learn_density", False)),

@@ -62,6 +62,8 @@ MAX_RESOLUTION = 2048
 #: one batched read of square planes is faster (timings in
 #: docs/decisions.md#grid-field-per-axis-planes-fieldsgridpy).
 PER_AXIS_SAVING = 2.0
+#: The dense volume's default cell (mm) for a long box (:attr:`GridFieldConfig.long_box_volume_mm`).
+LONG_BOX_VOLUME_MM = 2.0
 #: Side of the random window on which the smoothness prior is evaluated each step.
 TV_WINDOW = 96
 #: Side of the random window on which the prior is evaluated on the dense volume each step.
@@ -97,6 +99,10 @@ class GridFieldConfig:
     volume_features: int = 4
     #: Nodes (n_x, n_y, n_z) of that grid, filled in by :meth:`resolved`.
     volume_nodes: tuple[int, int, int] | None = None
+    #: The volume's cell (mm) for a long box — one given per-axis planes (:meth:`resolved`) —
+    #: where ``volume_cell_mm`` is not set; None: no volume there either (fields saved before
+    #: it existed). Why: docs/decisions.md#grid-field-the-dense-volume-for-a-long-box-fieldsgridpy.
+    long_box_volume_mm: float | None = LONG_BOX_VOLUME_MM
 
     def __post_init__(self) -> None:
         if self.resolutions is not None:
@@ -132,6 +138,13 @@ class GridFieldConfig:
             raise argument_error(
                 "grid.volume_cell_mm", f"expected > 0 mm or None, got {self.volume_cell_mm!r}"
             )
+        if self.long_box_volume_mm is not None and not (
+            math.isfinite(self.long_box_volume_mm) and self.long_box_volume_mm > 0
+        ):
+            raise argument_error(
+                "grid.long_box_volume_mm",
+                f"expected > 0 mm or None, got {self.long_box_volume_mm!r}",
+            )
         if not isinstance(self.volume_features, int) or self.volume_features < 1:
             raise argument_error(
                 "grid.volume_features", f"expected a positive integer, got {self.volume_features!r}"
@@ -156,7 +169,7 @@ class GridFieldConfig:
         if self.resolutions is not None:
             return self
         if self.volume_cell_mm is not None and self.volume_nodes is None:
-            planes = replace(self, volume_cell_mm=None).resolved(
+            planes = replace(self, volume_cell_mm=None, long_box_volume_mm=None).resolved(
                 half_extent_mm, pixel_mm, axis_extent
             )
             box = planes.axis_extent or (1.0, 1.0, 1.0)
@@ -178,6 +191,9 @@ class GridFieldConfig:
         per_axis = replace(square, axis_extent=extent)
         if self.axis_extent is None and square.n_values() <= PER_AXIS_SAVING * per_axis.n_values():
             return square  # a compact box: one batched read of square planes is faster
+        if self.long_box_volume_mm is not None and self.volume_cell_mm is None:  # a long box
+            volume = replace(self, volume_cell_mm=self.long_box_volume_mm, axis_extent=extent)
+            return volume.resolved(half_extent_mm, pixel_mm, axis_extent)
         return per_axis
 
     def axis_nodes(self) -> list[tuple[int, int, int]]:

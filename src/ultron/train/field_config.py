@@ -155,9 +155,10 @@ class FieldTrainConfig:
         return self.iterations if self.field.backend == "grid" else PAPER_MLP_DECAY_STEPS
 
     def with_volume(self, volume_cell_mm: float | None) -> FieldTrainConfig:
-        """This fit with the grid field's dense volume at ``volume_cell_mm`` (0 or None: no
-        volume), as a new configuration."""
-        grid = replace(self.field.grid, volume_cell_mm=volume_cell_mm or None)
+        """This fit with the grid field's dense volume at ``volume_cell_mm`` on every box (0 or
+        None: no volume, not even a long box's), as a new configuration."""
+        cell = volume_cell_mm or None
+        grid = replace(self.field.grid, volume_cell_mm=cell, long_box_volume_mm=cell)
         return replace(self, field=replace(self.field, grid=grid))
 
     def to_dict(self) -> dict[str, Any]:
