@@ -251,12 +251,7 @@ class UnitCube:
     @classmethod
     def from_bounds(cls, bounds_mm: torch.Tensor | np.ndarray, margin: float = 0.05) -> UnitCube:
         """The cube centred on a (2, 3) box whose largest half-side, grown by ``margin``, maps to 1."""
-        box = as_bounds_mm(bounds_mm)
-        if margin < 0:
-            raise argument_error("margin", f"expected ≥ 0, got {margin}")
-        center = (box[0] + box[1]) / 2
-        half = float((box[1] - box[0]).max() / 2 * (1 + margin))
-        return cls(tuple(float(c) for c in center), max(half, 1e-6))
+        return cls.from_points(as_bounds_mm(bounds_mm), margin)
 
     def box_extent(
         self, bounds_mm: torch.Tensor | np.ndarray, margin: float = 0.05
@@ -265,10 +260,9 @@ class UnitCube:
         centre, each grown by ``margin`` × the box's largest half-side (as :meth:`from_bounds`
         grows the cube) and at most 1: the cube's own box gives 1 on its longest axis."""
         box = as_bounds_mm(bounds_mm)
-        center = np.asarray(self.center_mm)
-        half = np.maximum(np.abs(box[0] - center), np.abs(box[1] - center))
-        grown = half + margin * float(half.max())
-        return tuple(float(min(1.0, max(g / self.half_extent_mm, 1e-6))) for g in grown)
+        corners = np.array([[box[i, 0], box[j, 1], box[k, 2]] for i in (0, 1) for j in (0, 1)
+                            for k in (0, 1)])  # fmt: skip
+        return self.points_extent(corners, margin)
 
     def _center(self, like: torch.Tensor) -> torch.Tensor:
         return torch.tensor(self.center_mm, dtype=torch.float64, device=like.device)
