@@ -16,7 +16,10 @@ the kept surface's vertices to the nearest bone label (run.json's ``surface_evid
 31's target: UltrON within 1.5× of compounding), and how many vertices lie more than 2 and 3 mm
 from every label. The percentiles fall when surface near the labels is added; the counts do
 not, so they show whether false surface was removed or only diluted (a count depends on the
-mesh's resolution: compare a method with itself across releases, not two methods). Nothing is tuned here. It prints markdown and
+mesh's resolution: compare a method with itself across releases, not two methods), and where
+the vertices farther than 2 mm lie against the labels (``ultron.mesh.evidence.surface_places``:
+between the labelled frames, on a bone or background label, or unsure in the shadow under a band
+of bone labels, in the tissue above one, or in a scanline without one). Nothing is tuned here. It prints markdown and
 writes ``OUT/plus_spine.json``; a stage whose output exists is not run again.
 
 Usage::
@@ -77,6 +80,37 @@ def held_out_baselines(dataset: Path, field: Path) -> dict[str, float]:
     return {"mean frame": psnr(mean, target), "nearest frame": psnr(frames.images[nearest], target)}
 
 
+def far_surface_places(out: Path, method: str, beyond_mm: float = 2.0) -> dict[str, int]:
+    """Where the vertices of ``method``'s mesh farther than ``beyond_mm`` from every bone label
+    lie against the labels of the frames it used (:func:`ultron.mesh.evidence.surface_places`,
+    in a slab of 0.75 × the median frame gap, the observed crop's where the voxel is finer)."""
+    import numpy as np
+
+    from ultron.data.dataset import SweepDataset
+    from ultron.mesh.evidence import SURFACE_PLACES, surface_places
+    from ultron.mesh.export import load_mesh, load_vertex_properties
+    from ultron.methods.ultron_method import elevation_half_thickness_mm
+
+    run = json.loads((out / method / "run.json").read_text())
+    if run["mesh"]["coordinates"] != "lps":
+        raise SystemExit(f"{out / method}: expected a mesh in world (lps) coordinates")
+    dataset = SweepDataset.load(out / "dataset")
+    poses, labels = [], []
+    for sweep in dataset.sweeps:
+        frames = run["selection"]["frames"].get(sweep.name, [])
+        poses.append(sweep.probe_to_world[frames])
+        labels.append(np.asarray(sweep.labels)[frames])
+    mesh = load_mesh(out / method / "mesh.ply")
+    far = load_vertex_properties(out / method / "mesh.ply")["label_distance_mm"] > beyond_mm
+    slab = elevation_half_thickness_mm(dataset, 0.0)  # 0.75 × the median frame gap
+    places = surface_places(
+        np.asarray(mesh.vertices)[far], np.concatenate(poses), dataset.probe,
+        np.concatenate(labels), slab,
+    )  # fmt: skip
+    counts = np.bincount(places, minlength=len(SURFACE_PLACES))
+    return {name: int(n) for name, n in zip(SURFACE_PLACES, counts, strict=True)}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--data", type=Path, default=DATA)
@@ -94,11 +128,12 @@ def main() -> None:
     log = [json.loads(line) for line in (args.out / "field" / "train_log.jsonl").open()]
     checks = [(e["step"], e["holdout_psnr"], e["holdout_ssim"]) for e in log if "holdout_psnr" in e]
     field_json = json.loads((args.out / "field" / "field.json").read_text())
-    evidence, beyond = {}, {}
+    evidence, beyond, places = {}, {}, {}
     for method in ("compounding", "ultron"):
         run = json.loads((args.out / method / "run.json").read_text())
         evidence[method] = run["surface_evidence"]["mesh"]["label_distance_mm"]
         beyond[method] = run["surface_evidence"]["mesh"].get("vertices_beyond_mm")
+        places[method] = far_surface_places(args.out, method)
     result = {
         "stages": rows,
         "fit_shape": field_json["train"]["fit_shape"],
@@ -106,6 +141,7 @@ def main() -> None:
         "baselines_psnr": held_out_baselines(args.out / "dataset", args.out / "field"),
         "label_distance_mm": evidence,
         "vertices_beyond_mm": beyond,
+        "far_vertex_places": places,
     }
     (args.out / "plus_spine.json").write_text(json.dumps(result, indent=2))
     print("\n| stage | wall (s) | peak RSS (GiB) |\n|---|---|---|")
@@ -123,6 +159,11 @@ def main() -> None:
         far = beyond[method]  # None: a run from before run.json counted them
         counts = "—" if far is None else f"{far['2']} / {far['3']}"
         print(f"| {method} | {stats['median']:.2f} | {stats['p95']:.2f} | {counts} |")
+    names = list(places["ultron"])
+    print("\nwhere the vertices > 2 mm from every label lie (the labels of the nearest frame):")
+    print("| surface | " + " | ".join(names) + " |\n|---|" + "---|" * len(names))
+    for method, counts in places.items():
+        print(f"| {method} | " + " | ".join(str(counts[n]) for n in names) + " |")
     ratio = evidence["ultron"]["p95"] / evidence["compounding"]["p95"]
     print(f"UltrON's p95 is {ratio:.2f}× compounding's (issue 31's target: ≤ 1.5×)")
 

@@ -17,7 +17,13 @@ from ultron.cli.main import app
 from ultron.cli.reconstruct_cmds import MESH_COORDINATES as CLI_MESH_COORDINATES
 from ultron.data.dataset import ProbeGeometry
 from ultron.errors import UltronError
-from ultron.mesh.evidence import SurfaceEvidence, nearest_distance_mm, surface_evidence
+from ultron.mesh.evidence import (
+    SURFACE_PLACES,
+    SurfaceEvidence,
+    nearest_distance_mm,
+    surface_evidence,
+    surface_places,
+)
 from ultron.mesh.export import (
     MESH_COORDINATES,
     load_mesh,
@@ -228,3 +234,59 @@ def test_all_surface_writes_no_extracted_copy(tiny: Path, tmp_path: Path) -> Non
     assert bad.exit_code == 2
     assert "--mesh-coordinates" in bad.output and "Traceback" not in bad.output
     assert not (tmp_path / "bad").exists()
+
+
+def test_surface_places_hand_worked() -> None:
+    """Two frames 1 mm apart in elevation, 1 mm pixels: pixel (r, c) lies at (c − 2, r, 0)."""
+    probe = ProbeGeometry(width_mm=4.0, depth_mm=5.0, height_px=5, width_px=4)
+    near = np.full((5, 4), 255, dtype=np.uint8)
+    near[:, 1] = [0, 255, 1, 1, 255]  # background, unsure, a band of two, unsure beneath
+    far = np.ones((5, 4), dtype=np.uint8)
+    poses = np.stack([np.eye(4), np.eye(4)])
+    poses[1, 2, 3] = 1.0
+    vertices = np.array([
+        [-2.0, 2.0, 0.0],  # column 0 has no band
+        [-1.0, 0.0, 0.0],  # background
+        [-1.0, 1.2, 0.0],  # unsure, the band below it: tissue above the echo
+        [-1.0, 2.0, 0.0],  # bone
+        [-1.0, 3.6, 0.0],  # rounds to row 4: unsure under the band, in its shadow
+        [-1.0, 1.0, 0.4],  # elevation 0.4 from the near frame, 0.6 from the far one
+        [-1.0, 1.0, 0.8],  # 0.2 from the far frame: its bone label
+        [-1.0, 1.0, -0.6],  # outside both slabs
+        [3.0, 1.0, 0.0],  # outside the image laterally
+    ])  # fmt: skip
+    places = surface_places(vertices, poses, probe, np.stack([near, far]), 0.5)
+    names = [SURFACE_PLACES[i] for i in places]
+    assert names == [
+        "no_band", "background_label", "above_band", "bone_label", "below_band",
+        "above_band", "bone_label", "between_frames", "between_frames",
+    ]  # fmt: skip
+    # a rotated, translated frame gives the same answers for the same probe points
+    turn = np.array([[0.0, -1, 0, 5], [1, 0, 0, -3], [0, 0, 1, 2], [0, 0, 0, 1]])
+    moved = vertices @ turn[:3, :3].T + turn[:3, 3]
+    assert np.array_equal(
+        surface_places(moved, turn @ poses, probe, np.stack([near, far]), 0.5), places
+    )
+
+
+@pytest.mark.parametrize(
+    ("change", "name"),
+    [
+        ({"vertices_mm": np.zeros((3, 2))}, "vertices_mm"),
+        ({"probe_to_world": np.eye(4)}, "probe_to_world"),
+        ({"labels": np.zeros((1, 5, 4), dtype=np.int32)}, "labels"),
+        ({"labels": np.full((1, 5, 4), 7, dtype=np.uint8)}, "labels"),
+        ({"slab_half_thickness_mm": -1.0}, "slab_half_thickness_mm"),
+    ],
+)
+def test_surface_places_rejects_bad_input(change: dict, name: str) -> None:
+    probe = ProbeGeometry(width_mm=4.0, depth_mm=5.0, height_px=5, width_px=4)
+    args = {
+        "vertices_mm": np.tile([0.0, 1.0, 0.0], (3, 1)),
+        "probe_to_world": np.eye(4)[None],
+        "probe": probe,
+        "labels": np.zeros((1, 5, 4), dtype=np.uint8),
+        "slab_half_thickness_mm": 0.5,
+    }
+    with pytest.raises(UltronError, match=name):
+        surface_places(**{**args, **change})

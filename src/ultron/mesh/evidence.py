@@ -12,6 +12,12 @@ Per vertex v of a surface:
   evidence (∞ when the method used no bone label). It is the uncertainty written with the
   mesh: the occupancy's entropy, the other candidate, is ≈ 1 bit on every iso-surface vertex by
   construction (f = ½ there) and says nothing.
+
+Where a vertex lies against the labels (:func:`surface_places`): in the labelled frame nearest
+it in elevation, the label of its pixel and, where that pixel is unsure, whether its scanline
+holds a band of bone labels above it (the vertex is in that band's acoustic shadow), below it
+(the vertex is in lit tissue the beam crossed to reach the echo) or none. It says where surface
+far from every label sits.
 """
 
 from __future__ import annotations
@@ -22,6 +28,9 @@ from typing import Any
 
 import numpy as np
 
+from ultron.data.dataset import ProbeGeometry
+from ultron.data.geometry import probe_mm_to_pixel
+from ultron.data.validation import LABEL_BACKGROUND, LABEL_TARGET, LABEL_UNANNOTATED
 from ultron.errors import argument_error
 
 #: The PLY vertex properties (and their types) that carry the evidence.
@@ -100,3 +109,72 @@ def surface_evidence(
     if flags.shape != (len(vertices),) or flags.dtype != bool:
         raise argument_error("observed", f"expected ({len(vertices)},) booleans")
     return SurfaceEvidence(flags, nearest_distance_mm(vertices, bone_points_mm))
+
+
+#: :func:`surface_places`' answers, by index: no labelled frame's slab holds the vertex; its
+#: pixel is labelled bone / background; it is unsure with a band of bone labels above it in its
+#: scanline (in the band's shadow), below it (in the tissue above the echo), or no band.
+SURFACE_PLACES = (
+    "between_frames", "bone_label", "background_label", "below_band", "above_band", "no_band"
+)  # fmt: skip
+
+
+def surface_places(
+    vertices_mm: np.ndarray,
+    probe_to_world: np.ndarray,
+    probe: ProbeGeometry,
+    labels: np.ndarray,
+    slab_half_thickness_mm: float,
+) -> np.ndarray:
+    """Index into :data:`SURFACE_PLACES` (V,) int8 of each vertex (V, 3) against the labelled
+    frames (``probe_to_world`` (N, 4, 4), ``labels`` (N, H, W) uint8, row 0 at the transducer).
+
+    The frame of vertex v is the one that holds it in its image (p = P_k⁻¹ v: |p_x| ≤ W_mm/2,
+    0 ≤ p_y ≤ D_mm) with the smallest elevation |p_z|, none where that exceeds
+    ``slab_half_thickness_mm``; its pixel is (⌊p_y/Δ⌉, ⌊p_x/Δ + W/2⌉), clipped to the frame. An
+    unsure pixel (r, c) is ``below_band`` when a bone label lies in column c above row r,
+    ``above_band`` when the column's bone labels all lie below it, ``no_band`` when it has none.
+    """
+    points = np.asarray(vertices_mm, dtype=np.float64)
+    poses = np.asarray(probe_to_world, dtype=np.float64)
+    labels = np.asarray(labels)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise argument_error("vertices_mm", f"expected (V, 3), got {points.shape}")
+    if poses.ndim != 3 or poses.shape[1:] != (4, 4):
+        raise argument_error("probe_to_world", f"expected (N, 4, 4), got {poses.shape}")
+    if labels.dtype != np.uint8 or labels.shape != (len(poses), *probe.image_shape):
+        raise argument_error(
+            "labels",
+            f"expected uint8 {(len(poses), *probe.image_shape)}, got {labels.dtype} {labels.shape}",
+        )
+    if not (math.isfinite(slab_half_thickness_mm) and slab_half_thickness_mm >= 0):
+        raise argument_error("slab_half_thickness_mm", "expected a finite value ≥ 0")
+    best = np.full(len(points), np.inf)
+    frame = np.full(len(points), -1)
+    rows = np.zeros(len(points), dtype=np.int64)
+    cols = np.zeros(len(points), dtype=np.int64)
+    for k, pose in enumerate(poses):
+        local = (points - pose[:3, 3]) @ pose[:3, :3]  # P⁻¹ v for a rigid P
+        x, y, z = local[:, 0], local[:, 1], np.abs(local[:, 2])
+        inside = (np.abs(x) <= probe.width_mm / 2) & (y >= 0) & (y <= probe.depth_mm)
+        closer = inside & (z <= slab_half_thickness_mm) & (z < best)
+        r, c = probe_mm_to_pixel(x[closer], y[closer], probe)
+        best[closer], frame[closer] = z[closer], k
+        rows[closer] = np.clip(np.rint(r), 0, probe.height_px - 1)
+        cols[closer] = np.clip(np.rint(c), 0, probe.width_px - 1)
+    places = np.zeros(len(points), dtype=np.int8)  # between_frames
+    seen = frame >= 0
+    value = labels[frame[seen], rows[seen], cols[seen]]
+    if not np.isin(value, (LABEL_TARGET, LABEL_BACKGROUND, LABEL_UNANNOTATED)).all():
+        raise argument_error("labels", "expected the values 0, 1 and 255 only")
+    bone = labels[frame[seen], :, cols[seen]] == LABEL_TARGET  # (S, H): each vertex's scanline
+    height = np.arange(probe.height_px)
+    above = (bone & (height[None] < rows[seen, None])).any(axis=1)
+    below = (bone & (height[None] > rows[seen, None])).any(axis=1)
+    place = np.select(
+        [value == LABEL_TARGET, value == LABEL_BACKGROUND, above, below],
+        [1, 2, 3, 4],
+        default=5,
+    )
+    places[seen] = place
+    return places
