@@ -14,6 +14,8 @@ from ultron.mesh.observed import ObservedSurfaceConfig, observe_surface, observe
 #: 100 rows × 80 columns of 0.5 mm: a 40 mm wide, 50 mm deep probe (as test_auto_labels).
 PROBE = ProbeGeometry(width_mm=40.0, depth_mm=50.0, height_px=100, width_px=80)
 LINE_ROW = 40
+#: The default shadow onset in rows of 0.5 mm.
+ONSET_ROWS = round(EchoSupportConfig().shadow_onset_mm / PROBE.axial_spacing_mm)
 
 
 def _frame(line: bool, shadow: bool, seed: int = 0) -> np.ndarray:
@@ -32,34 +34,36 @@ def test_a_bone_echo_is_supported_within_the_window_and_nothing_else():
     support = echo_support_map(_frame(line=True, shadow=True), PROBE)
     window = 2  # 1 mm of 0.5 mm rows
     assert support[LINE_ROW].all() and support[LINE_ROW + 1].all()
-    # lit speckle more than the shadow onset (4 mm = 8 rows) plus the window above: not bone
-    assert not support[: LINE_ROW - 8 - window - 1].any()
+    # lit speckle more than the shadow onset plus the window above: not bone
+    assert not support[: LINE_ROW - ONSET_ROWS - window - 1].any()
     # deep in the shadow (beyond the window under the echo): the shadow itself shows nothing
     assert not support[LINE_ROW + 2 + window + 1 :].any()
 
 
-def test_a_shadow_alone_supports_the_tissue_above_its_onset():
+@pytest.mark.parametrize("onset_mm", [2.0, 4.0])
+def test_a_shadow_alone_supports_the_tissue_above_its_onset(onset_mm: float):
     image = _frame(line=False, shadow=True)  # a dim interface: no echo, but a shadow
-    support = echo_support_map(image, PROBE, EchoSupportConfig(depth_window_mm=0.0))
-    onset = LINE_ROW + 2
+    config = EchoSupportConfig(depth_window_mm=0.0, shadow_onset_mm=onset_mm)
+    support = echo_support_map(image, PROBE, config)
+    onset, reach = LINE_ROW + 2, round(onset_mm / PROBE.axial_spacing_mm)
     rows = np.flatnonzero(support.all(axis=1))
     assert rows.max() < onset  # the shadow itself is not supported
-    assert rows.min() >= onset - 8  # at most 4 mm above the onset (8 rows) …
-    assert rows.min() <= onset - 6  # … and most of those 4 mm
+    assert rows.min() >= onset - reach  # at most onset_mm above the onset …
+    assert rows.min() <= onset - reach + 2  # … and most of those millimetres
 
 
 def test_speckle_without_bone_and_a_blank_frame_are_unsupported():
     support = echo_support_map(_frame(line=True, shadow=False), PROBE)
-    bottom = PROBE.height_px - 8 - 2  # the last 4 mm and the 1 mm window: see below
+    bottom = PROBE.height_px - ONSET_ROWS - 2  # the last onset and the 1 mm window: see below
     assert support[:bottom].mean() < 0.01
     assert not echo_support_map(np.zeros(PROBE.image_shape, np.uint8), PROBE).any()
 
 
 def test_the_frames_last_millimetres_give_no_evidence_against_bone():
     support = echo_support_map(_frame(line=False, shadow=False), PROBE)
-    # within 4 mm (8 rows) of the last row no frame can show whether a shadow follows
-    assert support[PROBE.height_px - 8 :].all()
-    assert not support[: PROBE.height_px - 8 - 2 - 1].any()
+    # within the onset of the last row no frame can show whether a shadow follows
+    assert support[PROBE.height_px - ONSET_ROWS :].all()
+    assert not support[: PROBE.height_px - ONSET_ROWS - 2 - 1].any()
 
 
 def test_bad_inputs_name_the_argument():

@@ -42,10 +42,12 @@ from ultron.errors import argument_error
 @dataclass(frozen=True)
 class EchoSupportConfig:
     """Echo support (module docstring): the depth window and the shadow's onset in mm; the
-    detector's evidence from ``detector`` (``label --auto``'s defaults)."""
+    detector's evidence from ``detector`` (``label --auto``'s defaults). The onset is not the
+    detector's (4 mm, how far below an echo its shadow may begin): 2 mm keeps less lit tissue
+    above a shadow (docs/decisions.md, "Echo support: the shadow's onset")."""
 
     depth_window_mm: float = 1.0
-    shadow_onset_mm: float = 4.0
+    shadow_onset_mm: float = 2.0
     detector: AutoLabelConfig = field(default_factory=AutoLabelConfig)
 
     def __post_init__(self) -> None:
