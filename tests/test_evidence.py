@@ -273,7 +273,9 @@ def test_surface_places_hand_worked() -> None:
     ("change", "name"),
     [
         ({"vertices_mm": np.zeros((3, 2))}, "vertices_mm"),
+        ({"vertices_mm": np.full((3, 3), np.nan)}, "vertices_mm"),
         ({"probe_to_world": np.eye(4)}, "probe_to_world"),
+        ({"probe_to_world": np.full((1, 4, 4), np.inf)}, "probe_to_world"),
         ({"labels": np.zeros((1, 5, 4), dtype=np.int32)}, "labels"),
         ({"labels": np.full((1, 5, 4), 7, dtype=np.uint8)}, "labels"),
         ({"slab_half_thickness_mm": -1.0}, "slab_half_thickness_mm"),

@@ -138,10 +138,10 @@ def surface_places(
     points = np.asarray(vertices_mm, dtype=np.float64)
     poses = np.asarray(probe_to_world, dtype=np.float64)
     labels = np.asarray(labels)
-    if points.ndim != 2 or points.shape[1] != 3:
-        raise argument_error("vertices_mm", f"expected (V, 3), got {points.shape}")
-    if poses.ndim != 3 or poses.shape[1:] != (4, 4):
-        raise argument_error("probe_to_world", f"expected (N, 4, 4), got {poses.shape}")
+    if points.ndim != 2 or points.shape[1] != 3 or not np.isfinite(points).all():
+        raise argument_error("vertices_mm", f"expected finite (V, 3), got {points.shape}")
+    if poses.ndim != 3 or poses.shape[1:] != (4, 4) or not np.isfinite(poses).all():
+        raise argument_error("probe_to_world", f"expected finite (N, 4, 4), got {poses.shape}")
     if labels.dtype != np.uint8 or labels.shape != (len(poses), *probe.image_shape):
         raise argument_error(
             "labels",
