@@ -80,28 +80,26 @@ def held_out_baselines(dataset: Path, field: Path) -> dict[str, float]:
     return {"mean frame": psnr(mean, target), "nearest frame": psnr(frames.images[nearest], target)}
 
 
-def far_surface_places(out: Path, method: str, beyond_mm: float = 2.0) -> dict[str, int]:
-    """Where the vertices of ``method``'s mesh farther than ``beyond_mm`` from every bone label
-    lie against the labels of the frames it used (:func:`ultron.mesh.evidence.surface_places`,
-    in a slab of 0.75 × the median frame gap, the observed crop's where the voxel is finer)."""
+def far_surface_places(dataset, run: dict, run_dir: Path, beyond_mm: float = 2.0) -> dict[str, int]:
+    """Where the vertices of ``run_dir/mesh.ply`` farther than ``beyond_mm`` from every bone label
+    lie against the labels of the frames the run used (its ``run.json``, ``run``;
+    :func:`ultron.mesh.evidence.surface_places`, in a slab of 0.75 × the median frame gap, the
+    observed crop's where the voxel is finer)."""
     import numpy as np
 
-    from ultron.data.dataset import SweepDataset
     from ultron.mesh.evidence import SURFACE_PLACES, surface_places
     from ultron.mesh.export import load_mesh, load_vertex_properties
     from ultron.methods.ultron_method import elevation_half_thickness_mm
 
-    run = json.loads((out / method / "run.json").read_text())
     if run["mesh"]["coordinates"] != "lps":
-        raise SystemExit(f"{out / method}: expected a mesh in world (lps) coordinates")
-    dataset = SweepDataset.load(out / "dataset")
+        raise SystemExit(f"{run_dir}: expected a mesh in world (lps) coordinates")
     poses, labels = [], []
     for sweep in dataset.sweeps:
         frames = run["selection"]["frames"].get(sweep.name, [])
         poses.append(sweep.probe_to_world[frames])
         labels.append(np.asarray(sweep.labels)[frames])
-    mesh = load_mesh(out / method / "mesh.ply")
-    far = load_vertex_properties(out / method / "mesh.ply")["label_distance_mm"] > beyond_mm
+    mesh = load_mesh(run_dir / "mesh.ply")
+    far = load_vertex_properties(run_dir / "mesh.ply")["label_distance_mm"] > beyond_mm
     slab = elevation_half_thickness_mm(dataset, 0.0)  # 0.75 × the median frame gap
     places = surface_places(
         np.asarray(mesh.vertices)[far], np.concatenate(poses), dataset.probe,
@@ -128,12 +126,15 @@ def main() -> None:
     log = [json.loads(line) for line in (args.out / "field" / "train_log.jsonl").open()]
     checks = [(e["step"], e["holdout_psnr"], e["holdout_ssim"]) for e in log if "holdout_psnr" in e]
     field_json = json.loads((args.out / "field" / "field.json").read_text())
+    from ultron.data.dataset import SweepDataset
+
+    dataset = SweepDataset.load(args.out / "dataset")
     evidence, beyond, places = {}, {}, {}
     for method in ("compounding", "ultron"):
         run = json.loads((args.out / method / "run.json").read_text())
         evidence[method] = run["surface_evidence"]["mesh"]["label_distance_mm"]
         beyond[method] = run["surface_evidence"]["mesh"].get("vertices_beyond_mm")
-        places[method] = far_surface_places(args.out, method)
+        places[method] = far_surface_places(dataset, run, args.out / method)
     result = {
         "stages": rows,
         "fit_shape": field_json["train"]["fit_shape"],
