@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 import trimesh
@@ -18,15 +20,16 @@ LINE_ROW = 40
 ONSET_ROWS = round(EchoSupportConfig().shadow_onset_mm / PROBE.axial_spacing_mm)
 
 
-def _frame(line: bool, shadow: bool, seed: int = 0) -> np.ndarray:
+def _frame(line: bool, shadow: bool, seed: int = 0, columns: slice = slice(None)) -> np.ndarray:
     """Rayleigh speckle (mean ≈ 90 grey levels); with ``line`` a bright 2-pixel line at
-    ``LINE_ROW``, with ``shadow`` weak noise under that row."""
+    ``LINE_ROW``, with ``shadow`` weak noise under that row, in ``columns``."""
     rng = np.random.default_rng(seed)
     image = np.clip(rng.rayleigh(72.0, size=PROBE.image_shape), 0, 255)
     if line:
-        image[LINE_ROW : LINE_ROW + 2] = 250.0
+        image[LINE_ROW : LINE_ROW + 2, columns] = 250.0
     if shadow:
-        image[LINE_ROW + 2 :] = rng.uniform(0, 8, size=image[LINE_ROW + 2 :].shape)
+        below = image[LINE_ROW + 2 :, columns]
+        image[LINE_ROW + 2 :, columns] = rng.uniform(0, 8, size=below.shape)
     return image.astype(np.uint8)
 
 
@@ -42,14 +45,35 @@ def test_a_bone_echo_is_supported_within_the_window_and_nothing_else():
 
 @pytest.mark.parametrize("onset_mm", [2.0, 4.0])
 def test_a_shadow_alone_supports_the_tissue_above_its_onset(onset_mm: float):
-    image = _frame(line=False, shadow=True)  # a dim interface: no echo, but a shadow
+    # a dim interface under the left half: no echo, but a shadow beside lit tissue
+    image = _frame(line=False, shadow=True, columns=slice(0, 40))
     config = EchoSupportConfig(depth_window_mm=0.0, shadow_onset_mm=onset_mm)
-    support = echo_support_map(image, PROBE, config)
+    support = echo_support_map(image, PROBE, config)[:, :36]  # clear of the smoothed edge
     onset, reach = LINE_ROW + 2, round(onset_mm / PROBE.axial_spacing_mm)
     rows = np.flatnonzero(support.all(axis=1))
     assert rows.max() < onset  # the shadow itself is not supported
     assert rows.min() >= onset - reach  # at most onset_mm above the onset …
     assert rows.min() <= onset - reach + 2  # … and most of those millimetres
+
+
+def _faded_frame() -> np.ndarray:
+    """Rayleigh speckle whose gain falls as exp(−row/15) across the whole frame: its echoes
+    fade below the shadow level by row ≈ 20 with nothing in the way (no bone)."""
+    rng = np.random.default_rng(3)
+    gain = np.exp(-np.arange(PROBE.height_px) / 15.0)[:, None]
+    return np.clip(rng.rayleigh(72.0, size=PROBE.image_shape) * gain, 0, 255).astype(np.uint8)
+
+
+def test_a_fade_across_the_frame_is_no_shadow():
+    bottom = PROBE.height_px - ONSET_ROWS - 2  # the frame's end: see below
+    # under the top rows (where bright speckle over the fade scores as an echo): no row of
+    # the fade is taken for bone …
+    faded = echo_support_map(_faded_frame(), PROBE)
+    assert faded[10:bottom].mean(axis=1).max() < 0.1
+    # … but without the test against the depth's lit level the fade's floor reads as a
+    # shadow onset in every column, and the tissue just above it as bone
+    old = EchoSupportConfig(shadow_depth_ratio=math.inf)
+    assert echo_support_map(_faded_frame(), PROBE, old)[10:bottom].mean(axis=1).max() > 0.9
 
 
 def test_speckle_without_bone_and_a_blank_frame_are_unsupported():
@@ -71,6 +95,9 @@ def test_bad_inputs_name_the_argument():
         echo_support_map(np.zeros((10, 10), np.uint8), PROBE)
     with pytest.raises(UltronInputError, match="depth_window_mm"):
         EchoSupportConfig(depth_window_mm=-1.0)
+    for ratio in (0.0, -1.0, math.nan):
+        with pytest.raises(UltronInputError, match="shadow_depth_ratio"):
+            EchoSupportConfig(shadow_depth_ratio=ratio)
     with pytest.raises(UltronInputError, match="detector"):
         EchoSupportConfig(detector={"gap_mm": 1.0})  # type: ignore[arg-type]
 

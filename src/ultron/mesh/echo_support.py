@@ -8,14 +8,22 @@ percentile, E the bone score, and the deep shadow D where the mean of S over the
 ``shadow_window_mm`` is at most ``shadow_level``·S_ref), pixel (r, c) *shows bone* when
 
     E(r, c) > 0   or   ( S̄(r, c) > ``shadow_level``·S_ref  and
-                          min{r' ≥ r : D(r', c)} − r ≤ ``shadow_onset_mm`` / Δz ),
+                          min{r' ≥ r : D_z(r', c)} − r ≤ ``shadow_onset_mm`` / Δz ),
+
+    D_z(r, c) = D(r, c)  and  S̄(r, c) ≤ ``shadow_depth_ratio``·L(r),
+    L(r) = the ``DEPTH_LEVEL_PERCENTILE``-th percentile of S̄(r, c') over the image columns c'
 
 (a bone echo, or lit tissue under which the deep shadow begins within ``shadow_onset_mm``; the
 shadow itself shows nothing: S̄ is S's mean over the window from the pixel down, clipped to the
-frame). The frame's end counts as an onset (the minimum over no rows is
-H): within ``shadow_onset_mm`` of its last row a frame cannot show whether a shadow follows, so
-it gives no evidence against bone there, and the deep walls at the bottom of the frames keep
-their support. A pixel is *supported* when some pixel of its column within
+frame). A shadow is dark against the tissue at its own depth: L(r) is the frame's lit level at
+row r, over the columns that hold image (S exceeds ``shadow_level``·S_ref somewhere in them; a
+convex or sector probe's blank margins do not count). Where the echoes fade with depth across
+the whole frame (attenuation the gain does not make up), the fade's floor is as dark as L and
+is no shadow, so the tissue above it is not called bone; a shadow as wide as the frame at its
+depth goes unseen by this rule too, and only its echo (E > 0) supports it. The frame's end
+counts as an onset (the minimum over no rows is H): within ``shadow_onset_mm`` of its last row
+a frame cannot show whether a shadow follows, so it gives no evidence against bone there, and
+the deep walls at the bottom of the frames keep their support. A pixel is *supported* when some pixel of its column within
 ±``depth_window_mm`` shows bone (a maximum filter along the scanline: the tracked pose and the
 surface's depth each err by about a millimetre). A blank frame (S_ref = 0) supports nothing.
 
@@ -34,7 +42,13 @@ from typing import Any
 import numpy as np
 from scipy import ndimage
 
-from ultron.data.auto_labels import AutoLabelConfig, frame_evidence, next_rows
+from ultron.data.auto_labels import (
+    AutoLabelConfig,
+    FrameEvidence,
+    frame_evidence,
+    next_rows,
+    window_mean,
+)
 from ultron.data.dataset import ProbeGeometry, SweepDataset
 from ultron.errors import argument_error
 
@@ -44,10 +58,14 @@ class EchoSupportConfig:
     """Echo support (module docstring): the depth window and the shadow's onset in mm; the
     detector's evidence from ``detector`` (``label --auto``'s defaults). The onset is not the
     detector's (4 mm, how far below an echo its shadow may begin): 2 mm keeps less lit tissue
-    above a shadow (docs/decisions.md, "Echo support: the shadow's onset")."""
+    above a shadow (docs/decisions.md, "Echo support: the shadow's onset").
+    ``shadow_depth_ratio``: how dark against the tissue at its depth a shadow must be (ρ in the
+    module docstring; ``math.inf`` drops the test; docs/decisions.md, "Echo support: a shadow
+    against its depth")."""
 
     depth_window_mm: float = 1.0
     shadow_onset_mm: float = 2.0
+    shadow_depth_ratio: float = 0.3
     detector: AutoLabelConfig = field(default_factory=AutoLabelConfig)
 
     def __post_init__(self) -> None:
@@ -55,6 +73,11 @@ class EchoSupportConfig:
             value = getattr(self, name)
             if not (isinstance(value, int | float) and math.isfinite(value) and value >= 0):
                 raise argument_error(name, f"expected a finite length ≥ 0 mm, got {value!r}")
+        ratio = self.shadow_depth_ratio
+        if not (isinstance(ratio, int | float) and not math.isnan(ratio) and ratio > 0):
+            raise argument_error(
+                "shadow_depth_ratio", f"expected a ratio > 0 (inf: no test), got {ratio!r}"
+            )
         if not isinstance(self.detector, AutoLabelConfig):
             raise argument_error(
                 "detector", f"expected an AutoLabelConfig, got {type(self.detector).__name__}"
@@ -62,6 +85,27 @@ class EchoSupportConfig:
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
+
+
+#: L(r) of the module docstring: this percentile of a row's window means over the image columns.
+DEPTH_LEVEL_PERCENTILE = 90.0
+
+
+def depth_relative_shadow(
+    evidence: FrameEvidence, probe: ProbeGeometry, config: EchoSupportConfig
+) -> np.ndarray:
+    """Bool (H, W): D_z of the module docstring, the deep shadow D of ``evidence`` where it is
+    also at most ``shadow_depth_ratio`` × the frame's lit level L(r) at its row."""
+    if math.isinf(config.shadow_depth_ratio):
+        return evidence.dark
+    detector = config.detector
+    window = max(1, round(detector.shadow_window_mm / probe.axial_spacing_mm))
+    mean, _ = window_mean(evidence.smoothed, window)
+    image = evidence.smoothed.max(axis=0) > detector.shadow_level * evidence.ref
+    if not image.any():
+        return np.zeros_like(evidence.dark)
+    level = np.percentile(mean[:, image], DEPTH_LEVEL_PERCENTILE, axis=1, keepdims=True)
+    return evidence.dark & (mean <= config.shadow_depth_ratio * level)
 
 
 def echo_support_map(
@@ -81,7 +125,8 @@ def echo_support_map(
         return np.zeros(image.shape, dtype=bool)
     rows = np.arange(image.shape[0])[:, None]
     shows = evidence.score > 0
-    onset = next_rows(evidence.dark)  # H (the frame's end) where no shadow follows in the frame
+    # H (the frame's end) where no shadow follows in the frame
+    onset = next_rows(depth_relative_shadow(evidence, probe, cfg))
     # lit (not in the shadow, the window clipped at the frame's end) over a near onset
     shows |= ~evidence.shadowed & ((onset - rows) * axial <= cfg.shadow_onset_mm)
     reach = round(cfg.depth_window_mm / axial)
