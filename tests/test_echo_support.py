@@ -34,6 +34,8 @@ def _frame(line: bool, shadow: bool, seed: int = 0, columns: slice = slice(None)
 
 
 def test_a_bone_echo_is_supported_within_the_window_and_nothing_else():
+    # line and shadow span the frame (a long bone along its axis): the shadow is as dark as
+    # its depth's level, and the echo shows bone through the shadow directly beneath it
     support = echo_support_map(_frame(line=True, shadow=True), PROBE)
     window = 2  # 1 mm of 0.5 mm rows
     assert support[LINE_ROW].all() and support[LINE_ROW + 1].all()
@@ -56,11 +58,11 @@ def test_a_shadow_alone_supports_the_tissue_above_its_onset(onset_mm: float):
     assert rows.min() <= onset - reach + 2  # … and most of those millimetres
 
 
-def _faded_frame() -> np.ndarray:
-    """Rayleigh speckle whose gain falls as exp(−row/15) across the whole frame: its echoes
-    fade below the shadow level by row ≈ 20 with nothing in the way (no bone)."""
+def _faded_frame(scale_rows: float = 15.0) -> np.ndarray:
+    """Rayleigh speckle whose gain falls as exp(−row/``scale_rows``) across the whole frame:
+    its echoes fade below the shadow level (by row ≈ 20 at 15) with nothing in the way."""
     rng = np.random.default_rng(3)
-    gain = np.exp(-np.arange(PROBE.height_px) / 15.0)[:, None]
+    gain = np.exp(-np.arange(PROBE.height_px) / scale_rows)[:, None]
     return np.clip(rng.rayleigh(72.0, size=PROBE.image_shape) * gain, 0, 255).astype(np.uint8)
 
 
@@ -74,6 +76,16 @@ def test_a_fade_across_the_frame_is_no_shadow():
     # shadow onset in every column, and the tissue just above it as bone
     old = EchoSupportConfig(shadow_depth_ratio=math.inf)
     assert echo_support_map(_faded_frame(), PROBE, old)[10:bottom].mean(axis=1).max() > 0.9
+
+
+def test_an_echo_over_a_fade_casts_no_shadow():
+    # a bright line 8 mm deep over a slow fade whose floor lies ≈ 10 mm under it: an echo
+    # the detector scores (nothing below outshines it) but that casts no shadow of its own
+    image = _faded_frame(scale_rows=40.0)
+    image[16:18] = 250
+    assert not echo_support_map(image, PROBE)[16:18].any()
+    old = EchoSupportConfig(shadow_depth_ratio=math.inf)  # the fade's floor read as its shadow
+    assert echo_support_map(image, PROBE, old)[16:18].all()
 
 
 def test_speckle_without_bone_and_a_blank_frame_are_unsupported():

@@ -7,25 +7,36 @@ transducer, one scanline per column), with the evidence of ``label --auto``'s de
 percentile, E the bone score, and the deep shadow D where the mean of S over the next
 ``shadow_window_mm`` is at most ``shadow_level``·S_ref), pixel (r, c) *shows bone* when
 
-    E(r, c) > 0   or   ( S̄(r, c) > ``shadow_level``·S_ref  and
-                          min{r' ≥ r : D_z(r', c)} − r ≤ ``shadow_onset_mm`` / Δz ),
+    ( E(r, c) > 0  and  ( o_z(r + g, c) − r ≤ ``shadow_max_mm`` / Δz  or
+                          o(r + g, c) − r ≤ ``shadow_onset_mm`` / Δz ) )   or
+    ( S̄(r, c) > ``shadow_level``·S_ref  and  o_z(r, c) − r ≤ ``shadow_onset_mm`` / Δz ),
+
+    o(r, c) = min{r' ≥ r : D(r', c)},   o_z(r, c) = min{r' ≥ r : D_z(r', c)},
 
     D_z(r, c) = D(r, c)  and  S̄(r, c) ≤ ``shadow_depth_ratio``·L(r),
     L(r) = the ``DEPTH_LEVEL_PERCENTILE``-th percentile of S̄(r, c') over the image columns c'
 
-(a bone echo, or lit tissue under which the deep shadow begins within ``shadow_onset_mm``; the
-shadow itself shows nothing: S̄ is S's mean over the window from the pixel down, clipped to the
-frame). A shadow is dark against the tissue at its own depth: L(r) is the frame's lit level at
-row r, over the columns that hold image (S exceeds ``shadow_level``·S_ref somewhere in them; a
-convex or sector probe's blank margins do not count). Where the echoes fade with depth across
-the whole frame (attenuation the gain does not make up), the fade's floor is as dark as L and
-is no shadow, so the tissue above it is not called bone; a shadow as wide as the frame at its
-depth goes unseen by this rule too, and only its echo (E > 0) supports it. The frame's end
-counts as an onset (the minimum over no rows is H): within ``shadow_onset_mm`` of its last row
-a frame cannot show whether a shadow follows, so it gives no evidence against bone there, and
-the deep walls at the bottom of the frames keep their support. A pixel is *supported* when some pixel of its column within
-±``depth_window_mm`` shows bone (a maximum filter along the scanline: the tracked pose and the
-surface's depth each err by about a millimetre). A blank frame (S_ref = 0) supports nothing.
+(a bone echo that casts a shadow — one dark against its depth within ``shadow_max_mm``, or any
+deep shadow directly under the echo — or lit tissue under which a shadow begins within
+``shadow_onset_mm``; the shadow itself shows nothing: S̄ is S's mean over the window from the
+pixel down, clipped to the frame; g = ``gap_mm``/Δz and ``shadow_max_mm`` are the detector's,
+whose score E asks the same of D).
+
+A shadow is dark against the tissue at its own depth: L(r) is the frame's lit level at row r,
+over the columns that hold image (S exceeds ``shadow_level``·S_ref somewhere in them; a convex
+or sector probe's blank margins do not count). Where the echoes fade with depth across the whole
+frame (attenuation the gain does not make up), the fade's floor is as dark as L and is no
+shadow, so neither the tissue above it nor a bright speckle over it is called bone. A shadow as
+wide as the frame's image at its depth (a long bone imaged along its axis) is as dark as L too:
+its echo still shows bone through the shadow directly beneath it, the lit tissue over it does
+not.
+
+The frame's end counts as an onset (the minimum over no rows is H): within ``shadow_onset_mm``
+of its last row a frame cannot show whether a shadow follows, so it gives no evidence against
+bone there, and the deep walls at the bottom of the frames keep their support. A pixel is
+*supported* when some pixel of its column within ±``depth_window_mm`` shows bone (a maximum
+filter along the scanline: the tracked pose and the surface's depth each err by about a
+millimetre). A blank frame (S_ref = 0) supports nothing.
 
 UltrON keeps the part of its iso-surface that some frame observed (:mod:`ultron.mesh.observed`)
 and, with echo support on, that some frame supports: a surface f(θ) places in lit soft tissue
@@ -123,10 +134,16 @@ def echo_support_map(
     evidence = frame_evidence(image, probe, cfg.detector)
     if evidence.ref <= 0:
         return np.zeros(image.shape, dtype=bool)
-    rows = np.arange(image.shape[0])[:, None]
-    shows = evidence.score > 0
+    height = image.shape[0]
+    rows = np.arange(height)[:, None]
     # H (the frame's end) where no shadow follows in the frame
     onset = next_rows(depth_relative_shadow(evidence, probe, cfg))
+    # an echo casting a shadow: dark against its depth within shadow_max_mm under the echo's
+    # tail, or any deep shadow within shadow_onset_mm under it
+    tail = np.minimum(np.arange(height) + round(cfg.detector.gap_mm / axial), height - 1)
+    casts = (onset[tail] - rows) * axial <= cfg.detector.shadow_max_mm
+    casts |= (next_rows(evidence.dark)[tail] - rows) * axial <= cfg.shadow_onset_mm
+    shows = (evidence.score > 0) & casts
     # lit (not in the shadow, the window clipped at the frame's end) over a near onset
     shows |= ~evidence.shadowed & ((onset - rows) * axial <= cfg.shadow_onset_mm)
     reach = round(cfg.depth_window_mm / axial)
