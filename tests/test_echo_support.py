@@ -8,9 +8,10 @@ import numpy as np
 import pytest
 import trimesh
 
+from ultron.data.auto_labels import frame_evidence
 from ultron.data.dataset import ProbeGeometry
 from ultron.errors import UltronInputError
-from ultron.mesh.echo_support import EchoSupportConfig, echo_support_map
+from ultron.mesh.echo_support import EchoSupportConfig, depth_relative_shadow, echo_support_map
 from ultron.mesh.observed import ObservedSurfaceConfig, observe_surface, observed_points
 
 #: 100 rows × 80 columns of 0.5 mm: a 40 mm wide, 50 mm deep probe (as test_auto_labels).
@@ -107,6 +108,12 @@ def test_bad_inputs_name_the_argument():
         echo_support_map(np.zeros((10, 10), np.uint8), PROBE)
     with pytest.raises(UltronInputError, match="depth_window_mm"):
         EchoSupportConfig(depth_window_mm=-1.0)
+    evidence = frame_evidence(_faded_frame(), PROBE, EchoSupportConfig().detector)
+    with pytest.raises(UltronInputError, match="config"):
+        depth_relative_shadow(evidence, PROBE, {"shadow_depth_ratio": 0.3})  # type: ignore[arg-type]
+    small = ProbeGeometry(width_mm=40.0, depth_mm=25.0, height_px=50, width_px=80)
+    with pytest.raises(UltronInputError, match="evidence"):
+        depth_relative_shadow(evidence, small, EchoSupportConfig())
     for ratio in (0.0, -1.0, math.nan):
         with pytest.raises(UltronInputError, match="shadow_depth_ratio"):
             EchoSupportConfig(shadow_depth_ratio=ratio)

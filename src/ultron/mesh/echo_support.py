@@ -107,6 +107,14 @@ def depth_relative_shadow(
 ) -> np.ndarray:
     """Bool (H, W): D_z of the module docstring, the deep shadow D of ``evidence`` where it is
     also at most ``shadow_depth_ratio`` × the frame's lit level L(r) at its row."""
+    if not isinstance(config, EchoSupportConfig):
+        raise argument_error(
+            "config", f"expected an EchoSupportConfig, got {type(config).__name__}"
+        )
+    if np.shape(evidence.dark) != probe.image_shape:
+        raise argument_error(
+            "evidence", f"expected a frame of {probe.image_shape}, got {np.shape(evidence.dark)}"
+        )
     if math.isinf(config.shadow_depth_ratio):
         return evidence.dark
     detector = config.detector
