@@ -141,8 +141,9 @@ def _rows(mm: float, spacing_mm: float, minimum: int = 1) -> int:
 class FrameEvidence:
     """Step 1 of one frame (H, W): the smoothed image S, the bone score E, the first row per
     column where bone is possible (H: none) and the deep shadow's onset row (H: none); S_ref,
-    the deep shadow D (:func:`shadow_masks`) and the pixels whose window from there down,
-    clipped to the frame, is as dark (``shadowed``, D without the coverage rule)."""
+    the deep shadow D (:func:`shadow_masks`), the pixels whose window from there down,
+    clipped to the frame, is as dark (``shadowed``, D without the coverage rule), and that
+    window's mean S̄ (``shadow_mean``)."""
 
     smoothed: np.ndarray
     score: np.ndarray
@@ -151,6 +152,7 @@ class FrameEvidence:
     ref: float
     dark: np.ndarray
     shadowed: np.ndarray
+    shadow_mean: np.ndarray
 
 
 def window_mean(values: np.ndarray, length: int) -> tuple[np.ndarray, np.ndarray]:
@@ -191,15 +193,16 @@ def first_rows(mask: np.ndarray, none: int) -> np.ndarray:
 
 def shadow_masks(
     smoothed: np.ndarray, ref: float, axial_mm: float, config: AutoLabelConfig
-) -> tuple[np.ndarray, np.ndarray]:
-    """Bool (H, W) twice, from one window mean: the deep shadow D — the mean of S over the
-    ``shadow_window_mm`` from the pixel down (at least half of it inside the frame) is at most
-    ``shadow_level``·S_ref (step 1 of the module docstring) — and the pixels where that mean,
-    the window clipped to the frame, is at most the level (D without the half-window rule)."""
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Bool (H, W) twice, from one window mean, and that mean S̄ (H, W): the deep shadow D —
+    the mean of S over the ``shadow_window_mm`` from the pixel down (at least half of it inside
+    the frame) is at most ``shadow_level``·S_ref (step 1 of the module docstring) — and the
+    pixels where that mean, the window clipped to the frame, is at most the level (D without
+    the half-window rule)."""
     window = _rows(config.shadow_window_mm, axial_mm)
     dark_mean, rows_in = window_mean(smoothed, window)
     shadowed = dark_mean <= config.shadow_level * ref
-    return shadowed & (rows_in * 2 >= window), shadowed
+    return shadowed & (rows_in * 2 >= window), shadowed, dark_mean
 
 
 def frame_evidence(
@@ -214,12 +217,12 @@ def frame_evidence(
     ref = float(np.percentile(smoothed, 99.0))
     gap = _rows(config.gap_mm, axial, 0)
     beneath = max_below(smoothed, gap)
-    dark, shadowed = shadow_masks(smoothed, ref, axial, config)
+    dark, shadowed, shadow_mean = shadow_masks(smoothed, ref, axial, config)
     onset = first_rows(dark, height)
     if ref <= 0:  # a blank frame: nothing is bone, nothing is lit
         blank = np.full(smoothed.shape, -np.inf, dtype=np.float32)
         no_rows = np.zeros(smoothed.shape[1], int)
-        return FrameEvidence(smoothed, blank, no_rows, onset * 0, ref, dark, shadowed)
+        return FrameEvidence(smoothed, blank, no_rows, onset * 0, ref, dark, shadowed, shadow_mean)
     rows = np.arange(height)[:, None]
     # the deep shadow's nearest onset at or below the echo's tail, mm under the echo
     tail = np.minimum(np.arange(height) + gap, height - 1)
@@ -234,7 +237,7 @@ def frame_evidence(
     possible = room & casts_shadow & (smoothed >= config.possible_bright * ref)
     possible &= smoothed >= beneath
     first = first_rows(possible, height)
-    return FrameEvidence(smoothed, score, first, onset, ref, dark, shadowed)
+    return FrameEvidence(smoothed, score, first, onset, ref, dark, shadowed, shadow_mean)
 
 
 # ------------------------------------------------------------------------------- surface

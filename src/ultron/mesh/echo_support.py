@@ -53,13 +53,7 @@ from typing import Any
 import numpy as np
 from scipy import ndimage
 
-from ultron.data.auto_labels import (
-    AutoLabelConfig,
-    FrameEvidence,
-    frame_evidence,
-    next_rows,
-    window_mean,
-)
+from ultron.data.auto_labels import AutoLabelConfig, FrameEvidence, frame_evidence, next_rows
 from ultron.data.dataset import ProbeGeometry, SweepDataset
 from ultron.errors import argument_error
 
@@ -117,10 +111,8 @@ def depth_relative_shadow(
         )
     if math.isinf(config.shadow_depth_ratio):
         return evidence.dark
-    detector = config.detector
-    window = max(1, round(detector.shadow_window_mm / probe.axial_spacing_mm))
-    mean, _ = window_mean(evidence.smoothed, window)
-    image = evidence.smoothed.max(axis=0) > detector.shadow_level * evidence.ref
+    mean = evidence.shadow_mean
+    image = evidence.smoothed.max(axis=0) > config.detector.shadow_level * evidence.ref
     if not image.any():
         return np.zeros_like(evidence.dark)
     level = np.percentile(mean[:, image], DEPTH_LEVEL_PERCENTILE, axis=1, keepdims=True)
