@@ -205,6 +205,11 @@ def shadow_masks(
     return shadowed & (rows_in * 2 >= window), shadowed, dark_mean
 
 
+def echo_tail_rows(height: int, axial_mm: float, config: AutoLabelConfig) -> np.ndarray:
+    """(H,): each row's echo tail, ``gap_mm`` below it, clipped to the frame's last row."""
+    return np.minimum(np.arange(height) + _rows(config.gap_mm, axial_mm, 0), height - 1)
+
+
 def frame_evidence(
     image: np.ndarray, probe: ProbeGeometry, config: AutoLabelConfig
 ) -> FrameEvidence:
@@ -225,7 +230,7 @@ def frame_evidence(
         return FrameEvidence(smoothed, blank, no_rows, onset * 0, ref, dark, shadowed, shadow_mean)
     rows = np.arange(height)[:, None]
     # the deep shadow's nearest onset at or below the echo's tail, mm under the echo
-    tail = np.minimum(np.arange(height) + gap, height - 1)
+    tail = echo_tail_rows(height, axial, config)
     to_shadow_mm = (next_rows(dark)[tail] - rows) * axial
     score = (smoothed - beneath / config.dominance) / ref - config.min_score
     near = to_shadow_mm <= config.shadow_onset_mm

@@ -53,7 +53,13 @@ from typing import Any
 import numpy as np
 from scipy import ndimage
 
-from ultron.data.auto_labels import AutoLabelConfig, FrameEvidence, frame_evidence, next_rows
+from ultron.data.auto_labels import (
+    AutoLabelConfig,
+    FrameEvidence,
+    echo_tail_rows,
+    frame_evidence,
+    next_rows,
+)
 from ultron.data.dataset import ProbeGeometry, SweepDataset
 from ultron.errors import argument_error
 
@@ -140,7 +146,7 @@ def echo_support_map(
     onset = next_rows(depth_relative_shadow(evidence, probe, cfg))
     # an echo casting a shadow: dark against its depth within shadow_max_mm under the echo's
     # tail, or any deep shadow within shadow_onset_mm under it
-    tail = np.minimum(np.arange(height) + round(cfg.detector.gap_mm / axial), height - 1)
+    tail = echo_tail_rows(height, axial, cfg.detector)
     casts = (onset[tail] - rows) * axial <= cfg.detector.shadow_max_mm
     casts |= (next_rows(evidence.dark)[tail] - rows) * axial <= cfg.shadow_onset_mm
     shows = (evidence.score > 0) & casts
