@@ -61,23 +61,19 @@ def stages(data: Path, out: Path) -> list[tuple[str, list[str], Path]]:
 
 def held_out_baselines(dataset: Path, field: Path) -> dict[str, float]:
     """PSNR of copying the mean / the nearest (by probe position) training frame onto the
-    field's held-out frames, at the field's fit resolution."""
+    field's held-out frames, at the field's fit resolution
+    (:func:`ultron.train.frames.copy_baselines`)."""
 
     from ultron.data.dataset import SweepDataset
-    from ultron.train.frames import FrameSet
-    from ultron.train.losses import psnr
+    from ultron.train.frames import FrameSet, copy_baselines
 
     meta = json.loads((field / "field.json").read_text())
     shape = meta["train"]["fit_shape"]
     frames = FrameSet.from_dataset(
         SweepDataset.load(dataset), tuple(shape) if shape else None, meta["train"]["holdout_every"]
     )
-    held, train = frames.holdout_index, frames.train_index
-    position = frames.probe_to_world[:, :3, 3]
-    nearest = [int(train[((position[train] - position[h]) ** 2).sum(1).argmin()]) for h in held]
-    target = frames.images[held]
-    mean = frames.images[train].mean(0, keepdim=True).expand_as(target)
-    return {"mean frame": psnr(mean, target), "nearest frame": psnr(frames.images[nearest], target)}
+    found = copy_baselines(frames, meta["train"]["max_check_frames"])
+    return {"mean frame": found["mean_frame"], "nearest frame": found["nearest_frame"]}
 
 
 def far_surface_places(dataset, run: dict, run_dir: Path, beyond_mm: float = 2.0) -> dict[str, int]:

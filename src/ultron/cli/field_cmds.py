@@ -20,6 +20,7 @@ from ultron.cli.common import (
     err_console,
     fit_progress,
     user_errors,
+    warning_line,
 )
 from ultron.errors import argument_error
 
@@ -249,8 +250,31 @@ def _print_fitted(result: FieldFitResult, device: str) -> None:
             for c, m, s in zip(stats.channels, stats.mean, stats.std, strict=True)
         )
         console.print(f"θ statistics: {summary}", highlight=False)
+    if result.holdout is not None:
+        _print_holdout(result.holdout)
     if result.transmission_check is not None:
         _print_transmission_check(out, result.transmission_check)
+
+
+def _print_holdout(check: dict[str, float]) -> None:
+    """The last held-out check against copying a training frame; a warning below the mean's."""
+    line = f"held-out frames: PSNR {check['psnr']:.2f} dB, SSIM {check['ssim']:.3f}"
+    mean, nearest = check.get("mean_frame_psnr"), check.get("nearest_frame_psnr")
+    if mean is None or nearest is None:
+        console.print(line, highlight=False)
+        return
+    console.print(
+        f"{line}; copying onto them the mean training frame {mean:.2f} dB, the nearest"
+        f" {nearest:.2f} dB",
+        highlight=False,
+    )
+    if check["psnr"] < mean:
+        warning_line(
+            f"the field predicts its held-out frames worse than the mean training frame does"
+            f" ({check['psnr']:.2f} < {mean:.2f} dB): what it learned between the frames is not"
+            " borne out by them (too few iterations, too few frames, or frames far apart for"
+            " its resolution; docs/field.md)"
+        )
 
 
 def _print_transmission_check(out: Path, check: dict[str, Any]) -> None:

@@ -8,6 +8,7 @@ what a caller reports. The command line only parses options, calls one of them a
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Callable
 from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass
@@ -24,6 +25,7 @@ from ultron.errors import argument_error
 from ultron.models.field_dir import (
     check_field_dataset,
     check_field_out,
+    read_train_log,
     read_transmission_check,
 )
 from ultron.models.fitted import FitProgress, FittedField, load_field
@@ -40,12 +42,17 @@ MAP_SUFFIXES = (".theta.npy", ".transmission.npy", ".maps.json")
 
 @dataclass(frozen=True)
 class FieldFitResult:
-    """What :func:`fit_field_dir` did: the fitted field, where it went and, on a simulated
-    dataset, the fitted T against the simulator's (``transmission_check.json``, else None)."""
+    """What :func:`fit_field_dir` did: the fitted field, where it went, on a simulated dataset
+    the fitted T against the simulator's (``transmission_check.json``, else None), and the
+    last held-out check (``holdout``: ``psnr``, ``ssim`` and, from fits since these were
+    logged, ``mean_frame_psnr`` / ``nearest_frame_psnr``, what copying a training frame onto
+    the held-out frames scores: :func:`ultron.train.frames.copy_baselines`; None without
+    held-out frames)."""
 
     fitted: FittedField
     out: Path
     transmission_check: dict[str, Any] | None
+    holdout: dict[str, float] | None = None
 
 
 @dataclass(frozen=True)
@@ -95,7 +102,17 @@ def fit_field_dir(
     )
     with (progress or nullcontext)() as update:
         fitted = fit_field(data, config, out, progress=update, resume=resume, device=device)
-    return FieldFitResult(fitted, out, read_transmission_check(out))
+    return FieldFitResult(fitted, out, read_transmission_check(out), last_holdout_check(out))
+
+
+def last_holdout_check(field_dir: Path) -> dict[str, float] | None:
+    """The last held-out check of FIELD_DIR ``field_dir``'s ``train_log.jsonl`` without its
+    ``holdout_`` prefixes (:class:`FieldFitResult`), or None when the fit checked none."""
+    checks = [e for e in read_train_log(field_dir, sys.maxsize) if "holdout_psnr" in e]
+    if not checks:
+        return None
+    prefix = "holdout_"
+    return {k[len(prefix) :]: v for k, v in checks[-1].items() if k.startswith(prefix)}
 
 
 def render_frames(

@@ -79,7 +79,7 @@ from ultron.train.field_config import (
     learning_rate_at,
 )
 from ultron.train.fit_shape import resolve_fit_shape
-from ultron.train.frames import FrameSet, resampled_probe
+from ultron.train.frames import FrameSet, checked_subset, copy_baselines, resampled_probe
 from ultron.train.loop import Progress, run_training
 from ultron.train.losses import METRIC_SSIM_K2, psnr, ssim
 from ultron.train.transmission_check import record_transmission_check
@@ -152,10 +152,9 @@ def evaluate_frames(
     fitted: FittedField, frames: FrameSet, index: torch.Tensor, limit: int | None = None
 ) -> dict[str, float]:
     """PSNR / SSIM (standard constants) of expected renders of frames ``index`` vs the data."""
+    index = checked_subset(index, limit)
     if index.numel() == 0:
         return {}
-    if limit is not None and index.numel() > limit:
-        index = index[np.linspace(0, index.numel() - 1, limit).round().astype(np.int64)]
     rendered = torch.from_numpy(fitted.render(frames.probe_to_world[index], expected=True))
     target = frames.images[index].cpu()
     return {
@@ -320,11 +319,14 @@ class _FieldRun:
     fitted: FittedField = field(init=False)
     #: The batch loss, built once (on a CUDA device: replayed from CUDA graphs).
     loss: FieldObjective = field(init=False)
+    #: What the checked held-out frames score without a field (:func:`copy_baselines`).
+    baselines: dict[str, float] = field(init=False)
 
     def __post_init__(self) -> None:
         self.fitted = FittedField(
             self.module, self.resolved, self.cube, self.frames.probe, self.render_config
         )
+        self.baselines = copy_baselines(self.frames, self.config.max_check_frames)
         self.loss = FieldObjective(
             self.module, self.render_config, self.config, self.frames.probe.axial_spacing_mm,
             graphs=self.device.type == "cuda",
@@ -350,6 +352,8 @@ class _FieldRun:
             self.module.eval()  # the next update sets train mode again
             metrics = evaluate_frames(self.fitted, self.frames, self.frames.holdout_index, limit)
             entry.update({f"holdout_{k}": v for k, v in metrics.items()})
+            if metrics:
+                entry.update({f"holdout_{k}_psnr": v for k, v in self.baselines.items()})
         return "holdout_psnr" in entry
 
     def checkpoint(self, done: int) -> None:

@@ -1,4 +1,5 @@
-"""Training frames: resampling a dataset to the fitting resolution and the hold-out split."""
+"""Training frames: resampling a dataset to the fitting resolution, the hold-out split, and what
+the held-out frames score without a field (:func:`copy_baselines`)."""
 
 from __future__ import annotations
 
@@ -11,6 +12,7 @@ import torch.nn.functional as F
 
 from ultron.data.dataset import ProbeGeometry, SweepDataset
 from ultron.errors import argument_error
+from ultron.train.losses import psnr
 from ultron.train.visibility import confidence_maps
 
 
@@ -120,3 +122,30 @@ class FrameSet:
         if train.size == 0:
             raise argument_error("holdout_every", "no training frame is left")
         return cls(images, poses, probe, torch.as_tensor(train), torch.as_tensor(held))
+
+
+def checked_subset(index: torch.Tensor, limit: int | None) -> torch.Tensor:
+    """``index`` itself, or ``limit`` of its entries evenly spaced when it holds more: the
+    held-out frames a check renders."""
+    if limit is not None and index.numel() > limit:
+        return index[np.linspace(0, index.numel() - 1, limit).round().astype(np.int64)]
+    return index
+
+
+def copy_baselines(frames: FrameSet, limit: int | None = None) -> dict[str, float]:
+    """PSNR (dB) on the held-out frames (those a check renders: :func:`checked_subset`) of two
+    predictions that need no field: every held-out frame replaced by the mean training frame
+    (``mean_frame``) and by the training frame whose probe origin lies nearest
+    (``nearest_frame``). A field that generalises across frames scores above them; one that
+    only reproduces its training frames does not. Empty without held-out frames."""
+    held = checked_subset(frames.holdout_index, limit)
+    if held.numel() == 0:
+        return {}
+    train = frames.train_index
+    origin = frames.probe_to_world[:, :3, 3]
+    distance = torch.cdist(origin[held], origin[train])
+    nearest = train[distance.argmin(dim=1)]
+    target = frames.images[held].cpu()
+    images = frames.images.cpu()
+    mean = images[train].mean(dim=0, keepdim=True).expand_as(target)
+    return {"mean_frame": psnr(mean, target), "nearest_frame": psnr(images[nearest], target)}
