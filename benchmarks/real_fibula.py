@@ -31,6 +31,7 @@ Usage::
 
     python benchmarks/real_fibula.py --out runs/real_fibula
     python benchmarks/real_fibula.py --out runs/real_fibula --methods compounding --skip-auto
+    python benchmarks/real_fibula.py --out runs/real_fibula_gpu --device cuda
 """
 
 from __future__ import annotations
@@ -111,7 +112,12 @@ def reconstruct_command(args, dataset: Path, method: str, fraction: float, out: 
         command += ["--field", str(args.out / "field")]
         if dataset != args.data:
             command.append("--allow-other-field")
-    return command
+    return command + device_option(args)
+
+
+def device_option(args) -> list[str]:
+    """``--device D`` for the commands that train, when the benchmark was given one."""
+    return [] if args.device is None else ["--device", args.device]
 
 
 def timed(name: str, command: list[str], done: Path, args, log: dict) -> dict:
@@ -177,6 +183,9 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=1)
     parser.add_argument("--crop-mm", type=float, default=5.0)
     parser.add_argument("--fresh", action="store_true", help="rerun every stage")
+    parser.add_argument(
+        "--device", default=None, help="fit-field's and reconstruct's --device (default: theirs)"
+    )
     args = parser.parse_args()
     args.fractions = [float(f) for f in args.fractions.split(",")]
     methods = [m for m in args.methods.split(",") if m]
@@ -204,6 +213,7 @@ def main() -> None:
     field_stage = None
     if any(m in FIELD_METHODS for m in methods):
         command = ["ultron", "fit-field", str(args.data), "--out", str(args.out / "field")]
+        command += device_option(args)
         field_stage = timed("fit field", command, args.out / "field" / "field.json", args, log)
         log_file.write_text(json.dumps(log, indent=2))
     rows = []

@@ -54,3 +54,17 @@ def test_device_benchmark_steps_run_on_the_cpu(tiny_l3, monkeypatch):
         per_step, finetune = bench.occupancy_seconds(preset, cpu, steps=2)
         assert all(math.isfinite(t) and t > 0 for t in (seconds, per_step, finetune)), preset
         assert bench.field_step_operations(dataset, preset) > 100  # forward, backward, Adam
+
+
+def test_real_fibula_passes_its_device_to_the_commands_that_train(monkeypatch, tmp_path):
+    from types import SimpleNamespace
+
+    bench = _load("real_fibula.py", monkeypatch)
+    args = SimpleNamespace(points=100, out=tmp_path, data=tmp_path / "data", device=None)
+    command = bench.reconstruct_command(args, args.data, "ultron", 0.1, tmp_path / "r")
+    assert "--device" not in command and command[command.index("--field") + 1] == str(
+        tmp_path / "field"
+    )
+    args.device = "cuda"
+    command = bench.reconstruct_command(args, tmp_path / "auto", "compounding", 1.0, tmp_path / "r")
+    assert command[-2:] == ["--device", "cuda"] and "--field" not in command
