@@ -8,14 +8,13 @@ import json
 import math
 from pathlib import Path
 
-import numpy as np
 import pytest
 import torch
 from typer.testing import CliRunner
 
-from field_configs import quick_field_config
+from field_configs import quick_field_config, random_sweep
 from ultron.cli.main import app
-from ultron.data.dataset import ProbeGeometry, Sweep, SweepDataset
+from ultron.data.dataset import ProbeGeometry
 from ultron.pipeline import field as field_pipeline
 from ultron.train.field_fit import fit_field
 from ultron.train.frames import FrameSet, checked_subset, copy_baselines
@@ -64,17 +63,8 @@ def test_copy_baselines_without_held_out_frames_is_empty() -> None:
     assert copy_baselines(constant_frames([0.1, 0.2], [0, 1], held=[])) == {}
 
 
-def make_dataset(n: int = 10) -> SweepDataset:
-    rng = np.random.default_rng(0)
-    poses = np.repeat(np.eye(4)[None], n, axis=0)
-    poses[:, 2, 3] = np.linspace(0.0, 4.0, n)
-    images = rng.integers(0, 256, size=(n, 24, 16), dtype=np.uint8)
-    probe = ProbeGeometry(width_mm=8.0, depth_mm=9.0, height_px=24, width_px=16)
-    return SweepDataset(probe, [Sweep("row", "row", images, poses)])
-
-
 def test_the_fit_logs_the_baselines_beside_each_check(tmp_path: Path) -> None:
-    data = make_dataset()
+    data = random_sweep()
     fit_field(data, quick_field_config(iterations=4, check_every=2), tmp_path / "f")
     entries = [json.loads(line) for line in (tmp_path / "f" / "train_log.jsonl").open()]
     checked = [e for e in entries if "holdout_psnr" in e]
@@ -93,7 +83,7 @@ def test_the_fit_logs_the_baselines_beside_each_check(tmp_path: Path) -> None:
 def test_fit_field_prints_the_baselines_and_warns_below_the_mean(
     tmp_path: Path, monkeypatch, psnr: float, warned: bool
 ) -> None:
-    make_dataset().save(tmp_path / "d")
+    random_sweep().save(tmp_path / "d")
     check = {"psnr": psnr, "ssim": 0.5, "mean_frame_psnr": 20.0, "nearest_frame_psnr": 21.0}
     monkeypatch.setattr(field_pipeline, "last_holdout_check", lambda out: check)
     args = ["fit-field", str(tmp_path / "d"), "--out", str(tmp_path / "f"), "--iters", "2"]
@@ -108,7 +98,7 @@ def test_fit_field_prints_the_baselines_and_warns_below_the_mean(
 
 
 def test_fit_field_without_held_out_frames_prints_no_check(tmp_path: Path) -> None:
-    make_dataset().save(tmp_path / "d")
+    random_sweep().save(tmp_path / "d")
     args = ["fit-field", str(tmp_path / "d"), "--out", str(tmp_path / "f"), "--iters", "2"]
     result = runner.invoke(app, [*args, "--holdout-every", "0"], terminal_width=300)
     assert result.exit_code == 0, result.output

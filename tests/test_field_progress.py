@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from field_configs import quick_field_config
+from field_configs import quick_field_config, random_sweep
 from ultron import atomic
 from ultron.cli.main import app
-from ultron.data.dataset import ProbeGeometry, Sweep, SweepDataset
+from ultron.data.dataset import SweepDataset
 from ultron.errors import UltronInputError
 from ultron.models import load_field
 from ultron.models.fitted import FitProgress, fit_progress
@@ -22,18 +22,13 @@ from ultron.train import field_fit
 from ultron.train.field_fit import FieldTrainConfig, fit_field
 
 runner = CliRunner()
-PROBE = ProbeGeometry(width_mm=8.0, depth_mm=9.0, height_px=24, width_px=16)
 
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def make_dataset(n: int = 10) -> SweepDataset:
-    rng = np.random.default_rng(0)
-    poses = np.repeat(np.eye(4)[None], n, axis=0)
-    poses[:, 2, 3] = np.linspace(0.0, 4.0, n)
-    images = rng.integers(0, 256, size=(n, 24, 16), dtype=np.uint8)
-    return SweepDataset(PROBE, [Sweep("row", "row", images, poses)])
+    return random_sweep(n)
 
 
 def quick_config(**overrides) -> FieldTrainConfig:
