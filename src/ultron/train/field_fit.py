@@ -352,8 +352,8 @@ class _FieldRun:
             self.module.eval()  # the next update sets train mode again
             metrics = evaluate_frames(self.fitted, self.frames, self.frames.holdout_index, limit)
             entry.update({f"holdout_{k}": v for k, v in metrics.items()})
-            if metrics:
-                entry.update({f"holdout_{k}_psnr": v for k, v in self.baselines.items()})
+            # the same frames: both are empty without held-out frames
+            entry.update({f"holdout_{k}_psnr": v for k, v in self.baselines.items()})
         return "holdout_psnr" in entry
 
     def checkpoint(self, done: int) -> None:

@@ -145,7 +145,7 @@ def copy_baselines(frames: FrameSet, limit: int | None = None) -> dict[str, floa
     origin = frames.probe_to_world[:, :3, 3]
     distance = torch.cdist(origin[held], origin[train])
     nearest = train[distance.argmin(dim=1)]
-    target = frames.images[held].cpu()
-    images = frames.images.cpu()
+    images = frames.images  # on the fit's device: only the scores leave it
+    target = images[held]
     mean = images[train].mean(dim=0, keepdim=True).expand_as(target)
     return {"mean_frame": psnr(mean, target), "nearest_frame": psnr(images[nearest], target)}
