@@ -5,7 +5,9 @@ On the PLUS spine phantom (``../shared/data/plus-spine-phantom``: 21 tracked fra
 
 1. ``ultron import-plus`` the sequence into a temporary dataset, in the frame PLUS reconstructed
    in (the ``VolumeReconstruction`` element's ``ReferenceCoordinateFrame``, PLUS's default
-   ``Reference``; PLUS's volume origin is the lowest corner of the frames in that frame);
+   ``Reference``; PLUS's volume origin is the lowest corner of the frames in that frame), with
+   its blank columns kept (``--keep-blank-columns``) as PLUS's whole-frame clip rectangle
+   keeps them;
 2. ``ultron compound`` it with the settings of that element (``OutputSpacing``,
    ``Interpolation``, ``CompoundingMode``, ``FillHoles`` with a ``STICK`` element's
    ``StickLengthLimit``);
@@ -241,7 +243,7 @@ def main() -> int:
     with tempfile.TemporaryDirectory() as folder:
         tmp = Path(folder)
         ultron("import-plus", str(args.data / SEQUENCE), "--config", str(args.data / CONFIG),
-               "--to", settings.frame, "--out", str(tmp / "dataset"))  # fmt: skip
+               "--to", settings.frame, "--keep-blank-columns", "--out", str(tmp / "dataset"))  # fmt: skip
         options = [str(tmp / "dataset"), *settings.options(), "--out", str(tmp / "volume.nii.gz")]
         start = time.perf_counter()
         ultron("compound", *options)

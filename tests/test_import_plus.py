@@ -30,11 +30,14 @@ from ultron.cli.main import app
 from ultron.data.dataset import SweepDataset
 from ultron.data.geometry import pixel_to_world
 from ultron.data.plus import read_sequence
-from ultron.data.plus_import import downsample_frames, fit_image_plane
+from ultron.data.plus_import import downsample_frames, fit_image_plane, signal_columns
+from ultron.errors import UltronError
 
 PLUS_DIR = SHARED / "data" / "plus-spine-phantom"
 PLUS_SEQUENCE = PLUS_DIR / "SpinePhantomFreehand.igs.mha"
 PLUS_CONFIG = PLUS_DIR / "PlusDeviceSet_SpinePhantomFreehandReconstructionOnly.xml"
+#: The columns [start, stop) of the shared recording's frames that hold signal.
+KEPT = (187, 632)
 
 
 def _import(sequence: Path, config: Path, out: Path, *more: str):
@@ -89,11 +92,17 @@ def test_real_file_imports(real_import):
     out, output = real_import
     data = SweepDataset.load(out)
     sweep = data.sweeps[0]
-    assert sweep.name == "SpinePhantomFreehand" and sweep.images.shape == (21, 616, 820)
+    # the file's columns outside 187–631 are 0 in every frame (MFA → MF: no flip): dropped
+    pixels = read_sequence(PLUS_SEQUENCE).pixels
+    lit = np.flatnonzero(pixels.any(axis=(0, 1)))
+    assert (lit[0], lit[-1]) == (KEPT[0], KEPT[1] - 1) and pixels.shape[2] == 820
+    assert sweep.name == "SpinePhantomFreehand" and sweep.images.shape == (21, 616, 445)
     assert "orientation MFA → MF (no flip)" in output
+    assert "kept columns 187–631" in output and "clip rectangle: origin (187, 0)" in output
     assert "skipped 0 of 21 frames" in output
-    assert re.search(r"at most 0\.9\d\d mm \(RMS 0\.5\d\d mm\)", output), output
+    assert re.search(r"at most 0\.7\d\d mm \(RMS 0\.4\d\d mm\)", output), output
     imports = data.metadata["imports"][sweep.name]
+    assert imports["kept_columns"] == list(KEPT)
     assert imports["world"] == "Reference" and imports["frames"] == list(range(21))
     assert math.isclose(abs(imports["shear_deg"]), 2.745, abs_tol=1e-3)
 
@@ -115,12 +124,13 @@ def test_real_file_pixel_to_world_matches_plus(real_import):
     for frame in range(21):
         chain = np.linalg.inv(transforms["ReferenceToTracker"][frame])
         chain = chain @ transforms["ProbeToTracker"][frame]
-        for i, j in _probe_points(616, 820):
+        for i, j in _probe_points(616, KEPT[1] - KEPT[0]):
             ours = _dataset_world(out, frame, i, j)
-            pixel = np.array([i, j, 0.0, 1.0])
+            pixel = np.array([i, j, 0.0, 1.0])  # the fit maps the kept columns' pixels
             assert np.abs(ours - (chain @ fitted @ pixel)[:3]).max() < 1e-6
-            deviation = float(np.linalg.norm(ours - (chain @ image_to_probe @ pixel)[:3]))
-            if (i, j) == (409.5, 307.5):
+            in_file = np.array([i + KEPT[0], j, 0.0, 1.0])  # PLUS maps the file's pixels
+            deviation = float(np.linalg.norm(ours - (chain @ image_to_probe @ in_file)[:3]))
+            if (i, j) == (222.0, 307.5):  # the kept frame's centre
                 assert deviation < 1e-6
             worst = max(worst, deviation)
     assert residual - 1e-3 < worst < residual + 1e-3
@@ -150,10 +160,10 @@ def test_real_file_frames_are_resampled_so_corners_land_where_plus_puts_them(rea
     for frame in range(21):
         chain = np.linalg.inv(transforms["ReferenceToTracker"][frame])
         chain = chain @ transforms["ProbeToTracker"][frame]
-        for i, j in _probe_points(616, 820):
-            rigid = np.linalg.solve(to_original, np.array([i, j, 1.0]))
-            ours = _dataset_world(out, frame, rigid[0], rigid[1])
-            theirs = (chain @ image_to_probe @ np.array([i, j, 0.0, 1.0]))[:3]
+        for i, j in _probe_points(616, KEPT[1] - KEPT[0]):
+            rigid = np.linalg.solve(to_original, np.array([i + KEPT[0], j, 1.0]))
+            ours = _dataset_world(out, frame, rigid[0], rigid[1])  # the file's pixel → kept grid
+            theirs = (chain @ image_to_probe @ np.array([i + KEPT[0], j, 0.0, 1.0]))[:3]
             assert np.linalg.norm(ours - theirs) < 0.3
 
 
@@ -209,7 +219,8 @@ def test_sheared_calibration_puts_every_echo_where_plus_does(tmp_path: Path, at,
     fit = fit_image_plane(cal, 60, 40, "c.xml", "Transform")
     assert fit.residual_max_mm > 0.3  # the rigid factorisation alone would miss by this much
     out = tmp_path / "ds"
-    result = _import(_files(tmp_path, rec, "mha"), write_config(tmp_path / "c.xml", cal), out)
+    config = write_config(tmp_path / "c.xml", cal)  # the blank columns kept: a whole frame
+    result = _import(_files(tmp_path, rec, "mha"), config, out, "--keep-blank-columns")
     assert result.exit_code == 0, result.output
     assert "resampled onto the rigid grid" in result.output
     data = SweepDataset.load(out)
@@ -317,6 +328,73 @@ def test_clip_rectangle(tmp_path: Path):
     for c, r in ((0, 0), (9, 5), (4, 2)):
         expected = plus_world(rec, cal, 1, 2 + c, 3 + r)
         assert np.abs(_dataset_world(out, 1, c, r) - expected).max() < 1e-6
+
+
+def _blank_sides(rec: Recording, start: int, stop: int) -> Recording:
+    """``rec`` with every frame's columns outside [start, stop) set to 0 and one lit pixel in
+    each edge column of the kept range, on one frame only."""
+    rec.frames[:, :, :start] = 0
+    rec.frames[:, :, stop:] = 0
+    rec.frames[:, :, start : start + 1] = 0
+    rec.frames[1, 5, start] = 9
+    return rec
+
+
+def test_blank_columns_are_dropped_and_every_pixel_stays_where_plus_puts_it(tmp_path: Path):
+    """Columns 0 in every frame (outside the aperture) are dropped, the first kept column is
+    lit on one frame only; pixel (r, c) of the import is PLUS's pixel (c + start, r), and the
+    clip rectangle recorded is the kept one. ``--keep-blank-columns`` keeps the frame whole."""
+    rec = _blank_sides(recording(), 3, 13)
+    cal = calibration()
+    config = write_config(tmp_path / "c.xml", cal)
+    out = tmp_path / "ds"
+    result = _import(write_mha(tmp_path / "s.mha", rec), config, out)
+    assert result.exit_code == 0, result.output
+    assert "kept columns 3–12" in result.output
+    data = SweepDataset.load(out)
+    assert np.array_equal(data.sweeps[0].images, rec.frames[:, :, 3:13])
+    assert data.probe.image_shape == (12, 10)
+    imports = data.metadata["imports"]["s"]
+    assert imports["kept_columns"] == [3, 13] and imports["clip"]["origin"] == [3, 0]
+    for c, r in ((0, 0), (9, 11), (4, 2)):
+        expected = plus_world(rec, cal, 1, 3 + c, r)
+        assert np.abs(_dataset_world(out, 1, c, r) - expected).max() < 1e-6
+    whole = tmp_path / "whole"
+    result = _import(tmp_path / "s.mha", config, whole, "--keep-blank-columns")
+    assert result.exit_code == 0 and "kept columns" not in result.output
+    kept = SweepDataset.load(whole)
+    assert (
+        kept.probe.image_shape == (12, 16) and kept.metadata["imports"]["s"]["kept_columns"] is None
+    )
+    assert np.allclose(_dataset_world(whole, 1, 3 + 4, 2), _dataset_world(out, 1, 4, 2), atol=1e-9)
+
+
+def test_a_sweep_added_keeps_the_first_sweeps_columns(tmp_path: Path):
+    """A second recording lit over other columns is narrowed to the first sweep's columns, so
+    the dataset keeps one probe geometry; a dataset whose first sweep kept every column keeps
+    every column of the next."""
+    config = write_config(tmp_path / "c.xml", calibration())
+    first = write_mha(tmp_path / "a.mha", _blank_sides(recording(), 3, 13))
+    second = write_mha(tmp_path / "b.mha", _blank_sides(recording(seed=1), 1, 15))
+    out, whole = tmp_path / "ds", tmp_path / "whole"
+    for sequence in (first, second):
+        assert _import(sequence, config, out).exit_code == 0
+    data = SweepDataset.load(out)
+    assert [s.images.shape[2] for s in data.sweeps] == [10, 10]
+    assert data.metadata["imports"]["b"]["kept_columns"] == [3, 13]
+    assert _import(first, config, whole, "--keep-blank-columns").exit_code == 0
+    assert _import(second, config, whole).exit_code == 0
+    assert [s.images.shape[2] for s in SweepDataset.load(whole).sweeps] == [16, 16]
+
+
+def test_signal_columns():
+    frames = np.zeros((2, 3, 6), dtype=np.uint8)
+    assert signal_columns(frames) == (0, 6)  # nothing lit: nothing dropped
+    frames[1, 2, 4] = 1
+    frames[0, 0, 2] = 200
+    assert signal_columns(frames) == (2, 5)
+    with pytest.raises(UltronError, match="frames"):
+        signal_columns(frames[0])
 
 
 def test_downsample_keeps_geometry_and_anti_aliases(tmp_path: Path):

@@ -108,6 +108,14 @@ def import_plus(
     replace: Annotated[
         bool, typer.Option("--replace", help="Replace an existing sweep of the same name.")
     ] = False,
+    keep_blank_columns: Annotated[
+        bool,
+        typer.Option(
+            "--keep-blank-columns",
+            help="Keep the columns that are 0 in every frame (default: drop them, as outside"
+            " the probe's aperture).",
+        ),
+    ] = False,
 ) -> None:
     """Import a tracked PLUS / 3D Slicer recording as a sweep (repeat to add sweeps)."""
     from ultron.pipeline.sweep_import import import_plus_sweep
@@ -115,7 +123,7 @@ def import_plus(
     check_range("--downsample", downsample, 1.0)
     imported = import_plus_sweep(
         sequence, config, out, to=to, sweep_name=sweep_name, kind=kind, downsample=downsample,
-        replace=replace,
+        replace=replace, keep_blank_columns=keep_blank_columns,
     )  # fmt: skip
     report = imported.report
     for line in _plus_summary(report, imported.probe):
@@ -150,6 +158,12 @@ def _plus_summary(report: PlusImportReport, probe: ProbeGeometry) -> list[str]:
     if report.clip is not None:
         (i0, j0), (w, h) = report.clip
         lines.append(f"clip rectangle: origin ({i0}, {j0}), {w} × {h} pixels")
+    if report.kept_columns is not None:
+        start, stop = report.kept_columns
+        lines.append(
+            f"kept columns {start}–{stop - 1}: the others are 0 in every frame (outside the"
+            " aperture; --keep-blank-columns keeps them)"
+        )
     skipped = sum(report.skipped.values())
     reasons = ", ".join(f"{n} × {reason}" for reason, n in sorted(report.skipped.items()))
     lines.append(

@@ -16,7 +16,18 @@ resampled onto the rigid map's pixel grid (:func:`resample_to_rigid`): each new 
 grey level PLUS's own calibration puts at its position (bilinear), so the imported sweep places
 every echo where PLUS does, corners included. Frames are flipped to MF (PLUS's orientation of
 B-mode frames, row 0 at the transducer face as the format wants), clipped to the
-configuration's clip rectangle and optionally area-downsampled with the spacings updated.
+configuration's clip rectangle, narrowed to the columns that hold signal
+(:func:`signal_columns`) and optionally area-downsampled with the spacings updated.
+
+Why the blank columns go: a linear probe's image is often stored wider than its aperture
+(the shared spine phantom: 445 of 820 columns, the rest exactly 0 in every frame). Those
+columns were never insonified; kept, they ask the acoustic field to render black tissue beside
+the bone, and a fit can settle there, rendering every frame black (docs/real-sweeps.md, "Blank
+columns"). The clip rectangle recorded in the metadata is the narrowed one, so the pose of
+pixel (r, c) is PLUS's map of pixel (r, c + start) of the clipped frame. The rigid fit spans the
+kept columns only; where the frames are resampled onto its grid, the grid's corners and the
+kept rectangle's differ by up to the fit's residual (the spine phantom's 0.72 mm: a few pixels
+at each corner, read as 0 on one side and left out on the other).
 """
 
 from __future__ import annotations
@@ -360,6 +371,9 @@ class PlusImportReport:
     downsample: float
     #: The frames were resampled onto the rigid grid (:func:`resample_to_rigid`).
     resampled: bool = False
+    #: The columns [start, stop) of the clipped frames that were kept (the others blank in
+    #: every frame, :func:`signal_columns`); None: every column kept.
+    kept_columns: tuple[int, int] | None = None
     metadata: dict[str, Any] = field(default_factory=dict)
 
 
@@ -405,6 +419,39 @@ def _oriented_clipped(seq: SequenceFile, config: PlusConfig) -> tuple[np.ndarray
     return clipped, ((i0, j0), (w, h))
 
 
+def signal_columns(frames: np.ndarray) -> tuple[int, int]:
+    """[start, stop) of the columns of (N, H, W) ``frames`` in which some frame has a pixel
+    other than 0: the columns outside are blank in every frame (never insonified). All
+    columns, (0, W), when every pixel is 0."""
+    frames = np.asarray(frames)
+    if frames.ndim != 3:
+        raise argument_error("frames", f"expected (N, H, W) frames, got shape {frames.shape}")
+    lit = np.flatnonzero(frames.any(axis=(0, 1)))
+    if lit.size == 0:
+        return 0, int(frames.shape[2])
+    return int(lit[0]), int(lit[-1]) + 1
+
+
+def _narrowed(
+    frames: np.ndarray, clip: tuple | None, columns: tuple[int, int] | None
+) -> tuple[np.ndarray, tuple | None]:
+    """``frames`` narrowed to ``columns`` [start, stop) (None: all) and the clip rectangle
+    that now describes them (origin moved by ``start``, width ``stop − start``)."""
+    height, width = frames.shape[1:]
+    if columns is None or tuple(columns) == (0, width):
+        return frames, clip
+    start, stop = (int(c) for c in columns)
+    if not 0 <= start < stop <= width:
+        raise argument_error(
+            "columns", f"expected 0 ≤ start < stop ≤ {width} (the frame's width), got {columns}"
+        )
+    (i0, j0), _ = clip if clip is not None else ((0, 0), (width, height))
+    return np.ascontiguousarray(frames[:, :, start:stop]), (
+        (i0 + start, j0),
+        (stop - start, height),
+    )
+
+
 def read_plus(
     sequence: str | Path,
     config: str | Path,
@@ -413,13 +460,21 @@ def read_plus(
     name: str = "sweep",
     kind: str = "other",
     downsample: float = 1.0,
+    columns: tuple[int, int] | str | None = "signal",
 ) -> tuple[Sweep, ProbeGeometry, PlusImportReport]:
     """Read a PLUS / Slicer sequence and its PLUS configuration as one :class:`Sweep` in the
     ``to`` frame (Reference or Tracker, or any frame the file tracks) and its probe geometry.
 
+    ``columns`` narrows the clipped frames: ``"signal"`` to the columns where some imported
+    frame has signal (:func:`signal_columns`), a (start, stop) pair to those columns (a sweep
+    added to a dataset whose first sweep was narrowed), None to none.
     Frames with an image or transform status other than OK are skipped (counted in the
     report); every other problem is an :class:`UltronInputError` naming file and field.
     """
+    if isinstance(columns, str) and columns != "signal":
+        raise argument_error(
+            "columns", f"expected 'signal', (start, stop) or None, got {columns!r}"
+        )
     if isinstance(downsample, bool) or not (math.isfinite(downsample) and downsample >= 1):
         raise argument_error("--downsample", f"expected a finite number ≥ 1, got {downsample!r}")
     target = to[:1].upper() + to[1:]
@@ -436,6 +491,11 @@ def read_plus(
             seq.path, "frames", f"all {seq.n_frames} frames are invalid ({reasons})"
         )
     frames, clip = _oriented_clipped(seq, plus_config)
+    if columns == "signal":
+        columns = signal_columns(frames[world.valid])
+    width_before = frames.shape[2]
+    frames, clip = _narrowed(frames, clip, columns)  # type: ignore[arg-type]
+    kept = None if frames.shape[2] == width_before else (int(columns[0]), int(columns[1]))  # type: ignore[index]
     calibration = plus_config.image_to[probe_frame].copy()
     if clip is not None:
         calibration[:3, 3] += clip[0][0] * calibration[:3, 0] + clip[0][1] * calibration[:3, 1]
@@ -466,6 +526,7 @@ def read_plus(
         fit=fit,
         downsample=float(downsample),
         resampled=resampled,
+        kept_columns=kept,
     )
     metadata = _import_metadata(seq, plus_config, report, np.flatnonzero(world.valid))
     return sweep, probe, replace(report, metadata=metadata)
@@ -484,6 +545,7 @@ def _import_metadata(
         "transforms": report.chain,
         "orientation": report.orientation,
         "clip": None if report.clip is None else {"origin": report.clip[0], "size": report.clip[1]},
+        "kept_columns": None if report.kept_columns is None else list(report.kept_columns),
         "image_to_probe": config.image_to[report.probe_frame].tolist(),
         "fitted_image_to_probe": fit.image_to_probe().tolist(),
         "pixel_spacing_mm": list(fit.spacing_mm),

@@ -10,6 +10,7 @@ so a long read cannot end in an unwritable ``--out``.
 
 from __future__ import annotations
 
+import json
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -86,21 +87,43 @@ def import_plus_sweep(
     kind: str = "other",
     downsample: float = 1.0,
     replace: bool = False,
+    keep_blank_columns: bool = False,
 ) -> ImportedSweep[PlusImportReport]:
     """Add the tracked PLUS / 3D Slicer recording ``sequence``, calibrated by the PLUS
     configuration ``config``, to the dataset at ``out`` as ``sweep_name`` (default: a name made
     from the file's stem) in the world frame ``to``, its frames shrunk by ``downsample``
     (:func:`~ultron.data.plus_import.read_plus`); ``replace`` replaces a sweep of that name.
-    The import's provenance is kept in ``dataset.json``. ``kind`` (``--kind``) and ``out``
-    (``--out``) are checked before the recording is read."""
+    The frames keep only the columns with signal in some frame (the first sweep's columns when
+    the dataset holds PLUS sweeps already, so that they share one probe geometry), unless
+    ``keep_blank_columns``. The import's provenance is kept in ``dataset.json``. ``kind``
+    (``--kind``) and ``out`` (``--out``) are checked before the recording is read."""
     if kind not in SWEEP_KINDS:
         raise argument_error("--kind", f"{kind!r} is not one of {', '.join(SWEEP_KINDS)}")
     check_output_dir(out)
     name = sweep_name or safe_sweep_name(sequence_stem(sequence))
     sweep, probe, report = read_plus(
-        sequence, config, to=to, name=name, kind=kind, downsample=downsample
-    )
+        sequence, config, to=to, name=name, kind=kind, downsample=downsample,
+        columns=None if keep_blank_columns else _dataset_columns(Path(out)),
+    )  # fmt: skip
     dataset = add_sweep_to_dataset(
         out, sweep, probe, replace=replace, sweep_metadata=report.metadata
     )
     return ImportedSweep(name, probe, len(dataset.sweeps), report)
+
+
+def _dataset_columns(out: Path) -> tuple[int, int] | str | None:
+    """The columns a PLUS sweep added to the dataset at ``out`` keeps: those its first PLUS
+    sweep kept (None: all, as a sweep imported before blank columns were dropped), or
+    ``"signal"`` for a new dataset (:func:`~ultron.data.plus_import.read_plus`)."""
+    meta_path = out / "dataset.json"
+    if not meta_path.is_file():
+        return "signal"
+    try:
+        imports = json.loads(meta_path.read_text()).get("metadata", {}).get("imports", {})
+    except (OSError, ValueError, AttributeError):
+        return "signal"  # the dataset's own loader names what is wrong with it
+    for entry in imports.values() if isinstance(imports, dict) else ():
+        if isinstance(entry, dict) and entry.get("source") == "plus":
+            kept = entry.get("kept_columns")
+            return None if kept is None else (int(kept[0]), int(kept[1]))
+    return "signal"
