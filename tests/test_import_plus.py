@@ -369,6 +369,36 @@ def test_blank_columns_are_dropped_and_every_pixel_stays_where_plus_puts_it(tmp_
     assert np.allclose(_dataset_world(whole, 1, 3 + 4, 2), _dataset_world(out, 1, 4, 2), atol=1e-9)
 
 
+def test_blank_columns_inside_a_clip_rectangle(tmp_path: Path):
+    """Blank columns of the clipped frame move the clip rectangle's origin by the first kept
+    column; pixel (r, c) is PLUS's pixel (i0 + start + c, j0 + r)."""
+    rec = recording()
+    rec.frames[:, :, :4] = 0  # the clip (origin column 2) starts with two blank columns
+    rec.frames[:, :, 10:] = 0
+    cal = calibration()
+    config = write_config(tmp_path / "c.xml", cal, clip=((2, 3), (12, 6)))
+    out = tmp_path / "ds"
+    result = _import(write_mha(tmp_path / "s.mha", rec), config, out)
+    assert result.exit_code == 0, result.output
+    data = SweepDataset.load(out)
+    assert np.array_equal(data.sweeps[0].images, rec.frames[:, 3:9, 4:10])
+    clip = data.metadata["imports"]["s"]["clip"]
+    assert clip == {"origin": [4, 3], "size": [6, 6]}
+    assert data.metadata["imports"]["s"]["kept_columns"] == [2, 8]
+    for c, r in ((0, 0), (5, 5), (2, 1)):
+        expected = plus_world(rec, cal, 2, 4 + c, 3 + r)
+        assert np.abs(_dataset_world(out, 2, c, r) - expected).max() < 1e-6
+
+
+@pytest.mark.parametrize("columns", ["all", (3, 3), (-1, 4), (0, 17)])
+def test_read_plus_refuses_bad_columns(tmp_path: Path, columns):
+    from ultron.data.plus_import import read_plus
+
+    sequence = write_mha(tmp_path / "s.mha", recording())
+    with pytest.raises(UltronError, match="columns"):
+        read_plus(sequence, write_config(tmp_path / "c.xml", calibration()), columns=columns)
+
+
 def test_a_sweep_added_keeps_the_first_sweeps_columns(tmp_path: Path):
     """A second recording lit over other columns is narrowed to the first sweep's columns, so
     the dataset keeps one probe geometry; a dataset whose first sweep kept every column keeps
