@@ -30,7 +30,8 @@ from ultron.cli.main import app
 from ultron.data.dataset import SweepDataset
 from ultron.data.geometry import pixel_to_world
 from ultron.data.plus import read_sequence
-from ultron.data.plus_import import downsample_frames, fit_image_plane, signal_columns
+from ultron.data.plus_import import downsample_frames, fit_image_plane
+from ultron.data.resolution import signal_columns
 from ultron.errors import UltronError
 
 PLUS_DIR = SHARED / "data" / "plus-spine-phantom"

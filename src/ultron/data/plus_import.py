@@ -51,6 +51,7 @@ from ultron.data.plus import (
     read_sequence,
 )
 from ultron.data.plus_config import PlusConfig, read_config
+from ultron.data.resolution import signal_columns
 from ultron.data.validation import ROTATION_TOLERANCE, pose_errors
 from ultron.errors import UltronInputError, argument_error
 
@@ -417,19 +418,6 @@ def _oriented_clipped(seq: SequenceFile, config: PlusConfig) -> tuple[np.ndarray
         )
     clipped = np.ascontiguousarray(frames[:, j0 : j0 + h, i0 : i0 + w])
     return clipped, ((i0, j0), (w, h))
-
-
-def signal_columns(frames: np.ndarray) -> tuple[int, int]:
-    """[start, stop) of the columns of (N, H, W) ``frames`` in which some frame has a pixel
-    other than 0: the columns outside are blank in every frame (never insonified). All
-    columns, (0, W), when every pixel is 0."""
-    frames = np.asarray(frames)
-    if frames.ndim != 3:
-        raise argument_error("frames", f"expected (N, H, W) frames, got shape {frames.shape}")
-    lit = np.flatnonzero(frames.any(axis=(0, 1)))
-    if lit.size == 0:
-        return 0, int(frames.shape[2])
-    return int(lit[0]), int(lit[-1]) + 1
 
 
 def _narrowed(

@@ -15,6 +15,10 @@ over up to eight evenly spaced frames (``i − G_σ ∗ i`` keeps the sub-millim
 speckle, and drops the tissue layers' slow variation). The fit samples each grain with two
 pixels (Nyquist): the pixel spacing is raised to at least g / 2 on both axes, never lowered.
 Frames whose pixels are already that coarse are fitted at their own size, unchanged.
+
+The columns the frames carry (:func:`signal_columns`): a probe's image is often stored wider
+than its aperture, with columns that are 0 in every frame. ``import-plus`` drops them and the
+field fit draws no patch from them (docs/real-sweeps.md, "Blank columns").
 """
 
 from __future__ import annotations
@@ -112,3 +116,16 @@ def resolved_spacing_mm(dataset: SweepDataset) -> float:
     if shape is not None:
         probe = ProbeGeometry(probe.width_mm, probe.depth_mm, int(shape[0]), int(shape[1]))
     return min(probe.axial_spacing_mm, probe.lateral_spacing_mm)
+
+
+def signal_columns(frames: np.ndarray) -> tuple[int, int]:
+    """[start, stop) of the columns of (N, H, W) ``frames`` in which some frame has a pixel
+    other than 0: the columns outside are blank in every frame (never insonified). All
+    columns, (0, W), when every pixel is 0."""
+    frames = np.asarray(frames)
+    if frames.ndim != 3:
+        raise argument_error("frames", f"expected (N, H, W) frames, got shape {frames.shape}")
+    lit = np.flatnonzero(frames.any(axis=(0, 1)))
+    if lit.size == 0:
+        return 0, int(frames.shape[2])
+    return int(lit[0]), int(lit[-1]) + 1

@@ -38,11 +38,14 @@ OPTIONAL_INPUTS = ("confidence", "noise", "draws")
 def sample_patches(
     frames: FrameSet, n_frames: int, patch_width: int, generator: torch.Generator
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Random training patches: frame indices (B,) and their adjacent columns (B, P)."""
-    width = frames.probe.width_px
+    """Random training patches: frame indices (B,) and their adjacent columns (B, P), drawn
+    among the frames' lit columns (:attr:`FrameSet.lit_columns`: a column 0 in every frame
+    was never insonified, and patches of it can hold a fit on an all-black image)."""
+    lit = frames.lit
+    width = lit.stop - lit.start
     patch = min(patch_width, width)
     pick = torch.randint(0, frames.train_index.shape[0], (n_frames,), generator=generator)
-    start = torch.randint(0, width - patch + 1, (n_frames,), generator=generator)
+    start = lit.start + torch.randint(0, width - patch + 1, (n_frames,), generator=generator)
     return frames.train_index[pick], start[:, None] + torch.arange(patch)
 
 

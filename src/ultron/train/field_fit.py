@@ -151,12 +151,14 @@ def _field_meta(
 def evaluate_frames(
     fitted: FittedField, frames: FrameSet, index: torch.Tensor, limit: int | None = None
 ) -> dict[str, float]:
-    """PSNR / SSIM (standard constants) of expected renders of frames ``index`` vs the data."""
+    """PSNR / SSIM (standard constants) of expected renders of frames ``index`` vs the data,
+    on the frames' lit columns (:attr:`FrameSet.lit_columns`)."""
     index = checked_subset(index, limit)
     if index.numel() == 0:
         return {}
     rendered = torch.from_numpy(fitted.render(frames.probe_to_world[index], expected=True))
-    target = frames.images[index].cpu()
+    rendered = rendered[..., frames.lit].contiguous()
+    target = frames.images[index][..., frames.lit].cpu()
     return {
         "psnr": psnr(rendered, target),
         "ssim": float(ssim(rendered, target, k1=0.01, k2=METRIC_SSIM_K2)),

@@ -11,6 +11,7 @@ import torch
 import torch.nn.functional as F
 
 from ultron.data.dataset import ProbeGeometry, SweepDataset
+from ultron.data.resolution import signal_columns
 from ultron.errors import argument_error
 from ultron.train.losses import psnr
 from ultron.train.visibility import confidence_maps
@@ -92,6 +93,15 @@ class FrameSet:
     train_index: torch.Tensor  # (N_train,) int64
     holdout_index: torch.Tensor  # (N_holdout,) int64
     confidence: torch.Tensor | None = None  # (N, H, W) float32 confidence maps, when asked
+    #: The columns [start, stop) in which some frame has signal (None: all). The others are 0
+    #: in every frame, never insonified: no patch is drawn from them and no check scores them
+    #: (:func:`ultron.data.resolution.signal_columns`).
+    lit_columns: tuple[int, int] | None = None
+
+    @property
+    def lit(self) -> slice:
+        """The lit columns as a slice of the images' last axis."""
+        return slice(*(self.lit_columns or (0, self.probe.width_px)))
 
     def with_confidence(
         self, report: Callable[[int, int], None] | None = None, workers: int = 1
@@ -121,7 +131,10 @@ class FrameSet:
         train = np.setdiff1d(np.arange(images.shape[0]), held)
         if train.size == 0:
             raise argument_error("holdout_every", "no training frame is left")
-        return cls(images, poses, probe, torch.as_tensor(train), torch.as_tensor(held))
+        lit = signal_columns(images.amax(dim=(0, 1)).numpy()[None, None])
+        return cls(
+            images, poses, probe, torch.as_tensor(train), torch.as_tensor(held), lit_columns=lit
+        )
 
 
 def checked_subset(index: torch.Tensor, limit: int | None) -> torch.Tensor:
@@ -137,7 +150,8 @@ def copy_baselines(frames: FrameSet, limit: int | None = None) -> dict[str, floa
     predictions that need no field: every held-out frame replaced by the mean training frame
     (``mean_frame``) and by the training frame whose probe origin lies nearest
     (``nearest_frame``). A field that generalises across frames scores above them; one that
-    only reproduces its training frames does not. Empty without held-out frames."""
+    only reproduces its training frames does not. Scored on the lit columns, as the field's
+    checks are. Empty without held-out frames."""
     held = checked_subset(frames.holdout_index, limit)
     if held.numel() == 0:
         return {}
@@ -145,7 +159,7 @@ def copy_baselines(frames: FrameSet, limit: int | None = None) -> dict[str, floa
     origin = frames.probe_to_world[:, :3, 3]
     distance = torch.cdist(origin[held], origin[train])
     nearest = train[distance.argmin(dim=1)]
-    images = frames.images  # on the fit's device: only the scores leave it
+    images = frames.images[..., frames.lit]  # on the fit's device: only the scores leave it
     target = images[held]
     mean = images[train].mean(dim=0, keepdim=True).expand_as(target)
     return {"mean_frame": psnr(mean, target), "nearest_frame": psnr(images[nearest], target)}
