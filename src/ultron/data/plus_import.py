@@ -19,15 +19,14 @@ B-mode frames, row 0 at the transducer face as the format wants), clipped to the
 configuration's clip rectangle, narrowed to the columns that hold signal
 (:func:`signal_columns`) and optionally area-downsampled with the spacings updated.
 
-Why the blank columns go: a linear probe's image is often stored wider than its aperture
-(the shared spine phantom: 445 of 820 columns, the rest exactly 0 in every frame). Those
-columns were never insonified; kept, they ask the acoustic field to render black tissue beside
-the bone, and a fit can settle there, rendering every frame black (docs/real-sweeps.md, "Blank
-columns"). The clip rectangle recorded in the metadata is the narrowed one, so the pose of
-pixel (r, c) is PLUS's map of pixel (r, c + start) of the clipped frame. The rigid fit spans the
-kept columns only; where the frames are resampled onto its grid, the grid's corners and the
-kept rectangle's differ by up to the fit's residual (the spine phantom's 0.72 mm: a few pixels
-at each corner, read as 0 on one side and left out on the other).
+Why the blank columns go: a linear probe's image is often stored wider than its aperture, with
+columns that are 0 in every frame. Those columns were never insonified; kept, they ask the
+acoustic field to render black tissue beside the bone, and a fit can settle there, rendering
+every frame black (figures: docs/real-sweeps.md, "Blank columns"). The clip rectangle recorded
+in the metadata is the narrowed one, so the pose of pixel (r, c) is PLUS's map of pixel
+(r, c + start) of the clipped frame. The rigid fit spans the kept columns only; where the frames
+are resampled onto its grid, the grid's corners and the kept rectangle's differ by up to the
+fit's residual (a few pixels at each corner, read as 0 on one side and left out on the other).
 """
 
 from __future__ import annotations
