@@ -99,3 +99,18 @@ def test_the_held_out_check_scores_the_lit_columns_only() -> None:
     assert found["psnr"] == pytest.approx(10 * math.log10(1 / 0.25), abs=1e-4)
     c1 = 0.01**2  # constant images: SSIM is the luminance term alone, on every window
     assert found["ssim"] == pytest.approx((2 * 0.5 + c1) / (1 + 0.25 + c1), abs=1e-5)
+
+
+def test_info_names_the_blank_columns(tmp_path) -> None:
+    from typer.testing import CliRunner
+
+    from ultron.cli.main import app
+
+    runner = CliRunner()
+    blank_sided_sweep(3, 12).save(tmp_path / "blank")
+    random_sweep().save(tmp_path / "whole")
+    result = runner.invoke(app, ["info", str(tmp_path / "blank")], terminal_width=200)
+    assert result.exit_code == 0, result.output
+    assert "columns with signal: 3–11 of 16; the other 7 are 0 in every frame" in result.output
+    result = runner.invoke(app, ["info", str(tmp_path / "whole")], terminal_width=200)
+    assert result.exit_code == 0 and "columns with signal" not in result.output

@@ -204,6 +204,7 @@ def info(
         f"image size: {probe.height_px} rows (depth) × {probe.width_px} columns (scanlines)",
         f"probe: {probe.width_mm:g} mm wide × {probe.depth_mm:g} mm deep",
         f"pixel spacing: {probe.lateral_spacing_mm:.4f} mm lateral × {probe.axial_spacing_mm:.4f} mm axial",
+        *_blank_columns_line(summary.lit_columns, probe.width_px),
         "bounding box (mm): "
         + "  ".join(
             f"{axis} [{lo:.2f}, {hi:.2f}]"
@@ -221,6 +222,17 @@ def info(
     _warn_outliers(summary.outliers)
     for line in summary.units_warnings():
         console.print(f"warning: {line}", highlight=False)
+
+
+def _blank_columns_line(lit: tuple[int, int], width: int) -> list[str]:
+    """The line about columns that are 0 in every frame, when there are any."""
+    start, stop = lit
+    if (start, stop) == (0, width):
+        return []
+    return [
+        f"columns with signal: {start}–{stop - 1} of {width}; the other {width - (stop - start)}"
+        " are 0 in every frame (outside the aperture: the field fit ignores them)"
+    ]
 
 
 def _warn_outliers(outliers: Sequence[PoseOutlier]) -> None:

@@ -12,9 +12,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
 from ultron.data.dataset import SweepDataset
 from ultron.data.geometry import field_of_view_bounds_mm
 from ultron.data.outliers import PoseOutlier, pose_outliers
+from ultron.data.resolution import signal_columns
 from ultron.data.units import units_warnings
 from ultron.mesh.export import load_mesh
 
@@ -23,12 +26,14 @@ from ultron.mesh.export import load_mesh
 class DatasetInfo:
     """A loaded dataset with what ``info`` reports about it: the number of labelled frames,
     the bounding box of every pixel the probe saw (``bounds_mm``: lowest and highest corner,
-    world mm) and the outlier poses."""
+    world mm), the outlier poses and the columns [start, stop) with signal in some frame
+    (``lit_columns``; the others are 0 in every frame, and the field fit ignores them)."""
 
     dataset: SweepDataset
     n_labelled: int
     bounds_mm: tuple[tuple[float, float, float], tuple[float, float, float]]
     outliers: tuple[PoseOutlier, ...]
+    lit_columns: tuple[int, int]
 
     def units_warnings(self) -> list[str]:
         """One line per implausible length (poses or reference not in millimetres, a reference
@@ -49,4 +54,7 @@ def dataset_info(dataset_dir: str | Path) -> DatasetInfo:
         n_labelled=sum(len(s.labelled_frames) for s in data.sweeps),
         bounds_mm=(tuple(lo), tuple(hi)),  # type: ignore[arg-type]
         outliers=tuple(pose_outliers(data)),
+        lit_columns=signal_columns(
+            np.stack([s.images.any(axis=(0, 1)) for s in data.sweeps]).any(axis=0)[None, None]
+        ),
     )
