@@ -396,8 +396,10 @@ def test_read_plus_refuses_bad_columns(tmp_path: Path, columns):
     from ultron.data.plus_import import read_plus
 
     sequence = write_mha(tmp_path / "s.mha", recording())
-    with pytest.raises(UltronError, match="columns"):
+    with pytest.raises(UltronError, match="columns") as error:
         read_plus(sequence, write_config(tmp_path / "c.xml", calibration()), columns=columns)
+    if columns != "all":  # a pair outside the frames names the recording
+        assert "s.mha" in str(error.value) and "16 columns" in str(error.value)
 
 
 def test_a_sweep_added_keeps_the_first_sweeps_columns(tmp_path: Path):
@@ -416,6 +418,12 @@ def test_a_sweep_added_keeps_the_first_sweeps_columns(tmp_path: Path):
     assert _import(first, config, whole, "--keep-blank-columns").exit_code == 0
     assert _import(second, config, whole).exit_code == 0
     assert [s.images.shape[2] for s in SweepDataset.load(whole).sweeps] == [16, 16]
+    # a recording narrower than the kept columns is refused, naming it; nothing is written
+    narrow = write_mha(tmp_path / "c.mha", recording(width=10))
+    before = snapshot(tmp_path / "ds")
+    result = _import(narrow, config, out)
+    check_refused(result, ("c.mha", "columns 3–12", "10 columns"))
+    assert snapshot(tmp_path / "ds") == before
 
 
 def test_signal_columns():

@@ -420,23 +420,25 @@ def _oriented_clipped(seq: SequenceFile, config: PlusConfig) -> tuple[np.ndarray
 
 
 def _narrowed(
-    frames: np.ndarray, clip: tuple | None, columns: tuple[int, int] | None
-) -> tuple[np.ndarray, tuple | None]:
-    """``frames`` narrowed to ``columns`` [start, stop) (None: all) and the clip rectangle
-    that now describes them (origin moved by ``start``, width ``stop − start``)."""
+    frames: np.ndarray, clip: tuple | None, columns: tuple[int, int] | None, where: Path
+) -> tuple[np.ndarray, tuple | None, tuple[int, int] | None]:
+    """``frames`` narrowed to ``columns`` [start, stop) (None: all), the clip rectangle that
+    now describes them (origin moved by ``start``, width ``stop − start``) and the columns kept
+    (None where all are). Columns outside the frames are an error naming the recording."""
     height, width = frames.shape[1:]
     if columns is None or tuple(columns) == (0, width):
-        return frames, clip
+        return frames, clip, None
     start, stop = (int(c) for c in columns)
     if not 0 <= start < stop <= width:
-        raise argument_error(
-            "columns", f"expected 0 ≤ start < stop ≤ {width} (the frame's width), got {columns}"
+        raise UltronInputError(
+            where,
+            "columns",
+            f"columns {start}–{stop - 1} (the dataset's first PLUS sweep keeps them) lie outside"
+            f" this recording's {width} columns; import it into another dataset",
         )
     (i0, j0), _ = clip if clip is not None else ((0, 0), (width, height))
-    return np.ascontiguousarray(frames[:, :, start:stop]), (
-        (i0 + start, j0),
-        (stop - start, height),
-    )
+    narrowed = np.ascontiguousarray(frames[:, :, start:stop])
+    return narrowed, ((i0 + start, j0), (stop - start, height)), (start, stop)
 
 
 def read_plus(
@@ -478,11 +480,8 @@ def read_plus(
             seq.path, "frames", f"all {seq.n_frames} frames are invalid ({reasons})"
         )
     frames, clip = _oriented_clipped(seq, plus_config)
-    if columns == "signal":
-        columns = signal_columns(frames[world.valid])
-    width_before = frames.shape[2]
-    frames, clip = _narrowed(frames, clip, columns)  # type: ignore[arg-type]
-    kept = None if frames.shape[2] == width_before else (int(columns[0]), int(columns[1]))  # type: ignore[index]
+    wanted = signal_columns(frames[world.valid]) if columns == "signal" else columns
+    frames, clip, kept = _narrowed(frames, clip, wanted, seq.path)  # type: ignore[arg-type]
     calibration = plus_config.image_to[probe_frame].copy()
     if clip is not None:
         calibration[:3, 3] += clip[0][0] * calibration[:3, 0] + clip[0][1] * calibration[:3, 1]
