@@ -97,6 +97,30 @@ def test_fit_field_prints_the_baselines_and_warns_below_the_mean(
         assert stderr.startswith("warning: the field predicts") and "15.00 < 20.00 dB" in stderr
 
 
+@pytest.mark.parametrize(("psnr", "black"), [(10.5, True), (11.5, False)])
+def test_fit_field_names_a_fit_still_at_its_black_start(
+    tmp_path: Path, monkeypatch, psnr: float, black: bool
+) -> None:
+    """Within 1 dB of the all-black frame's PSNR the warning says the fit never started (one
+    warning, not two); 1.5 dB above it, the usual warning below the mean frame."""
+    random_sweep().save(tmp_path / "d")
+    check = {"psnr": psnr, "ssim": 0.5, "mean_frame_psnr": 20.0, "nearest_frame_psnr": 21.0,
+             "black_frame_psnr": 10.0}  # fmt: skip
+    monkeypatch.setattr(field_pipeline, "last_holdout_check", lambda out: check)
+    args = ["fit-field", str(tmp_path / "d"), "--out", str(tmp_path / "f"), "--iters", "2"]
+    result = runner.invoke(app, args, terminal_width=300)
+    assert result.exit_code == 0, result.output
+    stderr = " ".join(result.stderr.split())
+    assert stderr.count("warning:") == 1
+    assert ("all-black image" in stderr and "another --seed" in stderr) is black
+    assert stderr.startswith("warning: the field predicts") is not black
+
+
+def test_copy_baselines_scores_an_all_black_frame() -> None:
+    frames = constant_frames([0.0, 0.2, 0.5, 0.9], [0.0, 1.0, 1.5, 3.0], held=[1])
+    assert copy_baselines(frames)["black_frame"] == pytest.approx(psnr_of(0.2**2), abs=1e-4)
+
+
 def test_fit_field_without_held_out_frames_prints_no_check(tmp_path: Path) -> None:
     random_sweep().save(tmp_path / "d")
     args = ["fit-field", str(tmp_path / "d"), "--out", str(tmp_path / "f"), "--iters", "2"]

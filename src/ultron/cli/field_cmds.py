@@ -256,6 +256,11 @@ def _print_fitted(result: FieldFitResult, device: str) -> None:
         _print_transmission_check(out, result.transmission_check)
 
 
+#: A held-out PSNR within this many dB of the all-black frame's is a fit still at its black
+#: start (docs/real-sweeps.md, "Blank columns": such fits sat within 0.1 dB of it).
+BLACK_MARGIN_DB = 1.0
+
+
 def _print_holdout(check: dict[str, float]) -> None:
     """The last held-out check against copying a training frame; a warning below the mean's."""
     line = f"held-out frames: PSNR {check['psnr']:.2f} dB, SSIM {check['ssim']:.3f}"
@@ -268,7 +273,15 @@ def _print_holdout(check: dict[str, float]) -> None:
         f" {nearest:.2f} dB",
         highlight=False,
     )
-    if check["psnr"] < mean:
+    black = check.get("black_frame_psnr")
+    if black is not None and check["psnr"] < black + BLACK_MARGIN_DB:
+        warning_line(
+            f"the field renders its held-out frames about as an all-black image does"
+            f" ({check['psnr']:.2f} dB against {black:.2f} dB): the fit has not left its black"
+            " start; fit again with another --seed, and check the frames for regions that are"
+            " 0 in every frame (ultron info; docs/field.md)"
+        )
+    elif check["psnr"] < mean:
         warning_line(
             f"the field predicts its held-out frames worse than the mean training frame does"
             f" ({check['psnr']:.2f} < {mean:.2f} dB): what it learned between the frames is not"

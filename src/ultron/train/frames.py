@@ -150,7 +150,8 @@ def copy_baselines(frames: FrameSet, limit: int | None = None) -> dict[str, floa
     predictions that need no field: every held-out frame replaced by the mean training frame
     (``mean_frame``) and by the training frame whose probe origin lies nearest
     (``nearest_frame``). A field that generalises across frames scores above them; one that
-    only reproduces its training frames does not. Scored on the lit columns, as the field's
+    only reproduces its training frames does not. ``black_frame`` is what an all-black image
+    scores: a fit that never left its black start scores about that. Scored on the lit columns, as the field's
     checks are. Empty without held-out frames."""
     held = checked_subset(frames.holdout_index, limit)
     if held.numel() == 0:
@@ -162,4 +163,8 @@ def copy_baselines(frames: FrameSet, limit: int | None = None) -> dict[str, floa
     images = frames.images[..., frames.lit]  # on the fit's device: only the scores leave it
     target = images[held]
     mean = images[train].mean(dim=0, keepdim=True).expand_as(target)
-    return {"mean_frame": psnr(mean, target), "nearest_frame": psnr(images[nearest], target)}
+    return {
+        "mean_frame": psnr(mean, target),
+        "nearest_frame": psnr(images[nearest], target),
+        "black_frame": psnr(torch.zeros_like(target), target),
+    }
