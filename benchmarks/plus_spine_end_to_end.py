@@ -4,8 +4,8 @@ Runs the README's worked example, each command as its own process (wall time and
 per stage, as ``benchmarks/long_sweep.py`` measures them):
 
 1. ``ultron import-plus`` of ``../shared/data/plus-spine-phantom/SpinePhantomFreehand.igs.mha``
-   with its PLUS configuration, frames downsampled by ``--downsample`` (default 4: 820 × 616
-   pixels of ≈ 0.08 mm become 205 × 154 of ≈ 0.33 mm);
+   with its PLUS configuration, frames downsampled by ``--downsample`` (default 4: the 445 of
+   820 columns that hold signal, 616 rows, ≈ 0.08 mm pixels, become 111 × 154 of ≈ 0.33 mm);
 2. ``ultron label --auto`` (nobody annotated this recording);
 3. ``ultron fit-field`` (default settings);
 4. ``ultron reconstruct --method ultron`` and ``--method compounding`` on every frame's
