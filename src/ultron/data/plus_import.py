@@ -480,7 +480,8 @@ def read_plus(
             seq.path, "frames", f"all {seq.n_frames} frames are invalid ({reasons})"
         )
     frames, clip = _oriented_clipped(seq, plus_config)
-    wanted = signal_columns(frames[world.valid]) if columns == "signal" else columns
+    frames = frames[world.valid]
+    wanted = signal_columns(frames) if columns == "signal" else columns
     frames, clip, kept = _narrowed(frames, clip, wanted, seq.path)  # type: ignore[arg-type]
     calibration = plus_config.image_to[probe_frame].copy()
     if clip is not None:
@@ -490,7 +491,6 @@ def read_plus(
     fit = fit_image_plane(calibration, width, height, plus_config.path, label)
     poses = world.probe_to_world[world.valid] @ fit.dataset_probe_to_probe(width)
     shape = downsampled_shape(height, width, downsample)
-    frames = frames[world.valid]
     resampled = fit.residual_max_mm > RESAMPLE_RESIDUAL_MM
     if resampled:  # the rigid map places pixels off PLUS's: move the grey levels instead
         frames = resample_to_rigid(frames, calibration, fit)
