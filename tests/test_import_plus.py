@@ -317,6 +317,14 @@ def test_to_tracker(tmp_path: Path):
     assert np.abs(_dataset_world(out, 2, 3.0, 5.0) - expected).max() < 1e-6
 
 
+def _assert_plus_pixels(out: Path, rec, cal, frame: int, origin, pixels) -> None:
+    """Pixel (c, r) of the import at ``out`` is PLUS's pixel (i0 + c, j0 + r) of the file,
+    ``origin`` = (i0, j0), to 1e-6 mm on ``frame``, for each (c, r) of ``pixels``."""
+    for c, r in pixels:
+        expected = plus_world(rec, cal, frame, origin[0] + c, origin[1] + r)
+        assert np.abs(_dataset_world(out, frame, c, r) - expected).max() < 1e-6
+
+
 def test_clip_rectangle(tmp_path: Path):
     rec = recording()
     cal = calibration()
@@ -326,14 +334,12 @@ def test_clip_rectangle(tmp_path: Path):
     assert result.exit_code == 0, result.output
     data = SweepDataset.load(out)
     assert np.array_equal(data.sweeps[0].images, rec.frames[:, 3:9, 2:12])
-    for c, r in ((0, 0), (9, 5), (4, 2)):
-        expected = plus_world(rec, cal, 1, 2 + c, 3 + r)
-        assert np.abs(_dataset_world(out, 1, c, r) - expected).max() < 1e-6
+    _assert_plus_pixels(out, rec, cal, 1, (2, 3), ((0, 0), (9, 5), (4, 2)))
 
 
 def _blank_sides(rec: Recording, start: int, stop: int) -> Recording:
-    """``rec`` with every frame's columns outside [start, stop) set to 0 and one lit pixel in
-    each edge column of the kept range, on one frame only."""
+    """``rec`` with every frame's columns outside [start, stop) set to 0, and the first kept
+    column 0 except for one pixel of one frame (so it is kept because of that pixel alone)."""
     rec.frames[:, :, :start] = 0
     rec.frames[:, :, stop:] = 0
     rec.frames[:, :, start : start + 1] = 0
@@ -357,9 +363,7 @@ def test_blank_columns_are_dropped_and_every_pixel_stays_where_plus_puts_it(tmp_
     assert data.probe.image_shape == (12, 10)
     imports = data.metadata["imports"]["s"]
     assert imports["kept_columns"] == [3, 13] and imports["clip"]["origin"] == [3, 0]
-    for c, r in ((0, 0), (9, 11), (4, 2)):
-        expected = plus_world(rec, cal, 1, 3 + c, r)
-        assert np.abs(_dataset_world(out, 1, c, r) - expected).max() < 1e-6
+    _assert_plus_pixels(out, rec, cal, 1, (3, 0), ((0, 0), (9, 11), (4, 2)))
     whole = tmp_path / "whole"
     result = _import(tmp_path / "s.mha", config, whole, "--keep-blank-columns")
     assert result.exit_code == 0 and "kept columns" not in result.output
@@ -386,9 +390,7 @@ def test_blank_columns_inside_a_clip_rectangle(tmp_path: Path):
     clip = data.metadata["imports"]["s"]["clip"]
     assert clip == {"origin": [4, 3], "size": [6, 6]}
     assert data.metadata["imports"]["s"]["kept_columns"] == [2, 8]
-    for c, r in ((0, 0), (5, 5), (2, 1)):
-        expected = plus_world(rec, cal, 2, 4 + c, 3 + r)
-        assert np.abs(_dataset_world(out, 2, c, r) - expected).max() < 1e-6
+    _assert_plus_pixels(out, rec, cal, 2, (4, 3), ((0, 0), (5, 5), (2, 1)))
 
 
 @pytest.mark.parametrize("columns", ["all", (3, 3), (-1, 4), (0, 17)])
