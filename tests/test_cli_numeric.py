@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
-from ultron.cli.common import MAX_SEED, check_range
+from ultron.arguments import MAX_SEED, check_range
 from ultron.cli.main import app
 from ultron.errors import UltronInputError
 

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ultron.cli.common import resource_error
+from ultron.errors import resource_error
 
 ALLOCATOR_MESSAGE = (
     "[enforce fail at alloc_cpu.cpp:118] data. DefaultCPUAllocator: can't allocate memory:"

@@ -3,6 +3,7 @@ that names the file or argument and says what was expected; the CLI prints it an
 
 from __future__ import annotations
 
+import errno
 import json
 from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
@@ -75,3 +76,36 @@ def read_json_file(path: str | Path, field: str) -> Any:
         raise UltronInputError(path, field, "JSON nested too deeply to read") from None
     except OSError as exc:
         raise UltronInputError(path, field, f"cannot be read ({exc.strerror})") from None
+
+
+#: errno values of a write that the disk or the file-size limit refused.
+_DISK_ERRNOS = {errno.ENOSPC, errno.EFBIG, getattr(errno, "EDQUOT", errno.ENOSPC)}
+#: errno values of a file or folder this user may not read or write.
+_PERMISSION_ERRNOS = {errno.EACCES, errno.EPERM, errno.EROFS}
+#: What torch's and numpy's allocators say when memory runs out.
+_OUT_OF_MEMORY = ("can't allocate memory", "not enough memory", "out of memory")
+
+
+def resource_error(exc: BaseException) -> str | None:
+    """The one-line message for a run that ran out of memory or disk (None: another error).
+    Outputs are written atomically, so what was written before is whole; a field fit resumes
+    from its last checkpoint."""
+    if isinstance(exc, MemoryError) or (
+        isinstance(exc, RuntimeError) and any(s in str(exc).lower() for s in _OUT_OF_MEMORY)
+    ):
+        return (
+            "memory: ran out of memory (the process's limit, ulimit -v or the cgroup's, is"
+            " lower than this step needs); give --max-memory, a smaller grid, or more memory"
+        )
+    if isinstance(exc, OSError) and exc.errno in _PERMISSION_ERRNOS:
+        return (
+            f"{exc.filename or 'output'}: permission: {exc.strerror} (check the permissions of"
+            " the file and its folder, or give another path)"
+        )
+    if isinstance(exc, OSError) and exc.errno in _DISK_ERRNOS:
+        where = exc.filename or "output"
+        return (
+            f"{where}: disk: {exc.strerror} (no space left or the file-size limit, ulimit -f,"
+            " reached); free space and run again: finished outputs are whole, a fit resumes"
+        )
+    return None

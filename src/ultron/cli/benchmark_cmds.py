@@ -7,14 +7,8 @@ from typing import Annotated
 
 import typer
 
-from ultron.cli.common import (
-    DeviceOption,
-    check_choice,
-    check_count,
-    check_device,
-    console,
-    user_errors,
-)
+from ultron.arguments import check_choice, check_count
+from ultron.cli.common import DeviceOption, check_device, console, user_errors
 from ultron.errors import argument_error
 
 #: Exit code when the benchmark ran but some cells failed.

@@ -1,19 +1,18 @@
-"""Shared CLI plumbing: one-line errors with exit code 2, numeric option checks, the consoles."""
+"""Shared CLI plumbing: one-line errors with exit code 2, the consoles, progress lines."""
 
 from __future__ import annotations
 
-import errno
 import functools
-import math
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from typing import Annotated, ParamSpec, TypeVar
 
 import typer
 from rich.console import Console
 
-from ultron.errors import UltronError, argument_error
+from ultron.arguments import check_count
+from ultron.errors import UltronError, resource_error
 
 P = ParamSpec("P")
 R = TypeVar("R")
@@ -21,45 +20,8 @@ R = TypeVar("R")
 #: Exit code for bad input, as for a usage error.
 EXIT_BAD_INPUT = 2
 
-#: Seeds are integers in [0, MAX_SEED]: the 32-bit range that every generator used accepts
-#: (torch's takes up to 2⁶⁴ − 1 but no larger; NumPy's takes no negative seed).
-MAX_SEED = 2**32 - 1
-
 console = Console()
 err_console = Console(stderr=True, soft_wrap=True)
-
-
-#: errno values of a write that the disk or the file-size limit refused.
-_DISK_ERRNOS = {errno.ENOSPC, errno.EFBIG, getattr(errno, "EDQUOT", errno.ENOSPC)}
-#: errno values of a file or folder this user may not read or write.
-_PERMISSION_ERRNOS = {errno.EACCES, errno.EPERM, errno.EROFS}
-#: What torch's and numpy's allocators say when memory runs out.
-_OUT_OF_MEMORY = ("can't allocate memory", "not enough memory", "out of memory")
-
-
-def resource_error(exc: BaseException) -> str | None:
-    """The one-line message for a run that ran out of memory or disk (None: another error).
-    Outputs are written atomically, so what was written before is whole; a field fit resumes
-    from its last checkpoint."""
-    if isinstance(exc, MemoryError) or (
-        isinstance(exc, RuntimeError) and any(s in str(exc).lower() for s in _OUT_OF_MEMORY)
-    ):
-        return (
-            "memory: ran out of memory (the process's limit, ulimit -v or the cgroup's, is"
-            " lower than this step needs); give --max-memory, a smaller grid, or more memory"
-        )
-    if isinstance(exc, OSError) and exc.errno in _PERMISSION_ERRNOS:
-        return (
-            f"{exc.filename or 'output'}: permission: {exc.strerror} (check the permissions of"
-            " the file and its folder, or give another path)"
-        )
-    if isinstance(exc, OSError) and exc.errno in _DISK_ERRNOS:
-        where = exc.filename or "output"
-        return (
-            f"{where}: disk: {exc.strerror} (no space left or the file-size limit, ulimit -f,"
-            " reached); free space and run again: finished outputs are whole, a fit resumes"
-        )
-    return None
 
 
 def user_errors(func: Callable[P, R]) -> Callable[P, R]:
@@ -88,85 +50,13 @@ def warning_line(line: str) -> None:
     err_console.print(f"warning: {line}", markup=False, highlight=False)
 
 
-def _number(value: float) -> str:
-    return str(value) if isinstance(value, int) else f"{value:g}"
-
-
-def _describe(
-    integer: bool, low: float | None, high: float | None, low_open: bool, high_open: bool
-) -> str:
-    kind = "an integer" if integer else "a finite number"
-    if low is not None and high is not None:
-        left, right = "(" if low_open else "[", ")" if high_open else "]"
-        return f"{kind} in {left}{_number(low)}, {_number(high)}{right}"
-    if low is not None:
-        return f"{kind} {'>' if low_open else '≥'} {_number(low)}"
-    if high is not None:
-        return f"{kind} {'<' if high_open else '≤'} {_number(high)}"
-    return kind
-
-
-def check_range(
-    option: str,
-    value: float | None,
-    low: float | None = None,
-    high: float | None = None,
-    *,
-    low_open: bool = False,
-    high_open: bool = False,
-) -> None:
-    """Refuse a numeric option's value with a one-line error naming ``option`` (the CLI exits
-    2) unless it is finite and within ``low``/``high`` (inclusive, or exclusive with
-    ``low_open``/``high_open``); ``None`` (option not given) passes.
-
-    Commands call this for every numeric option before reading or writing anything, so a
-    negative seed, ``nan`` or ``inf`` never reaches the code (where it could crash, or pass
-    comparisons that NaN always fails, e.g. a NaN tolerance that "repairs" any pose).
-    """
-    if value is None:
-        return
-    ok = math.isfinite(value)
-    if ok and low is not None:
-        ok = value > low if low_open else value >= low
-    if ok and high is not None:
-        ok = value < high if high_open else value <= high
-    if not ok:
-        integer = isinstance(value, int) and not isinstance(value, bool)
-        expected = _describe(integer, low, high, low_open, high_open)
-        raise argument_error(option, f"expected {expected}, got {value!r}")
-
-
-def check_seed(option: str, value: int | None) -> None:
-    """A seed must be an integer in [0, :data:`MAX_SEED`]."""
-    check_range(option, value, 0, MAX_SEED)
-
-
-#: The largest count any option takes (iterations, points, frames …): beyond it no run ends.
-MAX_COUNT = 10**9
-
-
-def check_count(option: str, value: int | None, minimum: int = 1) -> None:
-    """A count (iterations, points, frames, threads …) must be an integer in
-    [``minimum``, :data:`MAX_COUNT`]."""
-    check_range(option, value, minimum, MAX_COUNT)
-
-
-def check_choice(option: str, value: str | None, choices: tuple[str, ...]) -> None:
-    """A one-line error naming ``option`` unless ``value`` (None: unset) is one of ``choices``."""
-    if value is not None and value not in choices:
-        raise argument_error(option, f"expected one of {', '.join(choices)}, got {value!r}")
-
-
-def sweep_names(values: str | list[str] | None, option: str = "--sweeps") -> list[str] | None:
-    """Sweep names from ``option``: one comma-separated string or repeated values, each
-    possibly comma-separated; None (unset): every sweep. An empty name is a one-line error."""
-    if not values:
-        return None
-    given = [values] if isinstance(values, str) else list(values)
-    names = [name.strip() for value in given for name in value.split(",")]
-    if not all(names):
-        raise argument_error(option, f"expected comma-separated sweep names, got {values!r}")
-    return names
+def print_lines(lines: Iterable[str], warnings: Iterable[str] = ()) -> None:
+    """A library's report of a command: ``lines`` on stdout, then each of ``warnings`` as a
+    ``warning: …`` line on stderr."""
+    for line in lines:
+        console.print(line, highlight=False, soft_wrap=True)
+    for line in warnings:
+        warning_line(line)
 
 
 @contextmanager

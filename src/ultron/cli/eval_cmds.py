@@ -7,7 +7,8 @@ from typing import Annotated
 
 import typer
 
-from ultron.cli.common import check_count, check_seed, console, user_errors, warning_line
+from ultron.arguments import check_count, check_seed
+from ultron.cli.common import console, user_errors, warning_line
 from ultron.errors import argument_error
 
 

@@ -3,30 +3,21 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated, Any
+from typing import Annotated
 
 import typer
 
+from ultron.arguments import check_choice, check_count, check_range, check_seed
 from ultron.cli.common import (
     DeviceOption,
     ThreadsOption,
     apply_threads,
-    check_choice,
-    check_count,
     check_device,
-    check_range,
-    check_seed,
-    console,
-    err_console,
     fit_progress,
+    print_lines,
     user_errors,
-    warning_line,
 )
 from ultron.errors import argument_error
-
-if TYPE_CHECKING:
-    from ultron.models.fitted import FitProgress
-    from ultron.pipeline.field import FieldFitResult
 
 
 def _parse_shape(text: str) -> tuple[int, int] | str:
@@ -192,7 +183,7 @@ def fit_field_command(
     apply_threads(threads)
     device = check_device(device)
 
-    from ultron.pipeline.field import fit_field_dir
+    from ultron.pipeline.field import fit_field_dir, fit_lines, fit_warnings
     from ultron.train import field_preset
 
     changes = {
@@ -223,7 +214,7 @@ def fit_field_command(
         max_memory_gib=max_memory,
         progress=lambda: fit_progress("fit-field"),
     )
-    _print_fitted(result, device)
+    print_lines(fit_lines(result, device), fit_warnings(result))
 
 
 def _check_holdout(holdout_every: int) -> None:
@@ -232,87 +223,6 @@ def _check_holdout(holdout_every: int) -> None:
         raise argument_error(
             "--holdout-every", "expected 0 (none) or an integer ≥ 2 (1 holds out every frame)"
         )
-
-
-def _print_fitted(result: FieldFitResult, device: str) -> None:
-    """The files fit-field wrote and the fitted θ's statistics."""
-    fitted, out = result.fitted, result.out
-    stats = fitted.theta_stats
-    console.print(
-        f"wrote {out}: field.json, checkpoint.pt, theta_stats.json, train_log.jsonl"
-        f" ({fitted.field_config.backend}, fitted at {fitted.probe.height_px}×{fitted.probe.width_px} px"
-        f" on {device})",
-        highlight=False,
-    )
-    if stats is not None:
-        summary = ", ".join(
-            f"{c} {m:.4g}±{s:.3g}"
-            for c, m, s in zip(stats.channels, stats.mean, stats.std, strict=True)
-        )
-        console.print(f"θ statistics: {summary}", highlight=False)
-    if result.holdout is not None:
-        _print_holdout(result.holdout)
-    if result.transmission_check is not None:
-        _print_transmission_check(out, result.transmission_check)
-
-
-#: A held-out PSNR within this many dB of the all-black frame's is a fit still at its black
-#: start (docs/real-sweeps.md, "Blank columns": such fits sat within 0.1 dB of it).
-BLACK_MARGIN_DB = 1.0
-
-
-def _print_holdout(check: dict[str, float]) -> None:
-    """The last held-out check against copying a training frame; a warning below the mean's."""
-    line = f"held-out frames: PSNR {check['psnr']:.2f} dB, SSIM {check['ssim']:.3f}"
-    mean, nearest = check.get("mean_frame_psnr"), check.get("nearest_frame_psnr")
-    if mean is None or nearest is None:
-        console.print(line, highlight=False)
-        return
-    console.print(
-        f"{line}; copying onto them the mean training frame {mean:.2f} dB, the nearest"
-        f" {nearest:.2f} dB",
-        highlight=False,
-    )
-    black = check.get("black_frame_psnr")
-    if black is not None and check["psnr"] < black + BLACK_MARGIN_DB:
-        warning_line(
-            f"the field renders its held-out frames about as an all-black image does"
-            f" ({check['psnr']:.2f} dB against {black:.2f} dB): the fit has not left its black"
-            " start; fit again with another --seed, and check the frames for regions that are"
-            " 0 in every frame (ultron info; docs/field.md)"
-        )
-    elif check["psnr"] < mean:
-        warning_line(
-            f"the field predicts its held-out frames worse than the mean training frame does"
-            f" ({check['psnr']:.2f} < {mean:.2f} dB): what it learned between the frames is not"
-            " borne out by them (too few iterations, too few frames, or frames far apart for"
-            " its resolution; docs/field.md)"
-        )
-
-
-def _print_transmission_check(out: Path, check: dict[str, Any]) -> None:
-    """On a simulated dataset: the fitted T against the simulator's (transmission_check.json)."""
-    from ultron.metrics.transmission import TARGET_RELATIONS, TARGETS
-    from ultron.models.field_dir import TRANSMISSION_CHECK
-
-    verdict = {True: "met", False: "missed", None: "n/a"}
-    met = check.get("met", {})
-
-    def figure(name: str, spec: str) -> str:
-        value = check.get(name)
-        return "n/a" if value is None else format(value, spec)
-
-    def judged(name: str) -> str:
-        return f"({verdict[met.get(name)]}: {TARGET_RELATIONS[name]} {TARGETS[name]:g})"
-
-    console.print(
-        f"T against the simulator's truth ({out / TRANSMISSION_CHECK}): median |T − T_true|"
-        f" {figure('median_abs_error', '.3f')} {judged('median_abs_error')},"
-        f" shadowed-vs-lit ROC AUC {figure('roc_auc', '.3f')} {judged('roc_auc')},"
-        f" deep shadow (true T < 0.1) with T < 0.3: {figure('deep_shadow_share', '.0%')},"
-        f" lit T median {figure('lit_median', '.2f')}",
-        highlight=False,
-    )
 
 
 @user_errors
@@ -352,7 +262,7 @@ def render_command(
     check_seed("--seed", seed)
     device = check_device(device)
 
-    from ultron.pipeline.field import render_frames
+    from ultron.pipeline.field import render_frames, render_lines
 
     result = render_frames(
         field_dir,
@@ -366,27 +276,7 @@ def render_command(
         allow_other_field=allow_other_field,
         device=device,
     )
-    _warn_unfinished(field_dir, result.fit_progress)
-    height, width = result.frame_shape
-    what = "expected" if expected else f"seed {seed}"
-    console.print(
-        f"rendered {result.frames} frames of {height}×{width} ({what}) to {out}"
-        + (f" (+ θ {list(result.channels)} and T maps)" if maps else ""),
-        highlight=False,
-    )
-
-
-def _warn_unfinished(field_dir: Path, progress: FitProgress | None) -> None:
-    """One ``warning:`` line on stderr when the field's fit stopped before its iterations."""
-    if progress is None or progress.finished:
-        return
-    err_console.print(
-        f"warning: {field_dir / 'field.json'}: the field's fit stopped at step {progress.step}"
-        f" of {progress.iterations} (interrupted?), so these frames come from an unfinished"
-        " field; run `ultron fit-field` again with the same --out to finish it",
-        markup=False,
-        highlight=False,
-    )
+    print_lines(*render_lines(result, field_dir, seed, expected))
 
 
 def register(app: typer.Typer) -> None:

@@ -7,14 +7,13 @@ from typing import Annotated
 
 import typer
 
+from ultron.arguments import sweep_names
 from ultron.cli.common import (
     ThreadsOption,
     apply_threads,
-    console,
+    print_lines,
     stage_progress,
-    sweep_names,
     user_errors,
-    warning_line,
 )
 
 
@@ -44,12 +43,7 @@ def label(
 ) -> None:
     """Write bone labels (1 bone, 0 background, 255 unsure) into a dataset's sweeps."""
     apply_threads(threads)
-    from ultron.data.auto_label_dataset import (
-        MAX_LISTED,
-        QUALITY_FILE,
-        check_labelling,
-        label_checked_sweeps,
-    )
+    from ultron.data.auto_label_dataset import check_labelling, label_checked_sweeps
     from ultron.errors import argument_error
 
     if not auto:
@@ -58,29 +52,8 @@ def label(
     data, names = check_labelling(dataset, sweep_names(sweeps), replace, option="--sweeps")
     with stage_progress("labelling", unit="frames", width=24) as report:
         summaries = label_checked_sweeps(dataset, data, names, progress=report)
-    for s in summaries:
-        console.print(
-            f"{s.name}: {s.frames} frames, bone {100 * s.bone:.2f} %, background"
-            f" {100 * s.background:.1f} %, unsure {100 * s.unsure:.1f} %"
-            f" ({'replaced' if s.replaced else 'wrote'} labels.npy, {s.seconds:.1f} s)",
-            highlight=False,
-            soft_wrap=True,
-        )
-        if s.frames and s.frames_without_bone == s.frames:
-            warning_line(
-                f"{Path(dataset) / s.name}: no bone found in any of its {s.frames} frames (a"
-                " recording without bone, or frames the detector does not suit): its labels are"
-                " background and unsure only, nothing to reconstruct from"
-            )
-        check = ", ".join(str(i) for i in s.frames_to_check[:MAX_LISTED])
-        more = " …" if len(s.frames_to_check) > MAX_LISTED else ""
-        console.print(
-            f"  {s.frames_without_bone} frames without bone; {len(s.frames_to_check)} where the"
-            f" surface dropped out{': check ' + check + more if check else ''}"
-            f" (per frame: {Path(dataset) / s.name / QUALITY_FILE})",
-            highlight=False,
-            soft_wrap=True,
-        )
+    for summary in summaries:
+        print_lines(*summary.lines(dataset))
 
 
 def register(app: typer.Typer) -> None:

@@ -3,23 +3,12 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated
+from typing import Annotated
 
 import typer
 
-from ultron.cli.common import (
-    ThreadsOption,
-    apply_threads,
-    check_count,
-    check_range,
-    check_seed,
-    console,
-    stage_progress,
-    user_errors,
-)
-
-if TYPE_CHECKING:
-    from ultron.pipeline.simulate import SimulatedDataset
+from ultron.arguments import check_count, check_range, check_seed
+from ultron.cli.common import ThreadsOption, apply_threads, print_lines, stage_progress, user_errors
 
 
 def _check_numbers(
@@ -155,29 +144,7 @@ def simulate(
     )
     with stage_progress("simulating") as report:
         result = simulate_to(config, out, preview, progress=report)
-    _print_written(result, phantom)
-
-
-def _print_written(result: SimulatedDataset, phantom: str) -> None:
-    """What ``simulate`` wrote."""
-    dataset, out, probe = result.dataset, result.out, result.dataset.probe
-    console.print(
-        f"simulated {phantom}: {len(dataset.sweeps)} sweeps, {dataset.n_frames} frames of"
-        f" {probe.height_px}×{probe.width_px} ({probe.width_mm:g} mm × {probe.depth_mm:g} mm)"
-        f" in {result.seconds:.1f} s → {out}",
-        highlight=False,
-        soft_wrap=True,
-    )
-    visible = dataset.reference_visible_path
-    console.print(
-        f"wrote {out / 'dataset.json'}, {out / 'reference.ply'}, {out / 'phantom.json'}"
-        + (f", {visible}" if visible is not None else "")
-        + " and each sweep's transmission.npy (ground truth for diagnosis)",
-        highlight=False,
-        soft_wrap=True,
-    )
-    if result.preview is not None:
-        console.print(f"preview: {result.preview}", highlight=False, soft_wrap=True)
+    print_lines(result.lines(phantom))
 
 
 def register(app: typer.Typer) -> None:

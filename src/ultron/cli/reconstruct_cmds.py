@@ -7,16 +7,13 @@ from typing import Annotated
 
 import typer
 
+from ultron.arguments import check_choice, check_count, check_range, check_seed
 from ultron.cli.common import (
     DeviceOption,
     StageLines,
     ThreadsOption,
     apply_threads,
-    check_choice,
-    check_count,
     check_device,
-    check_range,
-    check_seed,
     console,
     fit_progress,
     user_errors,

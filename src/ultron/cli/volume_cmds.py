@@ -3,22 +3,12 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated
+from typing import Annotated
 
 import typer
 
-from ultron.cli.common import (
-    ThreadsOption,
-    apply_threads,
-    check_choice,
-    check_range,
-    console,
-    sweep_names,
-    user_errors,
-)
-
-if TYPE_CHECKING:
-    from ultron.pipeline.compound import CompoundSummary
+from ultron.arguments import check_choice, check_range, sweep_names
+from ultron.cli.common import ThreadsOption, apply_threads, print_lines, user_errors
 
 
 @user_errors
@@ -87,27 +77,7 @@ def compound(
     check_choice("--reduce", reduce, REDUCTIONS)
     config = ImageCompoundingConfig(spacing, SplatConfig(interpolation, reduce), fill_holes)
     summary = compound_volume(dataset, out, config, sweep_names(sweeps), max_memory)
-    for line in _summary(summary):
-        console.print(line, highlight=False, soft_wrap=True)
-
-
-def _summary(summary: CompoundSummary) -> list[str]:
-    """The lines ``compound`` prints: settings, grid, filled shares, output."""
-    result, config = summary.result, summary.config
-    grid, n = result.grid, result.volume.size
-    filled, holes = int(result.filled.sum()), int(result.hole_filled.sum())
-    origin = ", ".join(f"{o:.3f}" for o in grid.origin_mm)
-    filling = (
-        f"stick hole filling ≤ {config.fill_holes} voxels" if config.fill_holes else "no filling"
-    )
-    return [
-        f"compounded {summary.n_frames} frames of {summary.n_sweeps} sweep(s):"
-        f" {config.splat.interpolation}, {config.splat.reduce}, {filling}",
-        f"grid: {' × '.join(map(str, grid.shape))} voxels of {grid.voxel_mm:g} mm, origin"
-        f" ({origin}) mm (world, LPS); NIfTI affine in RAS",
-        f"filled by pixels: {filled / n:.1%} of the voxels; by hole filling: {holes / n:.1%}",
-        f"wrote {summary.out} in {summary.seconds:.1f} s",
-    ]
+    print_lines(summary.lines())
 
 
 def register(app: typer.Typer) -> None:

@@ -79,6 +79,30 @@ class SweepLabelSummary:
     def shares(self) -> dict[str, float]:
         return {"bone": self.bone, "background": self.background, "unsure": self.unsure}
 
+    def lines(self, dataset_dir: str | Path) -> tuple[list[str], list[str]]:
+        """What ``label --auto`` prints for the sweep (lines, warnings): the label shares, the
+        frames without bone and those to check (:data:`MAX_LISTED` at most), and a warning
+        when no frame shows bone."""
+        where = Path(dataset_dir) / self.name
+        check = ", ".join(str(i) for i in self.frames_to_check[:MAX_LISTED])
+        more = " …" if len(self.frames_to_check) > MAX_LISTED else ""
+        lines = [
+            f"{self.name}: {self.frames} frames, bone {100 * self.bone:.2f} %, background"
+            f" {100 * self.background:.1f} %, unsure {100 * self.unsure:.1f} %"
+            f" ({'replaced' if self.replaced else 'wrote'} labels.npy, {self.seconds:.1f} s)",
+            f"  {self.frames_without_bone} frames without bone; {len(self.frames_to_check)} where"
+            f" the surface dropped out{': check ' + check + more if check else ''}"
+            f" (per frame: {where / QUALITY_FILE})",
+        ]
+        warnings = []
+        if self.frames and self.frames_without_bone == self.frames:
+            warnings.append(
+                f"{where}: no bone found in any of its {self.frames} frames (a recording without"
+                " bone, or frames the detector does not suit): its labels are background and"
+                " unsure only, nothing to reconstruct from"
+            )
+        return lines, warnings
+
 
 def quality_csv(qualities: Sequence[FrameQuality]) -> str:
     """The per-frame quality summary (module docstring) as CSV text."""

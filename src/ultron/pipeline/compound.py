@@ -46,6 +46,26 @@ class CompoundSummary:
     n_sweeps: int
     seconds: float
 
+    def lines(self) -> list[str]:
+        """What ``compound`` prints: settings, grid, filled shares, output."""
+        result, config = self.result, self.config
+        grid, n = result.grid, result.volume.size
+        filled, holes = int(result.filled.sum()), int(result.hole_filled.sum())
+        origin = ", ".join(f"{o:.3f}" for o in grid.origin_mm)
+        filling = (
+            f"stick hole filling ≤ {config.fill_holes} voxels"
+            if config.fill_holes
+            else "no filling"
+        )
+        return [
+            f"compounded {self.n_frames} frames of {self.n_sweeps} sweep(s):"
+            f" {config.splat.interpolation}, {config.splat.reduce}, {filling}",
+            f"grid: {' × '.join(map(str, grid.shape))} voxels of {grid.voxel_mm:g} mm, origin"
+            f" ({origin}) mm (world, LPS); NIfTI affine in RAS",
+            f"filled by pixels: {filled / n:.1%} of the voxels; by hole filling: {holes / n:.1%}",
+            f"wrote {self.out} in {self.seconds:.1f} s",
+        ]
+
 
 def check_nifti_out(out: str | Path, option: str = "--out") -> Path:
     """``out`` as a path: a ``.nii`` / ``.nii.gz`` file name (more than the ending alone) this

@@ -43,6 +43,53 @@ class DatasetInfo:
         vertices = None if reference is None else load_mesh(reference).vertices
         return units_warnings(self.dataset, vertices)
 
+    def lines(self) -> list[str]:
+        """What ``info`` prints under its table of sweeps: frames, image size, probe, pixel
+        spacing, the columns with signal, the bounding box and the reference."""
+        data, probe = self.dataset, self.dataset.probe
+        reference = data.reference.name if data.reference else "none"
+        if data.reference_visible_path:
+            reference += f" (visible part: {data.reference_visible_path.name})"
+        return [
+            f"sweeps: {len(data.sweeps)}   frames: {data.n_frames}   labelled frames:"
+            f" {self.n_labelled}",
+            f"image size: {probe.height_px} rows (depth) × {probe.width_px} columns (scanlines)",
+            f"probe: {probe.width_mm:g} mm wide × {probe.depth_mm:g} mm deep",
+            f"pixel spacing: {probe.lateral_spacing_mm:.4f} mm lateral ×"
+            f" {probe.axial_spacing_mm:.4f} mm axial",
+            *self._blank_columns_line(),
+            "bounding box (mm): "
+            + "  ".join(
+                f"{axis} [{lo:.2f}, {hi:.2f}]"
+                for axis, lo, hi in zip("xyz", *self.bounds_mm, strict=True)
+            ),
+            f"reference: {reference}",
+        ]
+
+    def _blank_columns_line(self) -> list[str]:
+        """The line about columns that are 0 in every frame, when there are any."""
+        (start, stop), width = self.lit_columns, self.dataset.probe.width_px
+        if (start, stop) == (0, width):
+            return []
+        return [
+            f"columns with signal: {start}–{stop - 1} of {width}; the other"
+            f" {width - (stop - start)} are 0 in every frame (outside the aperture: the field"
+            " fit ignores them)"
+        ]
+
+    def outlier_lines(self) -> list[str]:
+        """A warning per outlier pose (at most 10, then a count): reconstruct, finetune and
+        fit-field refuse such a dataset."""
+        lines = [f"warning: outlier pose: {o.describe()}" for o in self.outliers[:10]]
+        if len(self.outliers) > 10:
+            lines.append(f"warning: {len(self.outliers) - 10} more outlier poses")
+        if self.outliers:
+            lines.append(
+                "warning: reconstruct, finetune and fit-field refuse a dataset with outlier"
+                " poses (every grid is sized on the scanned volume)"
+            )
+        return lines
+
 
 def dataset_info(dataset_dir: str | Path) -> DatasetInfo:
     """Load and validate the dataset at ``dataset_dir`` (an error names the file and field at

@@ -3,7 +3,8 @@
 :func:`fit_field_dir` is ``ultron fit-field`` and :func:`render_frames` is ``ultron render``
 without the command line: they check every input before any work (naming the CLI's options,
 so that a command prints their errors as they are), do the work, write the files and return
-what a caller reports. The command line only parses options, calls one of them and prints.
+what a caller reports. The command line only parses options, calls one of them and prints
+the lines :func:`fit_lines`, :func:`fit_warnings` and :func:`render_lines` make of the result.
 """
 
 from __future__ import annotations
@@ -199,3 +200,106 @@ def _dataset_poses(
     fitted.check_probe(data.probe, str(dataset))
     check_field_dataset(field_dir, data.content_hash(), str(dataset), allow_other_field)
     return data.sweep(sweep).probe_to_world
+
+
+def fit_lines(result: FieldFitResult, device: str) -> list[str]:
+    """What ``fit-field`` prints: the files written, the fitted θ's statistics, the last
+    held-out check against copying a training frame, and on a simulated dataset the fitted T
+    against the simulator's."""
+    fitted, out = result.fitted, result.out
+    lines = [
+        f"wrote {out}: field.json, checkpoint.pt, theta_stats.json, train_log.jsonl"
+        f" ({fitted.field_config.backend}, fitted at {fitted.probe.height_px}×"
+        f"{fitted.probe.width_px} px on {device})"
+    ]
+    stats = fitted.theta_stats
+    if stats is not None:
+        summary = ", ".join(
+            f"{c} {m:.4g}±{s:.3g}"
+            for c, m, s in zip(stats.channels, stats.mean, stats.std, strict=True)
+        )
+        lines.append(f"θ statistics: {summary}")
+    check = result.holdout
+    if check is not None:
+        line = f"held-out frames: PSNR {check['psnr']:.2f} dB, SSIM {check['ssim']:.3f}"
+        mean, nearest = check.get("mean_frame_psnr"), check.get("nearest_frame_psnr")
+        if mean is not None and nearest is not None:
+            line += (
+                f"; copying onto them the mean training frame {mean:.2f} dB, the nearest"
+                f" {nearest:.2f} dB"
+            )
+        lines.append(line)
+    if result.transmission_check is not None:
+        lines.append(_transmission_line(out, result.transmission_check))
+    return lines
+
+
+#: A held-out PSNR within this many dB of the all-black frame's is a fit still at its black
+#: start (docs/real-sweeps.md, "Blank columns": such fits sat within 0.1 dB of it).
+BLACK_MARGIN_DB = 1.0
+
+
+def fit_warnings(result: FieldFitResult) -> list[str]:
+    """A warning when the held-out frames are rendered about as well as an all-black frame
+    (within :data:`BLACK_MARGIN_DB`) or worse than the mean training frame."""
+    check = result.holdout or {}
+    psnr, mean, black = (check.get(k) for k in ("psnr", "mean_frame_psnr", "black_frame_psnr"))
+    if psnr is None or mean is None or check.get("nearest_frame_psnr") is None:
+        return []
+    if black is not None and psnr < black + BLACK_MARGIN_DB:
+        return [
+            f"the field renders its held-out frames about as an all-black image does"
+            f" ({psnr:.2f} dB against {black:.2f} dB): the fit has not left its black"
+            " start; fit again with another --seed, and check the frames for regions that are"
+            " 0 in every frame (ultron info; docs/field.md)"
+        ]
+    if psnr < mean:
+        return [
+            f"the field predicts its held-out frames worse than the mean training frame does"
+            f" ({psnr:.2f} < {mean:.2f} dB): what it learned between the frames is not"
+            " borne out by them (too few iterations, too few frames, or frames far apart for"
+            " its resolution; docs/field.md)"
+        ]
+    return []
+
+
+def _transmission_line(out: Path, check: dict[str, Any]) -> str:
+    """On a simulated dataset: the fitted T against the simulator's (transmission_check.json)."""
+    from ultron.metrics.transmission import TARGET_RELATIONS, TARGETS
+    from ultron.models.field_dir import TRANSMISSION_CHECK
+
+    verdict = {True: "met", False: "missed", None: "n/a"}
+    met = check.get("met", {})
+
+    def figure(name: str, spec: str) -> str:
+        value = check.get(name)
+        return "n/a" if value is None else format(value, spec)
+
+    def judged(name: str) -> str:
+        return f"({verdict[met.get(name)]}: {TARGET_RELATIONS[name]} {TARGETS[name]:g})"
+
+    return (
+        f"T against the simulator's truth ({out / TRANSMISSION_CHECK}): median |T − T_true|"
+        f" {figure('median_abs_error', '.3f')} {judged('median_abs_error')},"
+        f" shadowed-vs-lit ROC AUC {figure('roc_auc', '.3f')} {judged('roc_auc')},"
+        f" deep shadow (true T < 0.1) with T < 0.3: {figure('deep_shadow_share', '.0%')},"
+        f" lit T median {figure('lit_median', '.2f')}"
+    )
+
+
+def render_lines(result: RenderResult, field_dir: str | Path, seed: int, expected: bool):
+    """What ``render`` prints (lines, warnings): the frames written, and a warning when the
+    field's fit stopped before its iterations."""
+    height, width = result.frame_shape
+    what = "expected" if expected else f"seed {seed}"
+    maps = f" (+ θ {list(result.channels)} and T maps)" if len(result.paths) > 1 else ""
+    lines = [f"rendered {result.frames} frames of {height}×{width} ({what}) to {result.paths[0]}"]
+    lines[0] += maps
+    progress, warnings = result.fit_progress, []
+    if progress is not None and not progress.finished:
+        warnings.append(
+            f"{Path(field_dir) / 'field.json'}: the field's fit stopped at step {progress.step}"
+            f" of {progress.iterations} (interrupted?), so these frames come from an unfinished"
+            " field; run `ultron fit-field` again with the same --out to finish it"
+        )
+    return lines, warnings

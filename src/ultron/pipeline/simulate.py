@@ -29,6 +29,22 @@ class SimulatedDataset:
     seconds: float
     preview: Path | None
 
+    def lines(self, phantom: str) -> list[str]:
+        """What ``simulate`` prints: the sweeps and frames made and the files written."""
+        dataset, out, probe = self.dataset, self.out, self.dataset.probe
+        visible = dataset.reference_visible_path
+        lines = [
+            f"simulated {phantom}: {len(dataset.sweeps)} sweeps, {dataset.n_frames} frames of"
+            f" {probe.height_px}×{probe.width_px} ({probe.width_mm:g} mm × {probe.depth_mm:g}"
+            f" mm) in {self.seconds:.1f} s → {out}",
+            f"wrote {out / 'dataset.json'}, {out / 'reference.ply'}, {out / 'phantom.json'}"
+            + (f", {visible}" if visible is not None else "")
+            + " and each sweep's transmission.npy (ground truth for diagnosis)",
+        ]
+        if self.preview is not None:
+            lines.append(f"preview: {self.preview}")
+        return lines
+
 
 def simulate_to(
     config: SimulationConfig,

@@ -42,6 +42,66 @@ class ImportedSweep(Generic[ReportT]):
     n_sweeps: int
     report: ReportT
 
+    def lines(self, out: str | Path, kind: str) -> list[str]:
+        """What an import prints: for a PLUS recording its orientation, calibration, world
+        frame, clip, kept and skipped frames and probe, then the frames added to ``out``."""
+        report = self.report
+        lines = plus_lines(report, self.probe) if isinstance(report, PlusImportReport) else []
+        lines.append(
+            f"imported {report.n_frames} frames of {report.image_shape[0]}×"
+            f"{report.image_shape[1]} as sweep {self.name!r} ({kind}) into {out}"
+            f" ({self.n_sweeps} sweep(s))"
+        )
+        if isinstance(report, ImportReport) and report.n_poses_beyond_tolerance:
+            lines.append(
+                f"re-orthonormalised the rotation blocks: {report.n_poses_beyond_tolerance} poses"
+                " deviated by more than the format's 1e-3 (largest"
+                f" {report.max_rotation_deviation:.2e})"
+            )
+        return lines
+
+
+def plus_lines(report: PlusImportReport, probe: ProbeGeometry) -> list[str]:
+    """The lines ``import-plus`` prints about the orientation, calibration, frames and world."""
+    fit = report.fit
+    flips = [axis for axis, flip in zip(("columns", "rows"), report.flips, strict=True) if flip]
+    height, width = report.file_shape
+    lines = [
+        f"frames: {report.n_frames_file} of {height}×{width} (rows × columns), orientation"
+        f" {report.orientation} → MF ({'flipped ' + ' and '.join(flips) if flips else 'no flip'})",
+        f"Image → {report.probe_frame}: {fit.spacing_mm[0]:.5f} mm per column ×"
+        f" {fit.spacing_mm[1]:.5f} mm per row; its image axes are {abs(fit.shear_deg):.2f}° from"
+        f" perpendicular: a rigid pose would move pixels by at most {fit.residual_max_mm:.3f} mm"
+        f" (RMS {fit.residual_rms_mm:.3f} mm) from PLUS's map"
+        + (
+            "; frames resampled onto the rigid grid (every echo where PLUS puts it)"
+            if report.resampled
+            else ""
+        ),
+        f"world frame: {report.world} ({report.chain} · ImageToProbe)",
+    ]
+    if report.clip is not None:
+        (i0, j0), (w, h) = report.clip
+        lines.append(f"clip rectangle: origin ({i0}, {j0}), {w} × {h} pixels")
+    if report.kept_columns is not None:
+        start, stop = report.kept_columns
+        lines.append(
+            f"kept columns {start}–{stop - 1}: the others are 0 in every frame (outside the"
+            " aperture; --keep-blank-columns keeps them)"
+        )
+    skipped = sum(report.skipped.values())
+    reasons = ", ".join(f"{n} × {reason}" for reason, n in sorted(report.skipped.items()))
+    lines.append(
+        f"skipped {skipped} of {report.n_frames_file} frames" + (f": {reasons}" if reasons else "")
+    )
+    if report.downsample != 1:
+        lines.append(f"downsampled by {report.downsample:g} to {probe.height_px}×{probe.width_px}")
+    lines.append(
+        f"probe: {probe.width_mm:.3f} mm wide × {probe.depth_mm:.3f} mm deep; pixel spacing"
+        f" {probe.lateral_spacing_mm:.5f} mm lateral × {probe.axial_spacing_mm:.5f} mm axial"
+    )
+    return lines
+
 
 def safe_sweep_name(path: str | Path) -> str:
     """A valid sweep name from ``path``'s last component (made absolute first, so ``.`` names
