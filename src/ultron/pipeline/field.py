@@ -287,7 +287,9 @@ def _transmission_line(out: Path, check: dict[str, Any]) -> str:
     )
 
 
-def render_lines(result: RenderResult, field_dir: str | Path, seed: int, expected: bool):
+def render_lines(
+    result: RenderResult, field_dir: str | Path, seed: int, expected: bool
+) -> tuple[list[str], list[str]]:
     """What ``render`` prints (lines, warnings): the frames written, and a warning when the
     field's fit stopped before its iterations."""
     height, width = result.frame_shape
