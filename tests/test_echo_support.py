@@ -197,6 +197,7 @@ def test_the_labelled_surface_is_observed_within_the_support_distance():
     unlabelled = observe_surface(plate, poses, PROBE, dark, 0.5, config, "field")
     assert not unlabelled.observed.any() and "label_supported_vertices" not in unlabelled.info
     assert unlabelled.info["surface"]["label_support_mm"] == 0  # what was applied
+    assert unlabelled.info["surface"]["label_bridges"] is False
     assert seen.info["surface"]["label_support_mm"] == 1.0
     lit = observe_surface(plate, poses, PROBE, t_maps, 0.5, config, "field", None, label)
     top = vertices[:, 2] > -LINE_ROW * 0.5  # what the lit frame observes (facing the probe)

@@ -90,6 +90,9 @@ def test_request_takes_the_preset_and_options_win():
     assert preset_request(oracle=True).method_config.visibility.source == "oracle"
     assert preset_request(echo_support=False).method_config.echo_support is None
     assert preset_request(label_support_mm=0.5).method_config.observed.label_support_mm == 0.5
+    assert preset_request().method_config.observed.label_bridges
+    assert not preset_request(label_bridges=False).method_config.observed.label_bridges
+    assert not preset_request("paper").method_config.observed.label_bridges
     on_again = preset_request("paper", "ultron", echo_support=True).method_config.echo_support
     assert on_again is not None and on_again == pipeline_preset("fast").ultron.echo_support
     fast = preset_request()

@@ -146,6 +146,14 @@ LabelSupport = Annotated[
         " (default: the preset's: 1 mm; paper: 0, off).",
     ),
 ]
+LabelBridges = Annotated[
+    bool | None,
+    typer.Option(
+        "--label-bridges/--no-label-bridges",
+        help="ultron*: with --label-support, the labelled surface also runs between consecutive"
+        " labelled frames whose labelled cross-sections agree to within MM (default: on).",
+    ),
+]
 AllowOtherField = Annotated[
     bool,
     typer.Option(
@@ -198,6 +206,7 @@ def reconstruct(
     negatives: Negatives = None,
     echo_support: EchoSupport = None,
     label_support: LabelSupport = None,
+    label_bridges: LabelBridges = None,
     allow_other_field: AllowOtherField = False,
     max_memory: MaxMemory = None,
     mesh_coordinates: MeshCoordinates = "lps",
@@ -225,7 +234,7 @@ def reconstruct(
         preset, method, label_fraction, seed, points=points, occupancy_iters=occupancy_iters,
         visibility=visibility, oracle=oracle_transmission, surface=surface,
         theta_context=theta_context, positive_weight=positive_weight, negatives=negatives,
-        echo_support=echo_support, label_support_mm=label_support,
+        echo_support=echo_support, label_support_mm=label_support, label_bridges=label_bridges,
         mesh_coordinates=mesh_coordinates, device=device,
     )  # fmt: skip
     lines = StageLines()

@@ -309,20 +309,34 @@ def bone_points_mm(dataset: SweepDataset, selection: FrameSelection | None) -> n
     return np.zeros((0, 3)) if pixels is None else pixels.world_mm(dataset)
 
 
-def labelled_surface_points_mm(
+def labelled_surface_pixels(
     dataset: SweepDataset, selection: FrameSelection | None
-) -> np.ndarray:
-    """World positions (P, 3) float64 mm of the labelled surface in the selected frames: the top
-    pixel of every band of bone labels, i.e. each bone pixel (r, c) whose upper neighbour
-    (r − 1, c) is not bone (or r = 0) — where the annotation convention puts the surface
-    (:func:`surface_outer_side`). (0, 3) when ``selection`` is None or holds no bone label."""
+) -> LabelledPixels | None:
+    """The labelled surface's pixels in the selected frames: the top pixel of every band of
+    bone labels, i.e. each bone pixel (r, c) whose upper neighbour (r − 1, c) is not bone (or
+    r = 0) — where the annotation convention puts the surface (:func:`surface_outer_side`).
+    None when ``selection`` is None or holds no bone label."""
     pixels = _bone_pixels(dataset, selection)
     if pixels is None:
-        return np.zeros((0, 3))
+        return None
     bone_above = np.zeros(len(pixels), dtype=bool)
     for sweep_index, sweep in enumerate(dataset.sweeps):
         pick = np.flatnonzero((pixels.sweep_index == sweep_index) & (pixels.row > 0))
         if pick.size:
             above = sweep.labels[pixels.frame[pick], pixels.row[pick] - 1, pixels.col[pick]]
             bone_above[pick] = above == LABEL_TARGET
-    return pixels.world_mm(dataset, np.flatnonzero(~bone_above))
+    top = ~bone_above
+    return LabelledPixels(
+        pixels.sweep_index[top], pixels.frame[top], pixels.row[top], pixels.col[top],
+        pixels.label[top],
+    )  # fmt: skip
+
+
+def labelled_surface_points_mm(
+    dataset: SweepDataset, selection: FrameSelection | None
+) -> np.ndarray:
+    """World positions (P, 3) float64 mm of the labelled surface in the selected frames
+    (:func:`labelled_surface_pixels`); (0, 3) when ``selection`` is None or holds no bone
+    label."""
+    pixels = labelled_surface_pixels(dataset, selection)
+    return np.zeros((0, 3)) if pixels is None else pixels.world_mm(dataset)

@@ -23,7 +23,8 @@ a point within that distance of the labelled surface — the top edge of a band 
 in a frame the method trained on (:func:`~ultron.data.labels.labelled_surface_points_mm`) — is
 observed as well: the annotator saw bone there. The field's T decays with depth through real
 tissue, so a deep wall the annotator labelled can fall below ``min_transmission`` (figures in
-docs/real-sweeps.md).
+docs/real-sweeps.md). With ``label_bridges`` the labelled surface also runs between consecutive
+labelled frames whose labelled cross-sections agree (:mod:`ultron.mesh.label_bridges`).
 
 A point is observed when some frame observes it. This is the criterion the simulated labels
 follow (a visible echo under an unshadowed beam), so with the simulator's true T it gives the
@@ -63,12 +64,15 @@ class ObservedSurfaceConfig:
     """Which part of a reconstructed surface is kept: ``observed`` (the faces whose vertices
     some frame observes, by this criterion) or ``all`` (the closed iso-surface as extracted).
     ``label_support_mm``: how close to the labelled surface a point counts as observed (0: the
-    labels do not count; used only where the caller gives the labelled surface)."""
+    labels do not count; used only where the caller gives the labelled surface).
+    ``label_bridges``: the labelled surface includes the bridges between consecutive labelled
+    frames that agree to within ``label_support_mm`` (:mod:`ultron.mesh.label_bridges`)."""
 
     surface: str = "observed"
     max_incidence_deg: float = DEFAULT_MAX_INCIDENCE_DEG
     min_transmission: float = DEFAULT_MIN_TRANSMISSION
     label_support_mm: float = DEFAULT_LABEL_SUPPORT_MM
+    label_bridges: bool = True
 
     def __post_init__(self) -> None:
         if self.surface not in SURFACES:
@@ -82,6 +86,10 @@ class ObservedSurfaceConfig:
             raise argument_error("label_support_mm", f"expected a distance in mm, got {support!r}")
         if not (math.isfinite(support) and support >= 0):
             raise argument_error("label_support_mm", f"expected a finite value ≥ 0, got {support}")
+        if not isinstance(self.label_bridges, bool):
+            raise argument_error(
+                "label_bridges", f"expected true or false, got {self.label_bridges!r}"
+            )
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -282,7 +290,7 @@ def observe_surface(
     vertices = np.asarray(mesh.vertices, dtype=np.float64).reshape(-1, 3)
     surface = config.to_dict()
     if labelled_surface_mm is None:
-        surface["label_support_mm"] = 0.0  # what was applied: no labelled surface given
+        surface |= {"label_support_mm": 0.0, "label_bridges": False}  # what was applied
     info: dict[str, Any] = {"surface": surface, "faces_extracted": len(mesh.faces)}
     info["observation_transmission"] = source
     info["echo_support"] = support is not None

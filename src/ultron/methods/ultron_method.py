@@ -59,6 +59,7 @@ from ultron.fields.occupancy import OccupancyNetwork
 from ultron.mesh.echo_support import EchoSupportConfig, echo_support_maps
 from ultron.mesh.extract import ExtractionConfig, extract_surface_tiles
 from ultron.mesh.grid import GridSpec, field_of_view_volume_mm3, meshing_voxel_mm
+from ultron.mesh.label_bridges import bridged_labelled_surface_mm
 from ultron.mesh.observed import ObservedSurfaceConfig, SurfaceObservation, observe_surface
 from ultron.mesh.tiles import evaluate_tiles, field_of_view_tiles, tile_for_factor
 from ultron.timing import Advanced, StageTimer
@@ -328,6 +329,17 @@ def mesh_occupancy(
     return mesh, evaluated.volume.values, evaluated.volume.grid
 
 
+def labelled_support_points_mm(
+    dataset: SweepDataset, selection: FrameSelection, observed: ObservedSurfaceConfig
+) -> np.ndarray:
+    """The labelled surface the observed crop counts as observed: the band tops of the frames
+    f trained on, and with ``observed.label_bridges`` the bridges between consecutive ones
+    that agree (:mod:`ultron.mesh.label_bridges`)."""
+    if observed.label_bridges:
+        return bridged_labelled_surface_mm(dataset, selection, observed.label_support_mm)
+    return labelled_surface_points_mm(dataset, selection)
+
+
 def keep_observed_surface(
     mesh,
     dataset: SweepDataset,
@@ -342,7 +354,8 @@ def keep_observed_surface(
     step 5; :func:`~ultron.mesh.observed.observe_surface`). ``advance`` is told the frames
     whose T is rendered so far, of all frames. ``selection``: the frames whose labels the
     network trained on; their labelled surface counts as observed within
-    ``config.observed.label_support_mm`` (None: the labels do not count).
+    ``config.observed.label_support_mm`` (None: the labels do not count), with the bridges
+    between them (:func:`labelled_support_points_mm`).
 
     Each frame's T comes from the oracle (diagnostic runs) or the fitted field; the elevational
     slab is the one the field-of-view mask uses (0.75 × the frame gap, ≥ one voxel of the
@@ -361,7 +374,7 @@ def keep_observed_surface(
         if config.echo_support is not None:
             support = echo_support_maps(dataset, config.echo_support)
         if selection is not None and config.observed.label_support_mm > 0:
-            labelled = labelled_surface_points_mm(dataset, selection)
+            labelled = labelled_support_points_mm(dataset, selection, config.observed)
     return observe_surface(
         mesh,
         dataset.all_poses(),

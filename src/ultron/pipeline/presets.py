@@ -71,7 +71,7 @@ def pipeline_preset(name: str = "fast", seed: int = 0) -> PipelinePreset:
     ultron = UltronConfig(
         occupancy=occupancy,
         context=ThetaContextConfig(radii_mm=()),
-        observed=ObservedSurfaceConfig(surface="all", label_support_mm=0.0),
+        observed=ObservedSurfaceConfig(surface="all", label_support_mm=0.0, label_bridges=False),
         label_outer_side_mm=0.0,
         echo_support=None,
     )
@@ -104,6 +104,7 @@ def preset_request(
     negatives: str | None = None,
     echo_support: bool | None = None,
     label_support_mm: float | None = None,
+    label_bridges: bool | None = None,
     mesh_coordinates: str = "lps",
     device: str = "cpu",
 ) -> ReconstructionRequest:
@@ -114,7 +115,8 @@ def preset_request(
     ``positive_weight`` (a number or ``balanced``), ``negatives``, ``echo_support`` (UltrON's
     observed crop asks some frame to show bone, :mod:`ultron.mesh.echo_support`),
     ``label_support_mm`` (surface that near the labelled surface counts as observed,
-    :mod:`ultron.mesh.observed`); metrics on
+    :mod:`ultron.mesh.observed`), ``label_bridges`` (and near the bridges between agreeing
+    labelled frames, :mod:`ultron.mesh.label_bridges`); metrics on
     ``points``
     points per surface. The request carries ``method``'s settings alone
     (:meth:`~ultron.methods.registry.Method.config_of`)."""
@@ -141,9 +143,9 @@ def preset_request(
         ultron = replace(ultron, context=ThetaContextConfig.parse(theta_context))
     if echo_support is not None:
         ultron = replace(ultron, echo_support=EchoSupportConfig() if echo_support else None)
-    if label_support_mm is not None:
-        observed = replace(ultron.observed, label_support_mm=label_support_mm)
-        ultron = replace(ultron, observed=observed)
+    for name, value in (("label_support_mm", label_support_mm), ("label_bridges", label_bridges)):
+        if value is not None:
+            ultron = replace(ultron, observed=replace(ultron.observed, **{name: value}))
     return ReconstructionRequest(
         method=method,
         label_fraction=label_fraction,
