@@ -34,6 +34,8 @@ def test_across_plane_distance_by_hand() -> None:
     # an oblique elevation axis: the offset (0, 0, 5.5) is 5.5·sin 30° = 2.75 across its plane
     axis = np.array([0.0, np.sin(np.pi / 6), np.cos(np.pi / 6)])
     np.testing.assert_allclose(across_plane_mm(points[1:], other[1:2], axis)[1], [2.75])
+    # a tracked pose's axis is a unit vector only to 1e-3: it is normalised, not refused
+    np.testing.assert_allclose(across_plane_mm(points, other, 1.001 * Z)[1], across, atol=1e-12)
 
 
 def _curve(z: float, y: float = 10.0, n: int = 9) -> np.ndarray:
@@ -120,7 +122,8 @@ def test_invalid_inputs_name_the_argument() -> None:
         across_plane_mm(np.zeros((0, 3)), a, Z)
     with pytest.raises(UltronInputError, match="other_mm"):
         across_plane_mm(a, np.zeros((4, 2)), Z)
-    with pytest.raises(UltronInputError, match="elevation_axis"):
-        across_plane_mm(a, a, np.array([0.0, 0.0, 2.0]))
+    for axis in (np.zeros(3), np.array([0.0, 0.0, np.nan]), np.ones(2)):
+        with pytest.raises(UltronInputError, match="elevation_axis"):
+            across_plane_mm(a, a, axis)
     with pytest.raises(UltronInputError, match="label_bridges"):
         ObservedSurfaceConfig(label_bridges="yes")  # type: ignore[arg-type]

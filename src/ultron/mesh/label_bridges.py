@@ -45,7 +45,8 @@ def across_plane_mm(
 ) -> tuple[np.ndarray, np.ndarray]:
     """For each of ``points_mm`` (P, 3): the offset q − p to its nearest point q of
     ``other_mm`` (Q, 3), and d⊥ (module docstring), the offset's length across the plane whose
-    normal is the unit ``elevation_axis`` (3,). Returns (offsets (P, 3), d⊥ (P,))."""
+    normal is ``elevation_axis`` (3,; normalised here: a tracked pose's rotation is orthonormal
+    only to the format's 1e-3). Returns (offsets (P, 3), d⊥ (P,))."""
     points_mm, other_mm = np.asarray(points_mm, float), np.asarray(other_mm, float)
     axis = np.asarray(elevation_axis, float)
     if points_mm.ndim != 2 or points_mm.shape[1] != 3 or not len(points_mm):
@@ -54,8 +55,10 @@ def across_plane_mm(
         )
     if other_mm.ndim != 2 or other_mm.shape[1] != 3 or not len(other_mm):
         raise argument_error("other_mm", f"expected a non-empty (Q, 3) array, got {other_mm.shape}")
-    if axis.shape != (3,) or not math.isclose(float(np.linalg.norm(axis)), 1.0, abs_tol=1e-6):
+    norm = float(np.linalg.norm(axis)) if axis.shape == (3,) else math.nan
+    if not (math.isfinite(norm) and norm > 0.5):
         raise argument_error("elevation_axis", f"expected a unit 3-vector, got {axis!r}")
+    axis = axis / norm
     _, nearest = cKDTree(other_mm).query(points_mm)
     offsets = other_mm[nearest] - points_mm
     along = offsets @ axis
@@ -85,9 +88,9 @@ def bridge_points_mm(
     for start, (offsets, across) in zip((a_mm, b_mm), sides, strict=True):
         near = across <= tolerance_mm
         start, offsets = np.asarray(start, float)[near], offsets[near]
-        length = np.linalg.norm(offsets, axis=1)
-        for n in np.unique(np.ceil(length / step_mm).astype(np.int64) + 1):
-            group = np.ceil(length / step_mm).astype(np.int64) + 1 == n
+        counts = np.ceil(np.linalg.norm(offsets, axis=1) / step_mm).astype(np.int64) + 1
+        for n in np.unique(counts):
+            group = counts == n
             t = np.linspace(0.0, 1.0, int(n))[:, None, None]
             segments.append((start[group][None] + t * offsets[group][None]).reshape(-1, 3))
     return np.concatenate(segments) if segments else np.zeros((0, 3))
