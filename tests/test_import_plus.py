@@ -31,7 +31,7 @@ from ultron.data.dataset import SweepDataset
 from ultron.data.geometry import pixel_to_world
 from ultron.data.plus import read_sequence
 from ultron.data.plus_import import downsample_frames, fit_image_plane
-from ultron.data.resolution import signal_columns
+from ultron.data.resolution import lit_column_range, signal_columns
 from ultron.errors import UltronError
 
 PLUS_DIR = SHARED / "data" / "plus-spine-phantom"
@@ -325,14 +325,20 @@ def _assert_plus_pixels(out: Path, rec, cal, frame: int, origin, pixels) -> None
         assert np.abs(_dataset_world(out, frame, c, r) - expected).max() < 1e-6
 
 
-def test_clip_rectangle(tmp_path: Path):
-    rec = recording()
-    cal = calibration()
-    config = write_config(tmp_path / "c.xml", cal, clip=((2, 3), (10, 6)))
+def _import_clipped(tmp_path: Path, rec: Recording, cal, clip) -> tuple[Path, SweepDataset]:
+    """``rec`` written as s.mha with a configuration clipping it to ``clip``, imported into
+    tmp_path/ds (the import must succeed): the dataset's folder and the dataset."""
+    config = write_config(tmp_path / "c.xml", cal, clip=clip)
     out = tmp_path / "ds"
     result = _import(write_mha(tmp_path / "s.mha", rec), config, out)
     assert result.exit_code == 0, result.output
-    data = SweepDataset.load(out)
+    return out, SweepDataset.load(out)
+
+
+def test_clip_rectangle(tmp_path: Path):
+    rec = recording()
+    cal = calibration()
+    out, data = _import_clipped(tmp_path, rec, cal, ((2, 3), (10, 6)))
     assert np.array_equal(data.sweeps[0].images, rec.frames[:, 3:9, 2:12])
     _assert_plus_pixels(out, rec, cal, 1, (2, 3), ((0, 0), (9, 5), (4, 2)))
 
@@ -381,11 +387,7 @@ def test_blank_columns_inside_a_clip_rectangle(tmp_path: Path):
     rec.frames[:, :, :4] = 0  # the clip (origin column 2) starts with two blank columns
     rec.frames[:, :, 10:] = 0
     cal = calibration()
-    config = write_config(tmp_path / "c.xml", cal, clip=((2, 3), (12, 6)))
-    out = tmp_path / "ds"
-    result = _import(write_mha(tmp_path / "s.mha", rec), config, out)
-    assert result.exit_code == 0, result.output
-    data = SweepDataset.load(out)
+    out, data = _import_clipped(tmp_path, rec, cal, ((2, 3), (12, 6)))
     assert np.array_equal(data.sweeps[0].images, rec.frames[:, 3:9, 4:10])
     clip = data.metadata["imports"]["s"]["clip"]
     assert clip == {"origin": [4, 3], "size": [6, 6]}
@@ -434,6 +436,9 @@ def test_signal_columns():
     frames[1, 2, 4] = 1
     frames[0, 0, 2] = 200
     assert signal_columns(frames) == (2, 5)
+    assert lit_column_range(np.array([False, True, False, True])) == (1, 4)
+    with pytest.raises(UltronError, match="lit"):
+        lit_column_range(frames)
     with pytest.raises(UltronError, match="frames"):
         signal_columns(frames[0])
 

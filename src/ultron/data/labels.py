@@ -10,7 +10,7 @@ seeded random phase, so that a small fraction still covers the whole sweep.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
 
 import numpy as np
@@ -141,6 +141,10 @@ class LabelledPixels:
 
     def __len__(self) -> int:
         return int(self.label.shape[0])
+
+    def take(self, index: np.ndarray) -> LabelledPixels:
+        """The pixels at ``index`` (integer indices or a boolean mask), every field alike."""
+        return LabelledPixels(*(getattr(self, f.name)[index] for f in fields(self)))
 
     def world_mm(self, dataset: SweepDataset, subset: np.ndarray | None = None) -> np.ndarray:
         """World positions (M, 3) float64 mm of these pixels (or of ``subset`` indices), each
@@ -325,11 +329,7 @@ def labelled_surface_pixels(
         if pick.size:
             above = sweep.labels[pixels.frame[pick], pixels.row[pick] - 1, pixels.col[pick]]
             bone_above[pick] = above == LABEL_TARGET
-    top = ~bone_above
-    return LabelledPixels(
-        pixels.sweep_index[top], pixels.frame[top], pixels.row[top], pixels.col[top],
-        pixels.label[top],
-    )  # fmt: skip
+    return pixels.take(~bone_above)
 
 
 def labelled_surface_points_mm(

@@ -125,7 +125,16 @@ def signal_columns(frames: np.ndarray) -> tuple[int, int]:
     frames = np.asarray(frames)
     if frames.ndim != 3:
         raise argument_error("frames", f"expected (N, H, W) frames, got shape {frames.shape}")
-    lit = np.flatnonzero(frames.any(axis=(0, 1)))
-    if lit.size == 0:
-        return 0, int(frames.shape[2])
-    return int(lit[0]), int(lit[-1]) + 1
+    return lit_column_range(frames.any(axis=(0, 1)))
+
+
+def lit_column_range(lit: np.ndarray) -> tuple[int, int]:
+    """[start, stop) spanning the true entries of the (W,) column mask ``lit`` (a column with
+    signal in some frame: :func:`signal_columns`); (0, W) when none is true."""
+    lit = np.asarray(lit)
+    if lit.ndim != 1:
+        raise argument_error("lit", f"expected a (W,) column mask, got shape {lit.shape}")
+    columns = np.flatnonzero(lit)
+    if columns.size == 0:
+        return 0, int(lit.shape[0])
+    return int(columns[0]), int(columns[-1]) + 1

@@ -111,13 +111,19 @@ def bridged_labelled_surface_mm(
     if pixels is None or selection is None:
         return np.zeros((0, 3))
     points = pixels.world_mm(dataset)
+    order = np.lexsort((pixels.frame, pixels.sweep_index))  # grouped by sweep, then frame
+    keys = np.stack([pixels.sweep_index[order], pixels.frame[order]], axis=1)
+    firsts = np.flatnonzero(np.r_[True, np.any(keys[1:] != keys[:-1], axis=1)])
+    by_frame = {
+        (int(s), int(f)): group
+        for (s, f), group in zip(keys[firsts], np.split(points[order], firsts[1:]), strict=True)
+    }
     parts = [points]
     for sweep_index, sweep in enumerate(dataset.sweeps):
         frames = np.sort(selection.frames.get(sweep.name, np.zeros(0, np.int64)))
-        mine = pixels.sweep_index == sweep_index
         for first, second in itertools.pairwise(frames):
-            a, b = points[mine & (pixels.frame == first)], points[mine & (pixels.frame == second)]
-            if len(a) and len(b):  # a selected frame without bone between them breaks the run
+            a, b = by_frame.get((sweep_index, int(first))), by_frame.get((sweep_index, int(second)))
+            if a is not None and b is not None:  # a selected frame without bone breaks the run
                 axes = sweep.probe_to_world[[first, second], :3, 2]
                 parts.append(bridge_points_mm(a, b, axes[0], axes[1], tolerance_mm, step_mm))
     return np.concatenate(parts)

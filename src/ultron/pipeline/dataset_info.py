@@ -17,7 +17,7 @@ import numpy as np
 from ultron.data.dataset import SweepDataset
 from ultron.data.geometry import field_of_view_bounds_mm
 from ultron.data.outliers import PoseOutlier, pose_outliers
-from ultron.data.resolution import signal_columns
+from ultron.data.resolution import lit_column_range
 from ultron.data.units import units_warnings
 from ultron.mesh.export import load_mesh
 
@@ -101,7 +101,5 @@ def dataset_info(dataset_dir: str | Path) -> DatasetInfo:
         n_labelled=sum(len(s.labelled_frames) for s in data.sweeps),
         bounds_mm=(tuple(lo), tuple(hi)),  # type: ignore[arg-type]
         outliers=tuple(pose_outliers(data)),
-        lit_columns=signal_columns(
-            np.stack([s.images.any(axis=(0, 1)) for s in data.sweeps]).any(axis=0)[None, None]
-        ),
+        lit_columns=lit_column_range(np.any([s.images.any(axis=(0, 1)) for s in data.sweeps], 0)),
     )

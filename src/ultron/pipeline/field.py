@@ -295,8 +295,9 @@ def render_lines(
     height, width = result.frame_shape
     what = "expected" if expected else f"seed {seed}"
     maps = f" (+ θ {list(result.channels)} and T maps)" if len(result.paths) > 1 else ""
-    lines = [f"rendered {result.frames} frames of {height}×{width} ({what}) to {result.paths[0]}"]
-    lines[0] += maps
+    lines = [
+        f"rendered {result.frames} frames of {height}×{width} ({what}) to {result.paths[0]}{maps}"
+    ]
     progress, warnings = result.fit_progress, []
     if progress is not None and not progress.finished:
         warnings.append(

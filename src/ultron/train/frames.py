@@ -11,7 +11,7 @@ import torch
 import torch.nn.functional as F
 
 from ultron.data.dataset import ProbeGeometry, SweepDataset
-from ultron.data.resolution import signal_columns
+from ultron.data.resolution import lit_column_range
 from ultron.errors import argument_error
 from ultron.train.losses import psnr
 from ultron.train.visibility import confidence_maps
@@ -95,7 +95,7 @@ class FrameSet:
     confidence: torch.Tensor | None = None  # (N, H, W) float32 confidence maps, when asked
     #: The columns [start, stop) in which some frame has signal (None: all). The others are 0
     #: in every frame, never insonified: no patch is drawn from them and no check scores them
-    #: (:func:`ultron.data.resolution.signal_columns`).
+    #: (:func:`ultron.data.resolution.lit_column_range`).
     lit_columns: tuple[int, int] | None = None
 
     @property
@@ -131,7 +131,7 @@ class FrameSet:
         train = np.setdiff1d(np.arange(images.shape[0]), held)
         if train.size == 0:
             raise argument_error("holdout_every", "no training frame is left")
-        lit = signal_columns(images.amax(dim=(0, 1)).numpy()[None, None])
+        lit = lit_column_range(images.amax(dim=(0, 1)).numpy() != 0)
         return cls(
             images, poses, probe, torch.as_tensor(train), torch.as_tensor(held), lit_columns=lit
         )
@@ -151,8 +151,8 @@ def copy_baselines(frames: FrameSet, limit: int | None = None) -> dict[str, floa
     (``mean_frame``) and by the training frame whose probe origin lies nearest
     (``nearest_frame``). A field that generalises across frames scores above them; one that
     only reproduces its training frames does not. ``black_frame`` is what an all-black image
-    scores: a fit that never left its black start scores about that. Scored on the lit columns, as the field's
-    checks are. Empty without held-out frames."""
+    scores: a fit that never left its black start scores about that. Scored on the lit
+    columns, as the field's checks are. Empty without held-out frames."""
     held = checked_subset(frames.holdout_index, limit)
     if held.numel() == 0:
         return {}
