@@ -104,6 +104,9 @@ def tiny_config(**changes) -> BenchmarkConfig:
         "on": replace(on, meshing=ultron.meshing),
         "metrics": MetricsConfig(n_points=2000, repeats=1),
         "cell_reports": False,  # each run's report.html: tests/test_report.py
+        # 3 labelled frames of 24: the per-phantom draw (row 2, 8; column 0) leaves this tiny
+        # fit without a surface; the draw itself: test_each_phantom_labels_its_own_frames
+        "label_selection": "shared",
     }  # fmt: skip
     settings.update(changes)
     return BenchmarkConfig(**settings)
@@ -409,6 +412,55 @@ def test_plan_shares_runs_and_builds_robustness_datasets(tmp_path: Path):
     quiet = plan_benchmark(quick_config(cell_reports=False), tmp_path)
     assert not any(getattr(t.job, "report", False) for t in quiet.tasks.values())
     assert quick_config(cell_reports=False).settings() == quick_config().settings()
+
+
+def test_each_phantom_labels_its_own_frames(tmp_path: Path, tiny_l3: Path):
+    """A share of the frames is drawn per phantom × seed; with the same sweep length, the seed
+    alone labelled the same frame indices on every phantom (the "shared" setting)."""
+    from ultron.benchmark.pipeline import check_out_dir
+    from ultron.benchmark.plan import selection_seed
+    from ultron.data.dataset import SweepDataset
+    from ultron.data.labels import select_label_frames
+
+    assert selection_seed("L3", 0) == selection_seed("L3", 0)
+    seeds = {selection_seed(p, s) for p in ("L2", "L3", "L3b", "L4", "condyle") for s in range(3)}
+    assert len(seeds) == 15 and all(0 <= s < 2**32 for s in seeds)
+    config = BenchmarkConfig(phantoms=("L2", "L3"), seeds=2)
+    plan = plan_benchmark(config, tmp_path)
+
+    def seed_of(task_id: str) -> int:
+        job = plan.tasks[task_id].job
+        return job.seed if isinstance(job, FinetuneJob) else job.request.seed
+
+    for phantom in ("L2", "L3"):
+        for seed in (0, 1):
+            drawn = selection_seed(phantom, seed)
+            assert seed_of(f"run:{phantom}-s{seed}/ultron-10") == drawn
+            assert seed_of(f"run:{phantom}-s{seed}/compounding-10") == drawn
+            assert seed_of(f"run:{phantom}-s{seed}/on-100") == seed  # every frame: the seed
+            assert seed_of(f"run:{phantom}-s{seed}/ultron-auto-100") == seed
+    assert seed_of("run:L2-s1/finetune-1pct-100") == selection_seed("L2", 1)
+    shared = plan_benchmark(replace(config, label_selection="shared"), tmp_path)
+    assert shared.tasks["run:L2-s1/ultron-10"].job.request.seed == 1
+
+    # phantoms with the same sweeps: one frame index set with the seed alone, two when drawn
+    dataset = SweepDataset.load(tiny_l3)
+    frames = {
+        p: select_label_frames(dataset, 0.1, selection_seed(p, 0)).frames for p in ("L2", "L3")
+    }
+    assert any(not np.array_equal(frames["L2"][name], frames["L3"][name]) for name in frames["L2"])
+
+    # a DIR written before the setting existed used the shared selection: refused, unless shared
+    out = tmp_path / "old"
+    out.mkdir()
+    settings = json.loads(json.dumps(config.settings(), default=str))
+    del settings["label_selection"]
+    (out / BENCHMARK_JSON).write_text(json.dumps({"config": {"settings": settings}}))
+    with pytest.raises(UltronInputError, match="label_selection"):
+        check_out_dir(out, config)
+    check_out_dir(out, replace(config, label_selection="shared"))
+    with pytest.raises(UltronInputError, match="label_selection"):
+        BenchmarkConfig(label_selection="random")
 
 
 def toy_worker(task: Task) -> dict:

@@ -31,7 +31,14 @@ from typing import Any
 
 from ultron import atomic
 from ultron.benchmark import stage1
-from ultron.benchmark.plan import TABLE1, BenchmarkConfig, Plan, Task, plan_benchmark
+from ultron.benchmark.plan import (
+    LEGACY_SETTINGS,
+    TABLE1,
+    BenchmarkConfig,
+    Plan,
+    Task,
+    plan_benchmark,
+)
 from ultron.benchmark.ray_executor import check_executor
 from ultron.benchmark.runner import Outcome, default_threads, run_tasks
 from ultron.benchmark.tables import (
@@ -88,6 +95,7 @@ def check_out_dir(out: Path, config: BenchmarkConfig) -> None:
     except (OSError, ValueError, KeyError, TypeError):
         return  # unreadable or older: the per-task checks still guard datasets and fields
     current = json.loads(json.dumps(config.settings(), default=str))
+    saved = {**LEGACY_SETTINGS, **saved}
     differing = sorted(k for k in current if k in saved and saved[k] != current[k])
     if differing:
         raise UltronInputError(

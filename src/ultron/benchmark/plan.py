@@ -15,14 +15,24 @@ is Table 1's UltrON (10%) cell of L2; the robustness "default" rows are Table 1'
 it is computed once. Tasks form a graph: ``simulate`` → ``field`` → the cells that need a field
 (UltrON, UltrON w/o loss); RoCoSDF, ON and compounding need only the simulated dataset; the
 fine-tuning cells need L2's field and the L3 UltrON (10%) cell of the same seed.
+
+Which frames a cell labels: a row that uses a share of the annotated frames (UltrON (10%),
+compounding (10%), the fine-tuning's 1 %, …) draws them with :func:`selection_seed` of its phantom
+and seed (``label_selection="per-phantom"``, the default), so that every phantom × seed labels
+its own frames. With the seed alone (``"shared"``, the benchmark before 2026-11-28) every phantom's
+60-frame sweeps labelled the same frame indices, so the three seeds were three selections shared
+by all five phantoms. Rows that use every frame keep the seed itself (it only seeds training).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import zlib
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from ultron.data.auto_labels import AutoLabelConfig
 from ultron.device import resolve_device
@@ -162,6 +172,8 @@ class BenchmarkConfig:
     robust_annotation: AnnotationConfig = field(default_factory=_robust_annotation)
     robust_tracking: TrackingNoise = field(default_factory=_robust_tracking)
     auto_labels: AutoLabelConfig = field(default_factory=AutoLabelConfig)
+    #: How a cell's labelled frames are drawn (module doc): "per-phantom" or "shared".
+    label_selection: str = "per-phantom"
 
     def __post_init__(self) -> None:
         phantoms = self.phantoms
@@ -192,12 +204,17 @@ class BenchmarkConfig:
                 "preset", f"expected one of {ROCOSDF_PRESETS}, got {self.rocosdf_preset!r}"
             )
         resolve_device(self.device, "device")
+        if self.label_selection not in LABEL_SELECTIONS:
+            raise argument_error(
+                "label_selection",
+                f"expected one of {LABEL_SELECTIONS}, got {self.label_selection!r}",
+            )
 
     def settings(self) -> dict[str, Any]:
         """The settings that shape a cell's result (a resumed DIR must have been made with
         the same ones); phantoms, seeds, jobs and the tables chosen only add or drop cells."""
         keep = ("rocosdf_preset", "simulation", "field_fit", "ultron", "on", "metrics")
-        keep += ("auto_labels",)
+        keep += ("auto_labels", "label_selection")
         data = {name: _plain(getattr(self, name)) for name in keep}
         if self.robustness:
             data["robust_annotation"] = _plain(self.robust_annotation)
@@ -207,6 +224,20 @@ class BenchmarkConfig:
     def to_dict(self) -> dict[str, Any]:
         """Every setting as plain JSON-able data."""
         return _plain(self)
+
+
+#: The ways a cell's labelled frames can be drawn (module doc).
+LABEL_SELECTIONS = ("per-phantom", "shared")
+#: Settings that DIRs written before the setting existed hold implicitly.
+LEGACY_SETTINGS = {"label_selection": "shared"}
+
+
+def selection_seed(phantom: str, seed: int) -> int:
+    """The seed that draws ``phantom``'s labelled frames for benchmark seed ``seed``: a
+    32-bit draw from ``np.random.SeedSequence([seed, crc32(phantom)])``, so that phantoms with
+    sweeps of the same length do not label the same frame indices."""
+    state = np.random.SeedSequence([int(seed), zlib.crc32(phantom.encode())])
+    return int(state.generate_state(1, np.uint32)[0])
 
 
 def _plain(value: Any) -> Any:
@@ -465,20 +496,23 @@ class _Planner:
         sim_id, field_id = self.dataset(spec)
         config, out = self.config, str(self.out / "runs" / spec.name / row.slug)
         dataset_dir, field_dir = str(spec.dataset_dir(self.out)), str(spec.field_dir(self.out))
+        seed = spec.seed  # a share of the frames: drawn per phantom (module doc)
+        if row.label_fraction < 1 and config.label_selection == "per-phantom":
+            seed = selection_seed(spec.phantom, spec.seed)
         if row.finetune_iters is not None:
             if model_task is None:
                 raise argument_error("model_task", "a fine-tuning row needs its model's task")
             model_dir = self.plan.tasks[model_task].job.out
             job: Any = FinetuneJob(
                 model_dir, dataset_dir, field_dir, row.label_fraction, row.finetune_iters,
-                spec.seed, out, config.ultron, config.metrics, config.device, config.cell_reports,
+                seed, out, config.ultron, config.metrics, config.device, config.cell_reports,
             )  # fmt: skip
             deps: tuple[str, ...] = (field_id, model_task)
         else:
             request = ReconstructionRequest(
                 method=row.method,
                 label_fraction=row.label_fraction,
-                seed=spec.seed,
+                seed=seed,
                 method_config=get_method(row.method).config_of(config),
                 metrics=config.metrics,
                 device=config.device,
