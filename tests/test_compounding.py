@@ -108,6 +108,19 @@ def test_pixel_values_take_each_pixel_from_its_own_frame():
     assert pixel_values(dataset, empty, config).shape == (0,)
 
 
+def test_frame_groups_by_hand():
+    from ultron.data.labels import LabelledPixels
+
+    sweep, frame = np.array([1, 0, 1, 0, 1]), np.array([2, 3, 2, 0, 0])
+    pixels = LabelledPixels(sweep, frame, np.zeros(5, np.int64), np.zeros(5, np.int64),
+                            np.zeros(5, np.uint8))  # fmt: skip
+    groups = pixels.frame_groups()
+    assert list(groups) == [(0, 0), (0, 3), (1, 0), (1, 2)]
+    assert [g.tolist() for g in groups.values()] == [[3], [1], [4], [0, 2]]
+    empty = LabelledPixels(*(np.zeros(0, np.int64) for _ in range(4)), np.zeros(0, np.uint8))
+    assert empty.frame_groups() == {}
+
+
 @pytest.fixture(scope="module")
 def band_dataset() -> SweepDataset:
     """Frames in x–y planes every 8 mm in z; a 2 mm band of bone labels at depth 10–12 mm

@@ -146,6 +146,17 @@ class LabelledPixels:
         """The pixels at ``index`` (integer indices or a boolean mask), every field alike."""
         return LabelledPixels(*(getattr(self, f.name)[index] for f in fields(self)))
 
+    def frame_groups(self) -> dict[tuple[int, int], np.ndarray]:
+        """The pixels' indices grouped by frame: {(sweep index, frame): ascending indices}, in
+        (sweep, frame) order (one stable sort)."""
+        if len(self) == 0:
+            return {}
+        order = np.lexsort((self.frame, self.sweep_index))
+        keys = np.stack([self.sweep_index[order], self.frame[order]], axis=1)
+        firsts = np.flatnonzero(np.r_[True, np.any(keys[1:] != keys[:-1], axis=1)])
+        groups = np.split(order, firsts[1:])
+        return {(int(s), int(f)): g for (s, f), g in zip(keys[firsts], groups, strict=True)}
+
     def world_mm(self, dataset: SweepDataset, subset: np.ndarray | None = None) -> np.ndarray:
         """World positions (M, 3) float64 mm of these pixels (or of ``subset`` indices), each
         through its own frame's ``probe_to_world``."""

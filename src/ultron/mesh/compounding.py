@@ -157,10 +157,7 @@ def pixel_values(
     if len(pixels) == 0:
         return values
     # the pixels grouped by (sweep, frame) once; the frames' distance transforms on threads
-    order = np.lexsort((pixels.frame, pixels.sweep_index))
-    keys = np.stack([pixels.sweep_index[order], pixels.frame[order]], axis=1)
-    starts = np.flatnonzero(np.r_[True, (keys[1:] != keys[:-1]).any(axis=1)])
-    groups = np.split(order, starts[1:])
+    groups = list(pixels.frame_groups().values())
 
     def frame_values(at: np.ndarray) -> np.ndarray:
         sweep = dataset.sweeps[int(pixels.sweep_index[at[0]])]

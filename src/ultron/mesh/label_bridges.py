@@ -57,7 +57,9 @@ def across_plane_mm(
         raise argument_error("other_mm", f"expected a non-empty (Q, 3) array, got {other_mm.shape}")
     norm = float(np.linalg.norm(axis)) if axis.shape == (3,) else math.nan
     if not (math.isfinite(norm) and norm > 0.5):
-        raise argument_error("elevation_axis", f"expected a unit 3-vector, got {axis!r}")
+        raise argument_error(
+            "elevation_axis", f"expected a finite 3-vector of length about 1 (> 0.5), got {axis!r}"
+        )
     axis = axis / norm
     _, nearest = cKDTree(other_mm).query(points_mm)
     offsets = other_mm[nearest] - points_mm
@@ -111,13 +113,7 @@ def bridged_labelled_surface_mm(
     if pixels is None or selection is None:
         return np.zeros((0, 3))
     points = pixels.world_mm(dataset)
-    order = np.lexsort((pixels.frame, pixels.sweep_index))  # grouped by sweep, then frame
-    keys = np.stack([pixels.sweep_index[order], pixels.frame[order]], axis=1)
-    firsts = np.flatnonzero(np.r_[True, np.any(keys[1:] != keys[:-1], axis=1)])
-    by_frame = {
-        (int(s), int(f)): group
-        for (s, f), group in zip(keys[firsts], np.split(points[order], firsts[1:]), strict=True)
-    }
+    by_frame = {key: points[index] for key, index in pixels.frame_groups().items()}
     parts = [points]
     for sweep_index, sweep in enumerate(dataset.sweeps):
         frames = np.sort(selection.frames.get(sweep.name, np.zeros(0, np.int64)))
