@@ -330,6 +330,33 @@ def test_distance_figure_reads_the_shift():
     assert _share_near(same, at[1.0]) == 0.0 and _share_near(same, at[0.0]) > 0.002
 
 
+def test_points_are_drawn_nearest_first():
+    """Hand-worked raster: on a 20 mm view of 300 cells a point at x = z = 0 covers cells
+    149–150 on both axes (⌊10 / (20 / 300) − 0.5⌋ = 149, 2 × 2 cells). Of two points there,
+    the one nearer along the view's direction (+y: the smaller y) shows; a point at (8, 8)
+    covers 269–270; every other cell is transparent (alpha 0, or NaN for values)."""
+    from ultron.report.figures import RASTER_SIDE, VIEWS, _draw_points
+    from ultron.report.plotting import new_figure
+
+    assert RASTER_SIDE == 300  # the cells below are worked for 300
+    _, direction, h, v = VIEWS[0]
+    points = np.array([[0.0, 5.0, 0.0], [0.0, -5.0, 0.0], [8.0, 0.0, 8.0]])
+    limits = ((-10.0, 10.0), (-10.0, 10.0))
+    ax = new_figure(3.0, 3.0).add_subplot()
+    rgb = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, 1.0, 0.0]])
+    image = np.asarray(_draw_points(ax, points, direction, h, v, limits, c=rgb).get_array())
+    assert image.shape == (300, 300, 4)
+    np.testing.assert_array_equal(image[149:151, 149:151], np.tile([0.0, 0.0, 1.0, 1.0], (2, 2, 1)))
+    np.testing.assert_array_equal(image[269:271, 269:271], np.tile([0.0, 1.0, 0.0, 1.0], (2, 2, 1)))
+    assert (image[..., 3] > 0).sum() == 8
+    drawn = _draw_points(ax, points, direction, h, v, limits, c=np.array([1.0, 2.0, 3.0]),
+                         cmap="viridis", vmin=0.0, vmax=3.0)  # fmt: skip
+    values = np.ma.filled(drawn.get_array(), np.nan)
+    np.testing.assert_array_equal(values[149:151, 149:151], 2.0)
+    np.testing.assert_array_equal(values[269:271, 269:271], 3.0)
+    assert np.isfinite(values).sum() == 8
+
+
 def test_a_runs_record_round_trips(tiny_run):
     written = json.loads((tiny_run["run"] / "run.json").read_text(encoding="utf-8"))
     record = RunRecord.read(tiny_run["run"])

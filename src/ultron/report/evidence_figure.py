@@ -58,15 +58,17 @@ def surface_evidence_figure(
     fig = new_figure(3.4 * 2 + 1.4, sum(3.4 * r + 0.8 for r in ratios) + 0.7)
     grid = fig.add_gridspec(len(VIEWS), 2, height_ratios=ratios)
     colours = np.where(flags[:, None], OBSERVED_RGB[None, :], INFERRED_RGB[None, :])
-    scatter = None
+    mappable = None
     for row, (view_title, direction, h, v) in enumerate(VIEWS):
         ax = fig.add_subplot(grid[row, 0])
-        _draw_points(ax, vertices, direction, h, v, c=colours)
+        _draw_points(ax, vertices, direction, h, v, limits[row], c=colours)
         _style_axes(ax, limits[row], h, v, f"observed / inferred: {view_title}")
         ax = fig.add_subplot(grid[row, 1])
         if finite.any():
-            scatter = _draw_points(ax, vertices[finite], direction, h, v, c=distance[finite],
-                                   cmap="magma_r", vmin=0.0, vmax=vmax)  # fmt: skip
+            mappable = _draw_points(
+                ax, vertices[finite], direction, h, v, limits[row], c=distance[finite],
+                cmap="magma_r", vmin=0.0, vmax=vmax,
+            )  # fmt: skip
         _style_axes(ax, limits[row], h, v, f"distance to labelled bone: {view_title}")
     share = float(flags.mean())
     handles = [
@@ -76,9 +78,9 @@ def surface_evidence_figure(
     fig.legend(handles=handles, loc="lower left", fontsize=8, frameon=False, ncol=2)
     top_title(fig, title)
     place_grid(fig, len(VIEWS), 2, (0.6, 0.15, 0.75, 0.65), (0.65, 0.6), 0.86)
-    if scatter is not None:
+    if mappable is not None:
         cax = fig.add_axes((0.89, 0.12, 0.022, 0.76))
-        bar = fig.colorbar(scatter, cax=cax, extend="max")
+        bar = fig.colorbar(mappable, cax=cax, extend="max")
         bar.set_label("distance to the nearest labelled bone pixel (mm)", fontsize=8)
         bar.ax.tick_params(labelsize=7)
     return figure_png(fig)

@@ -46,13 +46,50 @@ def _shade(normals: np.ndarray, direction: np.ndarray) -> np.ndarray:
     return 0.3 + 0.6 * np.abs(normals @ direction)
 
 
-def _draw_points(ax, points: np.ndarray, direction: np.ndarray, h: int, v: int, **scatter):
-    """Scatter ``points`` projected on axes (h, v), far points first (painter's algorithm)."""
+#: Cells along the longer side of the raster a point cloud is drawn into: about a panel's own
+#: pixels (3.4 in at 90 dpi, 306). Each point covers 2 × 2 cells, a dot about as wide as the
+#: scatter markers it replaced (1.1 pt), so that a lattice of mesh vertices leaves no gaps.
+RASTER_SIDE = 300
+_FOOTPRINT = ((0, 0), (1, 0), (0, 1), (1, 1))
+
+
+def _draw_points(
+    ax, points: np.ndarray, direction: np.ndarray, h: int, v: int, limits: tuple[tuple, tuple],
+    c: np.ndarray, **colour,
+):  # fmt: skip
+    """Draw ``points`` projected on axes (h, v) within ``limits`` into a raster of
+    :data:`RASTER_SIDE` cells on its longer side, each point on 2 × 2 cells: a cell shows the
+    nearest point along ``direction`` that covers it (a z-buffer: what the painter's algorithm
+    showed), a cell without one is transparent. ``c`` is (N, 3) RGB, or (N,) values coloured
+    through ``colour``'s ``cmap``, ``vmin`` and ``vmax``. Returns the ``AxesImage`` (the colour
+    bar's mappable). One image, not a marker per point: drawing a scatter of 20 000–30 000
+    points took most of a report's figure time."""
+    (x0, x1), (y0, y1) = limits
+    cell = max(x1 - x0, y1 - y0) / RASTER_SIDE
+    nx, ny = max(1, math.ceil((x1 - x0) / cell)), max(1, math.ceil((y1 - y0) / cell))
+    ix = np.floor((points[:, h] - x0) / cell - 0.5).astype(np.int64)  # the 2 × 2 block's corner
+    iy = np.floor((points[:, v] - y0) / cell - 0.5).astype(np.int64)
     depth = points @ direction
-    order = np.argsort(-depth, kind="stable")  # largest depth (farthest) drawn first
-    colours = scatter.pop("c")
-    colours = colours[order]
-    return ax.scatter(points[order, h], points[order, v], c=colours, s=1.2, linewidths=0, **scatter)
+    pixel = np.concatenate([
+        np.clip(iy + dy, 0, ny - 1) * nx + np.clip(ix + dx, 0, nx - 1) for dx, dy in _FOOTPRINT
+    ])  # fmt: skip
+    source = np.tile(np.arange(len(points)), len(_FOOTPRINT))
+    order = np.lexsort((depth[source], pixel))  # by cell, nearest (least depth) first
+    pixel_sorted = pixel[order]
+    first = order[np.r_[True, pixel_sorted[1:] != pixel_sorted[:-1]]]
+    cells, nearest = pixel[first], source[first]
+    values = np.asarray(c)
+    if values.ndim == 2:  # RGB: an RGBA image, alpha 0 where no point falls
+        image = np.zeros((ny * nx, 4), dtype=np.float32)
+        image[cells, :3] = values[nearest]
+        image[cells, 3] = 1.0
+        image = image.reshape(ny, nx, 4)
+    else:  # values: NaN where no point falls (drawn transparent)
+        image = np.full(ny * nx, np.nan, dtype=np.float32)
+        image[cells] = values[nearest]
+        image = image.reshape(ny, nx)
+    extent = (x0, x0 + nx * cell, y0, y0 + ny * cell)
+    return ax.imshow(image, origin="lower", extent=extent, interpolation="nearest", **colour)
 
 
 def _view_limits(clouds: Sequence[np.ndarray], h: int, v: int) -> tuple[tuple, tuple]:
@@ -91,7 +128,7 @@ def _check_distance_figure_args(
 
 
 def _distance_heading_and_bar(
-    fig, title: str, distances, scatter, grid_of_views: bool, clip_mm: float | None, vmax
+    fig, title: str, distances, mappable, grid_of_views: bool, clip_mm: float | None, vmax
 ) -> None:
     """The figure's heading (with the distance summary) and, with distances, the colour bar."""
     heading = title if title else "reconstruction"
@@ -105,17 +142,17 @@ def _distance_heading_and_bar(
     top_title(fig, heading)
     if grid_of_views:  # rows: views; columns: reference, reconstruction
         place_grid(fig, len(VIEWS), 2, (0.6, 0.15, 0.45, 0.65), (0.65, 0.6),
-                   0.86 if scatter is not None else 1.0)  # fmt: skip
+                   0.86 if mappable is not None else 1.0)  # fmt: skip
     else:
         fig.subplots_adjust(left=0.07, right=0.97, bottom=0.15, top=0.84, wspace=0.25)
-    if scatter is not None:
+    if mappable is not None:
         which = (
             f"clipped at {clip_mm:g} mm"
             if clip_mm is not None
             else (f"clipped at the 95th percentile, {vmax:.2f} mm")
         )
         cax = fig.add_axes((0.89, 0.12, 0.022, 0.76))
-        bar = fig.colorbar(scatter, cax=cax, extend="max")
+        bar = fig.colorbar(mappable, cax=cax, extend="max")
         bar.set_label(f"distance to reference (mm), {which}", fontsize=8)
         bar.ax.tick_params(labelsize=7)
 
@@ -161,21 +198,20 @@ def mesh_distance_figure(
     vmax = clip_mm
     if distances is not None and clip_mm is None:
         vmax = max(float(np.percentile(distances, 95)), 1e-3)
-    scatter, axes = None, []
+    mappable, axes = None, []
     for row, (view_title, direction, h, v) in enumerate(VIEWS):
         for col, (name, pts, nrm) in enumerate(columns):
             ax = fig.add_subplot(grid[row, col] if n_cols > 1 else grid[0, row])
             axes.append(ax)
             if name == "reconstruction" and distances is not None:
-                scatter = _draw_points(
-                    ax, pts, direction, h, v, c=distances, cmap="viridis", vmin=0.0, vmax=vmax
-                )
+                mappable = _draw_points(ax, pts, direction, h, v, limits[row], c=distances,
+                                       cmap="viridis", vmin=0.0, vmax=vmax)  # fmt: skip
             else:
                 tint = _GREY if name == "reference" else _BLUE_GREY
                 rgb = np.clip(_shade(nrm, direction)[:, None] * tint[None, :], 0.0, 1.0)
-                _draw_points(ax, pts, direction, h, v, c=rgb)
+                _draw_points(ax, pts, direction, h, v, limits[row], c=rgb)
             _style_axes(ax, limits[row], h, v, f"{name}: {view_title}")
-    _distance_heading_and_bar(fig, title, distances, scatter, n_cols > 1, clip_mm, vmax)
+    _distance_heading_and_bar(fig, title, distances, mappable, n_cols > 1, clip_mm, vmax)
     return figure_png(fig)
 
 
