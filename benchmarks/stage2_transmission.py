@@ -2,7 +2,7 @@
 
 For each tuning dataset (a phantom and a seed the benchmark does not score, simulated with the
 benchmark's imperfections: tracking 0.3 mm / 0.3° per axis, 0.3 mm edge jitter, 2 % coarse and
-5 % unannotated frames — ``ultron.benchmark.plan.BENCHMARK_TRACKING`` / ``BENCHMARK_ANNOTATION``)
+5 % unannotated frames — ``ultron.benchmark.config.BENCHMARK_TRACKING`` / ``BENCHMARK_ANNOTATION``)
 it fits the acoustic field once and runs, through the CLI with default options:
 
 * ``ultron reconstruct --method ultron --oracle-transmission`` — the simulator's true T in the
@@ -55,7 +55,7 @@ def parse_args() -> argparse.Namespace:
 
 
 def simulate_command(phantom: str, seed: int, out: Path) -> list[str]:
-    from ultron.benchmark.plan import BENCHMARK_ANNOTATION, BENCHMARK_TRACKING
+    from ultron.benchmark.config import BENCHMARK_ANNOTATION, BENCHMARK_TRACKING
 
     return [
         "ultron", "simulate", "--phantom", phantom, "--seed", str(seed), "--out", str(out),

@@ -26,13 +26,8 @@ from ultron.benchmark import (
     run_benchmark,
     run_tasks,
 )
-from ultron.benchmark.plan import (
-    CellEntry,
-    FinetuneJob,
-    ReconstructJob,
-    SimulateJob,
-    robustness_row,
-)
+from ultron.benchmark.config import robustness_row
+from ultron.benchmark.plan import CellEntry, FinetuneJob, ReconstructJob, SimulateJob
 from ultron.benchmark.tables import (
     aggregate,
     cell_figures,
@@ -417,8 +412,8 @@ def test_plan_shares_runs_and_builds_robustness_datasets(tmp_path: Path):
 def test_each_phantom_labels_its_own_frames(tmp_path: Path, tiny_l3: Path):
     """A share of the frames is drawn per phantom × seed; with the same sweep length, the seed
     alone labelled the same frame indices on every phantom (the "shared" setting)."""
+    from ultron.benchmark.config import selection_seed
     from ultron.benchmark.pipeline import check_out_dir
-    from ultron.benchmark.plan import selection_seed
     from ultron.data.dataset import SweepDataset
     from ultron.data.labels import select_label_frames
 

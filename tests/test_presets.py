@@ -8,7 +8,7 @@ import pytest
 import torch
 from typer.testing import CliRunner
 
-from ultron.benchmark.plan import BenchmarkConfig, benchmark_config, quick_config
+from ultron.benchmark.config import BenchmarkConfig, benchmark_config, quick_config
 from ultron.cli.main import app
 from ultron.device import ACCELERATOR_CHUNK_FACTOR, evaluation_chunk
 from ultron.errors import UltronInputError

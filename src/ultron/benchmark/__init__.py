@@ -13,6 +13,15 @@ Modules: ``plan`` (settings, rows, task graph), ``runner`` (tasks, process pool)
 (``run_benchmark``, ``benchmark.json``).
 """
 
+from ultron.benchmark.config import (
+    ROBUSTNESS,
+    TABLE1,
+    TABLE1_ROWS,
+    TABLE2,
+    TABLE2_ROWS,
+    BenchmarkConfig,
+    quick_config,
+)
 from ultron.benchmark.paper import PAPER, paper_figures, paper_means
 from ultron.benchmark.pipeline import (
     BENCHMARK_JSON,
@@ -21,18 +30,7 @@ from ultron.benchmark.pipeline import (
     run_benchmark,
     tables_markdown,
 )
-from ultron.benchmark.plan import (
-    ROBUSTNESS,
-    TABLE1,
-    TABLE1_ROWS,
-    TABLE2,
-    TABLE2_ROWS,
-    BenchmarkConfig,
-    Plan,
-    Task,
-    plan_benchmark,
-    quick_config,
-)
+from ultron.benchmark.plan import Plan, Task, plan_benchmark
 from ultron.benchmark.runner import execute, run_tasks
 
 __all__ = [

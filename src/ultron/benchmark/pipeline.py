@@ -31,14 +31,8 @@ from typing import Any
 
 from ultron import atomic
 from ultron.benchmark import stage1
-from ultron.benchmark.plan import (
-    LEGACY_SETTINGS,
-    TABLE1,
-    BenchmarkConfig,
-    Plan,
-    Task,
-    plan_benchmark,
-)
+from ultron.benchmark.config import LEGACY_SETTINGS, TABLE1, BenchmarkConfig
+from ultron.benchmark.plan import Plan, Task, plan_benchmark
 from ultron.benchmark.ray_executor import check_executor
 from ultron.benchmark.runner import Outcome, default_threads, run_tasks
 from ultron.benchmark.tables import (

@@ -16,7 +16,8 @@ from typing import Any
 
 import numpy as np
 
-from ultron.benchmark.plan import DEFAULT, FieldJob, Plan
+from ultron.benchmark.config import DEFAULT
+from ultron.benchmark.plan import FieldJob, Plan
 from ultron.errors import UltronInputError
 from ultron.metrics.transmission import TARGET_RELATIONS, TARGETS, target_met
 from ultron.models.field_dir import read_transmission_check

@@ -17,8 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from ultron.benchmark.paper import PAPER_METRICS, paper_figures, paper_means
-from ultron.benchmark.plan import (
+from ultron.benchmark.config import (
     ANNOTATION,
     COMPOUNDING_10,
     DEFAULT,
@@ -38,9 +37,10 @@ from ultron.benchmark.plan import (
     TARGET_PHANTOM,
     ULTRON_5,
     ULTRON_10,
-    CellEntry,
     robustness_row,
 )
+from ultron.benchmark.paper import PAPER_METRICS, paper_figures, paper_means
+from ultron.benchmark.plan import CellEntry
 from ultron.report.tables import LABELS, format_mean_std
 
 TITLES = {

@@ -116,7 +116,7 @@ def benchmark(
     device = check_device(device)
 
     from ultron.benchmark import run_benchmark
-    from ultron.benchmark.plan import benchmark_config
+    from ultron.benchmark.config import benchmark_config
     from ultron.pipeline.presets import PIPELINE_PRESETS
 
     check_choice("--preset", preset, PIPELINE_PRESETS)
