@@ -30,7 +30,7 @@ from ultron.cli.main import app
 from ultron.data.dataset import SweepDataset
 from ultron.data.geometry import pixel_to_world
 from ultron.data.plus import read_sequence
-from ultron.data.plus_import import downsample_frames, fit_image_plane
+from ultron.data.plus_geometry import downsample_frames, fit_image_plane
 from ultron.data.resolution import lit_column_range, signal_columns
 from ultron.errors import UltronError
 
@@ -141,7 +141,7 @@ def test_real_file_frames_are_resampled_so_corners_land_where_plus_puts_them(rea
     """Issue 31, item 5: the grey level of every original corner pixel is imported at the rigid
     grid's pixel whose world point is PLUS's own placement of that corner (within 0.3 mm; by
     construction to 1e-6 mm), on every frame."""
-    from ultron.data.plus_import import rigid_to_image_pixels
+    from ultron.data.plus_geometry import rigid_to_image_pixels
 
     out, output = real_import
     assert "resampled onto the rigid grid" in output
@@ -151,7 +151,7 @@ def test_real_file_frames_are_resampled_so_corners_land_where_plus_puts_them(rea
     assert imports["resampled_to_rigid_grid"] is True
     fitted = np.array(imports["fitted_image_to_probe"])
     # the rigid grid's pixel (i', j') holds original pixel M·(i', j'): invert for the corners
-    from ultron.data.plus_import import ImagePlaneFit
+    from ultron.data.plus_geometry import ImagePlaneFit
 
     axes = fitted[:3, :2]
     spacing = tuple(float(s) for s in np.linalg.norm(axes, axis=0))
