@@ -13,6 +13,7 @@ from ultron.data.labels import (
     gather_labelled_pixels,
     labelled_surface_points_mm,
     select_label_frames,
+    selection_warnings,
     surface_outer_side,
 )
 from ultron.errors import UltronInputError
@@ -67,6 +68,25 @@ def test_full_fraction_takes_every_annotated_frame(dataset):
 
 def test_tiny_fraction_still_selects_one_frame(dataset):
     assert select_label_frames(dataset, 0.001, seed=0).n_frames == 1
+
+
+def test_a_sweep_left_without_labels_is_named(dataset):
+    """1 % of 147 annotated frames is 2 frames for 3 sweeps: by the largest remainder (a 0.82,
+    b 0.78, c 0.41) sweep c gets none; 3 / 147 = 0.0204 rounds up to 0.021, whose 4 frames
+    label each sweep. A sweep without annotation is not named."""
+    probe = dataset.probe
+    unannotated = Sweep("d", "row", np.zeros((2, 4, 5), np.uint8), np.stack([np.eye(4)] * 2))
+    with_blank = SweepDataset(probe, [*dataset.sweeps, unannotated])
+    selection = select_label_frames(with_blank, 0.01, seed=0)
+    assert selection.n_frames == 2 and len(selection.frames["c"]) == 0
+    assert selection_warnings(with_blank, selection) == [
+        "label fraction 0.01 selects 2 of 147 annotated frames for 3 annotated sweeps: c gets no"
+        " labelled frame; a label fraction of at least 0.021 labels one frame in each"
+    ]
+    enough = select_label_frames(with_blank, 0.021, seed=0)
+    assert min(len(f) for n, f in enough.frames.items() if n != "d") >= 1
+    assert selection_warnings(with_blank, enough) == []
+    assert selection_warnings(dataset, select_label_frames(dataset, 0.1, seed=0)) == []
 
 
 def test_gathered_pixels_skip_255(dataset):

@@ -69,6 +69,21 @@ def test_without_reference_no_metrics(tiny: Path, tmp_path: Path):
     _check_outputs(tmp_path / "out", with_metrics=False)
 
 
+def test_a_sweep_without_labelled_frames_is_warned_of(tiny: Path, tmp_path: Path):
+    """4 % of the 24 annotated frames is one frame: the other sweep gets none, and the run
+    says so (and which fraction labels both) before it goes on."""
+    warnings: list[str] = []
+    request = ReconstructionRequest(method="compounding", label_fraction=0.04, metrics=FAST_METRICS)
+    reconstruct(tiny, request, tmp_path / "out", warn=warnings.append)
+    run = _check_outputs(tmp_path / "out", with_metrics=True)
+    (labelled,) = [name for name, frames in run["selection"]["frames"].items() if frames]
+    (other,) = {"row", "column"} - {labelled}
+    assert [w for w in warnings if "label fraction" in w] == [
+        f"label fraction 0.04 selects 1 of 24 annotated frames for 2 annotated sweeps: {other}"
+        " gets no labelled frame; a label fraction of at least 0.084 labels one frame in each"
+    ]
+
+
 def test_ultron_end_to_end(tiny: Path, tmp_path: Path, monkeypatch):
     from dataclasses import replace
 

@@ -371,6 +371,7 @@ def finetune(
             update,
             allow_other_field=allow_other_field,
             max_memory_gib=max_memory,
+            warn=warning_line,
         )
     name = f"fine-tuned ({label_fraction:g}, {iters} iter)" if iters else "w/o fine-tuning"
     _print_summary({name: summary})

@@ -80,6 +80,24 @@ def select_label_frames(
     return FrameSelection(fraction=float(fraction), seed=int(seed), frames=frames)
 
 
+def selection_warnings(dataset: SweepDataset, selection: FrameSelection) -> list[str]:
+    """One line when ``selection`` leaves an annotated sweep without a labelled frame (the
+    fraction picks fewer frames than there are annotated sweeps): its views then inform the
+    surface only through the field, and the line says which fraction labels one frame of each."""
+    annotated = [s for s in dataset.sweeps if len(s.labelled_frames)]
+    empty = [s.name for s in annotated if len(selection.frames.get(s.name, ())) == 0]
+    if not empty:
+        return []
+    total = sum(len(s.labelled_frames) for s in annotated)
+    enough = math.ceil(len(annotated) / total * 1000) / 1000  # rounded up: one frame each
+    return [
+        f"label fraction {selection.fraction:g} selects {selection.n_frames} of {total} annotated"
+        f" frames for {len(annotated)} annotated sweeps: {', '.join(empty)}"
+        f" {'gets' if len(empty) == 1 else 'get'} no labelled frame; a label fraction of at"
+        f" least {enough:g} labels one frame in each"
+    ]
+
+
 def check_selection_has_bone(
     dataset: SweepDataset, selection: FrameSelection, where: str | Path = "dataset"
 ) -> None:

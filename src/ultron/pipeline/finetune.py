@@ -9,10 +9,11 @@ fine-tuned ``network.pt`` (itself a valid MODEL_DIR).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from ultron.data.labels import check_selection_has_bone, select_label_frames
+from ultron.data.labels import check_selection_has_bone, select_label_frames, selection_warnings
 from ultron.device import describe_device, resolve_device
 from ultron.methods.catalog import FINETUNE_METHOD
 from ultron.methods.finetune import FinetuneConfig, check_theta_model, finetune_ultron
@@ -35,6 +36,7 @@ def finetune(
     report: bool = True,
     allow_other_field: bool = False,
     max_memory_gib: float | None = None,
+    warn: Callable[[str], None] | None = None,
 ) -> dict[str, Any]:
     """Check everything cheap as ``reconstruct`` does (:func:`~ultron.pipeline.run.prepare_run`;
     DIR must be new, empty or an earlier ``finetune`` run), load MODEL_DIR's network and the
@@ -42,7 +44,8 @@ def finetune(
     (``out``, ``metrics``, ``timings_s``).
 
     A given ``field_dir`` must have been fitted on the new dataset unless
-    ``allow_other_field`` (see :func:`~ultron.pipeline.run.load_or_fit_field`)."""
+    ``allow_other_field`` (see :func:`~ultron.pipeline.run.load_or_fit_field`); ``warn`` is
+    told the label selection's warnings (:func:`~ultron.data.labels.selection_warnings`)."""
     timer = StageTimer()
     where = str(Path(model_dir) / NETWORK_FILE)
     to_fit = (field_config or FieldTrainConfig()) if field_dir is None else None
@@ -60,6 +63,9 @@ def finetune(
                 dataset, config.label_fraction, config.seed, dataset_dir
             )
             check_selection_has_bone(dataset, selection, dataset_dir)
+            if warn is not None:
+                for line in selection_warnings(dataset, selection):
+                    warn(line)
             truth = load_oracle_truth(visibility, dataset_dir, dataset)
     device = resolve_device(config.device, "device")
     with timer.stage("field"):

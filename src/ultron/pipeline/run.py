@@ -21,7 +21,11 @@ from typing import Any
 
 from ultron import atomic
 from ultron.data.dataset import SweepDataset
-from ultron.data.labels import check_selection_has_bone, select_label_frames
+from ultron.data.labels import (
+    check_selection_has_bone,
+    select_label_frames,
+    selection_warnings,
+)
 from ultron.data.units import units_warnings
 from ultron.device import describe_device, resolve_device
 from ultron.mesh.export import load_mesh, save_mesh, save_volume_nifti
@@ -217,7 +221,8 @@ def reconstruct(
         method.check_resources(dataset, config, selection, dataset_dir, max_memory_gib)
         if warn is not None:
             reference = references[0]
-            for line in units_warnings(dataset, None if reference is None else reference.vertices):
+            vertices = None if reference is None else reference.vertices
+            for line in selection_warnings(dataset, selection) + units_warnings(dataset, vertices):
                 warn(line)
         # the oracle's files (an input) before the field to fit (its memory and frame size)
         visibility = method.visibility(config)
