@@ -63,10 +63,11 @@ def finetune(
                 dataset, config.label_fraction, config.seed, dataset_dir
             )
             check_selection_has_bone(dataset, selection, dataset_dir)
+            truth = load_oracle_truth(visibility, dataset_dir, dataset)
+            # after the pre-flight checks: a refused run prints its error alone
             if warn is not None:
                 for line in selection_warnings(dataset, selection):
                     warn(line)
-            truth = load_oracle_truth(visibility, dataset_dir, dataset)
     device = resolve_device(config.device, "device")
     with timer.stage("field"):
         fitted, extra = load_or_fit_field(

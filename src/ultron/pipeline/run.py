@@ -219,17 +219,17 @@ def reconstruct(
         selection = select_label_frames(dataset, request.label_fraction, request.seed, dataset_dir)
         check_selection_has_bone(dataset, selection, dataset_dir)
         method.check_resources(dataset, config, selection, dataset_dir, max_memory_gib)
-        if warn is not None:
-            reference = references[0]
-            vertices = None if reference is None else reference.vertices
-            for line in selection_warnings(dataset, selection) + units_warnings(dataset, vertices):
-                warn(line)
         # the oracle's files (an input) before the field to fit (its memory and frame size)
         visibility = method.visibility(config)
         truth = None if visibility is None else load_oracle_truth(visibility, dataset_dir, dataset)
         if to_fit is not None:
             check_run_resources(dataset, dataset_dir, mesh=False, field_config=to_fit,
                                 max_memory_gib=max_memory_gib)  # fmt: skip
+        if warn is not None:  # after the pre-flight checks: a refused run prints its error alone
+            reference = references[0]
+            vertices = None if reference is None else reference.vertices
+            for line in selection_warnings(dataset, selection) + units_warnings(dataset, vertices):
+                warn(line)
     device = resolve_device(request.device, "device")
     fitted, extra = None, {"device": describe_device(device)}
     if method.needs_field:
