@@ -8,9 +8,9 @@ result = run_benchmark(quick_config(), "runs/bench", log=print)
 print(result.markdown)  # tables next to the paper's figures, targets met / MISSED
 ```
 
-Modules: ``plan`` (settings, rows, task graph), ``runner`` (tasks, process pool), ``tables``
-(aggregation, markdown, targets), ``paper`` (the published figures), ``pipeline``
-(``run_benchmark``, ``benchmark.json``).
+Modules: ``config`` (settings, rows), ``plan`` (task graph), ``runner`` (tasks, process
+pool), ``tables`` (aggregation, markdown, targets), ``paper`` (the published figures),
+``pipeline`` (``run_benchmark``, ``benchmark.json``).
 """
 
 from ultron.benchmark.config import (

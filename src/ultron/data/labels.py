@@ -82,8 +82,9 @@ def select_label_frames(
 
 def selection_warnings(dataset: SweepDataset, selection: FrameSelection) -> list[str]:
     """One line when ``selection`` leaves an annotated sweep without a labelled frame (the
-    fraction picks fewer frames than there are annotated sweeps): its views then inform the
-    surface only through the field, and the line says which fraction labels one frame of each."""
+    fraction picks fewer frames than there are annotated sweeps): no label of that sweep's
+    views reaches the method. The line names the sweeps and the fraction that labels one frame
+    of each."""
     annotated = [s for s in dataset.sweeps if len(s.labelled_frames)]
     empty = [s.name for s in annotated if len(selection.frames.get(s.name, ())) == 0]
     if not empty:
