@@ -41,30 +41,48 @@ def second_difference_system(band: np.ndarray) -> sparse.csr_matrix:
 
 def band_second_differences(keys: np.ndarray, shape: np.ndarray) -> sparse.csr_matrix:
     """Q = Σ_a D_aᵀ D_a (module doc) over the band whose voxels have the sorted C-order
-    ``keys`` in a box of ``shape``: the band need not be held densely (the tiled extraction)."""
+    ``keys`` in a box of ``shape``: the band need not be held densely (the tiled extraction).
+
+    Q's entries are written out rather than multiplied: with p(i), n(i) voxel i's band
+    neighbours along axis a and s_i = −2 + [no p(i)] + [no n(i)] its row's centre in D_a,
+
+        Q_ii += s_i² + [p(i)] + [n(i)],   Q_{i,n(i)} += s_i + s_{n(i)},   Q_{i,n(n(i))} += 1,
+
+    and the same towards p (every entry a small integer, so exactly DᵀD's)."""
     n = len(keys)
-    coords = np.stack(np.unravel_index(keys, tuple(shape)), axis=0)
+    coords = np.unravel_index(keys, tuple(shape))
     strides = (shape[1] * shape[2], shape[2], 1)
-    rows, cols, vals = [], [], []
+    # 13 slots a row (the diagonal; per axis and side the neighbour and the one beyond), in the
+    # order of their keys' offsets; an absent one keeps column −1
+    cols = np.full((n, 13), -1, dtype=np.int64)
+    vals = np.zeros((n, 13))
+    cols[:, 6] = np.arange(n)
     for axis in range(3):
-        diagonal = np.full(n, -2.0)
+        neighbours = []
         for offset in (-1, 1):
             along = coords[axis] + offset
-            inside = (along >= 0) & (along < shape[axis])
             target = keys + offset * strides[axis]
             found = np.minimum(np.searchsorted(keys, target), max(n - 1, 0))
-            present = inside & (keys[found] == target) if n else inside
-            rows.append(axis * n + np.flatnonzero(present))
-            cols.append(found[present])
-            vals.append(np.ones(int(present.sum())))
-            diagonal[~present] += 1.0
-        rows.append(axis * n + np.arange(n))
-        cols.append(np.arange(n))
-        vals.append(diagonal)
-    d = sparse.csr_matrix(
-        (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(3 * n, n)
+            present = (along >= 0) & (along < shape[axis])
+            if n:
+                present &= keys[found] == target
+            neighbours.append(np.where(present, found, -1))
+        centre = -2.0 + (neighbours[0] < 0) + (neighbours[1] < 0)
+        vals[:, 6] += centre**2 + (neighbours[0] >= 0) + (neighbours[1] >= 0)
+        for side, near in zip((-1, 1), neighbours, strict=True):
+            slot = (1, 3, 5)[axis] if side < 0 else (11, 9, 7)[axis]  # the beyond: slot + side
+            i = np.flatnonzero(near >= 0)
+            j = near[i]
+            cols[i, slot], vals[i, slot] = j, centre[i] + centre[j]
+            beyond = near[j] >= 0
+            cols[i[beyond], slot + side], vals[i[beyond], slot + side] = near[j[beyond]], 1.0
+    kept = vals != 0  # an isolated voxel's zero diagonal is left out, as DᵀD leaves it
+    q = sparse.csr_matrix(
+        (vals[kept], cols[kept], np.concatenate([[0], np.cumsum(kept.sum(axis=1))])),
+        shape=(n, n),
     )
-    return (d.T @ d).tocsr()
+    q.sort_indices()  # in key order already unless the box is under 3 voxels along an axis
+    return q
 
 
 def smooth_constrained(
