@@ -17,6 +17,7 @@ from ultron.train.occupancy import (
     attenuation_compensated_bce,
     binary_cross_entropy,
     fit_occupancy,
+    label_loss,
     observed_negatives_bce,
     parse_positive_weight,
     positive_class_weight,
@@ -257,3 +258,51 @@ def test_training_leaves_torch_global_rng_alone():
     a, _ = fit_occupancy(data, replace(config, iters=0))
     b, _ = fit_occupancy(data, replace(config, iters=0))
     assert all(torch.equal(x, y) for x, y in zip(a.parameters(), b.parameters(), strict=True))
+
+
+class _ConstantOccupancy(torch.nn.Module):
+    """f ≡ ``value`` for every input: a network whose loss is worked out by hand."""
+
+    def __init__(self, value: float):
+        super().__init__()
+        self.value = torch.nn.Parameter(torch.tensor(value))
+
+    def occupancy(self, inputs: torch.Tensor) -> torch.Tensor:
+        return self.value.expand(inputs.shape[0])
+
+
+def test_label_loss_by_hand():
+    """f ≡ 0.8, T = 1 / 0.5 alternating, labels 1, 0, 0, 0 repeated: the compensated loss
+    with weighted negatives is the mean of −log 0.8, −log(1 − 0.4), −log 0.2, −log(1 − 0.4);
+    every second pixel (max_points n / 2) leaves −log 0.8 and −log 0.2; positive weight 3
+    triples the bone term."""
+    n = 8
+    labels = torch.tensor([1.0, 0.0, 0.0, 0.0] * 2)
+    transmission = torch.tensor([1.0, 0.5] * 4)
+    data = OccupancyTrainingData(torch.zeros(n, 3), transmission, labels)
+    config = OccupancyTrainConfig(loss="ultron", negatives="weighted", positive_weight=1.0)
+    network = _ConstantOccupancy(0.8)
+    every = -(math.log(0.8) + 2 * math.log(0.6) + math.log(0.2)) / 4
+    assert label_loss(network, data, config) == pytest.approx(every, rel=1e-6)
+    assert label_loss(network, data, config, max_points=4) == pytest.approx(
+        -(math.log(0.8) + math.log(0.2)) / 2, rel=1e-6
+    )
+    weighted = replace(config, positive_weight=3.0)
+    assert label_loss(network, data, weighted, chunk=3) == pytest.approx(
+        -(3 * math.log(0.8) + 2 * math.log(0.6) + math.log(0.2)) / 4, rel=1e-6
+    )
+    plain = replace(config, loss="bce")  # T ignored: −log(1 − 0.8) for each background label
+    assert label_loss(network, data, plain) == pytest.approx(
+        -(math.log(0.8) + 3 * math.log(0.2)) / 4, rel=1e-6
+    )
+    with pytest.raises(ValueError, match="max_points"):
+        label_loss(network, data, config, max_points=0)
+
+
+def test_label_loss_ranks_a_fitted_network_below_an_untrained_one():
+    data = _separable_data()
+    config = OccupancyTrainConfig(iters=300, batch_size=512, lr=1e-3, loss="bce", seed=1,
+                                  network=SMALL)  # fmt: skip
+    trained, _ = fit_occupancy(data, config)
+    untrained, _ = fit_occupancy(data, replace(config, iters=0))
+    assert label_loss(trained, data, config) < 0.5 * label_loss(untrained, data, config)

@@ -135,6 +135,15 @@ def test_ultron_end_to_end(tiny: Path, tmp_path: Path, monkeypatch):
     )
     assert events["occupancy_fit"][-1] == (600, 600, "steps")
     assert events["mesh_observed"][-1] == (24, 24, "frames")  # every frame's T rendered
+    # the same field twice: two candidates with the same label loss, the first kept, the
+    # run that of one field
+    field_dir = json.loads((tmp_path / "again" / "run.json").read_text())["field_dir"]
+    two = reconstruct(tiny, request, tmp_path / "two", [field_dir, field_dir], report=False)
+    run = json.loads((tmp_path / "two" / "run.json").read_text())
+    losses = [c["occupancy_label_loss"] for c in run["field_candidates"]]
+    assert [c["field_dir"] for c in two["field_candidates"]] == [field_dir, field_dir]
+    assert losses[0] == losses[1] == run["occupancy_label_loss"] > 0
+    assert two["metrics"]["mean"]["mad"] == pytest.approx(ours["mad"])
     others = {}
     for method in ("ultron-noloss", "compounding"):
         config = None if method == "compounding" else request.method_config  # its defaults
@@ -199,3 +208,40 @@ def test_a_request_carries_its_own_methods_settings():
     assert ReconstructionRequest(method="on").method_config == ONConfig()
     compounding = ReconstructionRequest(method="compounding").method_config
     assert compounding == CompoundingMethodConfig()
+
+
+def test_several_fields_keep_the_lowest_label_loss(tiny: Path, monkeypatch):
+    """run_on_fields runs the method on each field and keeps the result whose network fits the
+    labels best, recording every candidate."""
+    import ultron.pipeline.run as run_module
+    from ultron.timing import StageTimer
+
+    losses = {"a": 0.03, "b": 0.02, "c": 0.025}
+
+    class Result:
+        def __init__(self, name: str):
+            self.name, self.info = name, {"occupancy_label_loss": losses[name]}
+
+    monkeypatch.setattr(
+        run_module, "run_method", lambda dataset, request, fitted, *a, **k: Result(fitted)
+    )
+    request = ReconstructionRequest(method="ultron")
+    result, extra = run_module.run_on_fields(
+        tiny, None, request, ["a", "b", "c"], StageTimer(), None,
+        lambda name: (name, {"field_dir": f"/fields/{name}", "field_cached": True}),
+    )  # fmt: skip
+    assert result.name == "b" and extra["field_dir"] == "/fields/b"
+    assert [c["occupancy_label_loss"] for c in extra["field_candidates"]] == [0.03, 0.02, 0.025]
+    one, extra = run_module.run_on_fields(
+        tiny, None, request, ["c"], StageTimer(), None, lambda name: (name, {"field_dir": name})
+    )
+    assert one.name == "c" and "field_candidates" not in extra
+    with pytest.raises(ValueError, match="field_dirs"):
+        run_module.run_on_fields(tiny, None, request, [], StageTimer(), None, lambda n: (n, {}))
+
+
+def test_several_fields_for_a_method_without_one_is_an_error(tiny: Path, tmp_path: Path):
+    request = ReconstructionRequest(method="compounding", label_fraction=1.0)
+    with pytest.raises(ValueError, match=r"field_dir.*uses no acoustic field"):
+        reconstruct(tiny, request, tmp_path / "out", [tmp_path / "f1", tmp_path / "f2"])
+    assert not (tmp_path / "out").exists()

@@ -19,6 +19,7 @@ from ultron.cli.common import (
     user_errors,
     warning_line,
 )
+from ultron.errors import argument_error
 from ultron.methods.catalog import method_help
 
 MESH_COORDINATES = ("lps", "ras")  # ultron.mesh.export.MESH_COORDINATES (lazy import)
@@ -47,6 +48,16 @@ Points = Annotated[int, typer.Option("--points", help="Points per surface for me
 FieldDir = Annotated[
     Path | None,
     typer.Option("--field", help="The dataset's FIELD_DIR (default: fit and cache one)."),
+]
+FieldDirs = Annotated[
+    list[Path] | None,
+    typer.Option(
+        "--field",
+        metavar="FIELD_DIR",
+        help="The dataset's FIELD_DIR (default: fit and cache one). Given more than once "
+        "(fields fitted with different --seed), UltrON trains on each and keeps the one whose "
+        "network fits the labels best (lowest label loss; run.json field_candidates).",
+    ),
 ]
 FieldIters = Annotated[
     int | None,
@@ -192,7 +203,7 @@ def reconstruct(
     out: Annotated[Path, typer.Option("--out", help="Output directory.")],
     method: Method = "ultron",
     label_fraction: LabelFraction = 0.1,
-    field: FieldDir = None,
+    field: FieldDirs = None,
     seed: RunSeed = 0,
     field_iters: FieldIters = None,
     occupancy_iters: OccupancyIters = None,
@@ -230,6 +241,8 @@ def reconstruct(
 
     check_choice("--method", method, tuple(METHODS))
     check_choice("--preset", preset, PIPELINE_PRESETS)
+    if field and len(field) > 1 and not METHODS[method].needs_field:
+        raise argument_error("--field", f"given {len(field)} times; {method} uses no field")
     request = preset_request(
         preset, method, label_fraction, seed, points=points, occupancy_iters=occupancy_iters,
         visibility=visibility, oracle=oracle_transmission, surface=surface,
@@ -253,6 +266,12 @@ def reconstruct(
             advance=lines.advance,
         )
     _print_summary({method: summary})
+    for candidate in summary.get("field_candidates", []):
+        kept = " (kept)" if candidate["field_dir"] == summary["field_dir"] else ""
+        console.print(
+            f"field {candidate['field_dir']}: label loss {candidate['occupancy_label_loss']:.5f}"
+            f"{kept}"
+        )
     console.print(f"outputs in {out}")
 
 

@@ -68,6 +68,7 @@ from ultron.train.occupancy import (
     OccupancyTrainConfig,
     OccupancyTrainingData,
     fit_occupancy,
+    label_loss,
 )
 from ultron.train.visibility import (
     VisibilityConfig,
@@ -422,6 +423,7 @@ def reconstruct_ultron(
         network, log = fit_occupancy(
             data, occupancy_config, progress=timer.fit_progress, device=device
         )
+        fitted_loss = label_loss(network, data, occupancy_config)
     fn = occupancy_function(fitted, network, config.context)
     mesh, volume, grid = mesh_occupancy(fn, dataset, config.meshing, timer, module_device(network))
     with timer.stage("mesh_observed"):
@@ -446,6 +448,7 @@ def reconstruct_ultron(
         ),
         "occupancy_config": occupancy_config.to_dict(),
         "occupancy_log": log,
+        "occupancy_label_loss": fitted_loss,
         "grid": grid.to_dict(),
     }
     model = ThetaModel(

@@ -15,7 +15,7 @@ oracle's files, outlier poses and the grids' memory (:mod:`ultron.pipeline.resou
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -28,6 +28,7 @@ from ultron.data.labels import (
 )
 from ultron.data.units import units_warnings
 from ultron.device import describe_device, resolve_device
+from ultron.errors import argument_error
 from ultron.mesh.export import load_mesh, save_mesh, save_volume_nifti
 from ultron.methods.evidence import evidence_summary, reconstruction_evidence, with_observation
 from ultron.methods.registry import MethodInputs, get_method
@@ -185,7 +186,7 @@ def reconstruct(
     dataset_dir: str | Path,
     request: ReconstructionRequest,
     out_dir: str | Path,
-    field_dir: str | Path | None = None,
+    field_dir: str | Path | Sequence[str | Path] | None = None,
     field_config=None,
     progress: Progress | None = None,
     report: bool = True,
@@ -200,20 +201,23 @@ def reconstruct(
     told each implausible length (:func:`ultron.data.units.units_warnings`).
 
     A given ``field_dir`` must have been fitted on this dataset (see
-    :func:`load_or_fit_field`) unless ``allow_other_field``; ``max_memory_gib`` caps the
+    :func:`load_or_fit_field`) unless ``allow_other_field``; several (a sequence) are
+    candidates, of which the run keeps the one whose trained f fits the labels best
+    (:func:`run_on_fields`); ``max_memory_gib`` caps the
     grids' estimated memory (default: this machine's); ``announce`` is told as each stage
     starts and ends and ``advance`` how far a long stage has come (the occupancy fit's steps,
     the meshing's tiles and smoothing iterations, the observed crop's frames:
     :class:`~ultron.timing.StageTimer`)."""
     timer = StageTimer(announce=announce, advance=advance)
     method, config = get_method(request.method), request.method_config
+    field_dirs = field_candidates(field_dir, method.needs_field)
     to_fit = None  # the field that may be fitted, whose grid is checked too
-    if method.needs_field and field_dir is None:
+    if method.needs_field and not field_dirs:
         to_fit = field_config or FieldTrainConfig()
     with timer.stage("load"):
         dataset, references = prepare_run(
-            out_dir, "reconstruct", dataset_dir, (field_dir,), method.meshing_voxel(config),
-            method.scan_grid, None, max_memory_gib,
+            out_dir, "reconstruct", dataset_dir, tuple(field_dirs),
+            method.meshing_voxel(config), method.scan_grid, None, max_memory_gib,
         )  # fmt: skip
         # labels without bone: refused before minutes of field fit and training
         selection = select_label_frames(dataset, request.label_fraction, request.seed, dataset_dir)
@@ -231,15 +235,18 @@ def reconstruct(
             for line in selection_warnings(dataset, selection) + units_warnings(dataset, vertices):
                 warn(line)
     device = resolve_device(request.device, "device")
-    fitted, extra = None, {"device": describe_device(device)}
+    extra: dict[str, Any] = {"device": describe_device(device)}
     if method.needs_field:
-        with timer.stage("field"):
-            fitted, field_extra = load_or_fit_field(
-                dataset_dir, dataset, field_dir, field_config, progress, allow_other_field,
+        result, field_extra = run_on_fields(
+            dataset_dir, dataset, request, field_dirs or [None], timer, truth,
+            lambda candidate: load_or_fit_field(
+                dataset_dir, dataset, candidate, field_config, progress, allow_other_field,
                 device,
-            )  # fmt: skip
+            ),
+        )  # fmt: skip
         extra |= field_extra
-    result = run_method(dataset, request, fitted, timer, truth, dataset_name=str(dataset_dir))
+    else:
+        result = run_method(dataset, request, None, timer, truth, dataset_name=str(dataset_dir))
     identity = {
         "command": "reconstruct",
         "method": request.method,
@@ -247,10 +254,62 @@ def reconstruct(
         "seed": request.seed,
         "dataset_dir": str(Path(dataset_dir).resolve()),
     }
-    return write_outputs(
+    summary = write_outputs(
         out_dir, dataset, identity, result, timer, request.metrics, extra, report, references,
         request.mesh_coordinates,
     )  # fmt: skip
+    if "field_candidates" in extra:
+        summary |= {"field_dir": extra["field_dir"], "field_candidates": extra["field_candidates"]}
+    return summary
+
+
+def field_candidates(
+    field_dir: str | Path | Sequence[str | Path] | None, needs_field: bool
+) -> list[str | Path]:
+    """``field_dir`` as a list (empty for None); several only for a method that uses a field."""
+    if field_dir is None:
+        return []
+    dirs = [field_dir] if isinstance(field_dir, str | Path) else list(field_dir)
+    if len(dirs) > 1 and not needs_field:
+        raise argument_error(
+            "field_dir", f"{len(dirs)} fields given, but this method uses no acoustic field"
+        )
+    return dirs
+
+
+def run_on_fields(
+    dataset_dir: str | Path,
+    dataset: SweepDataset,
+    request: ReconstructionRequest,
+    field_dirs: Sequence[str | Path | None],
+    timer: StageTimer,
+    truth: dict[str, Any] | None,
+    get_field: Callable[[str | Path | None], tuple[Any, dict[str, Any]]],
+) -> tuple[Reconstruction, dict[str, Any]]:
+    """Run ``request`` on each field (``get_field`` loads or fits it: :func:`load_or_fit_field`)
+    and keep the result whose trained f has the lowest label loss (run info
+    ``occupancy_label_loss``, :func:`ultron.train.occupancy.label_loss`): on one dataset and
+    label draw, that loss ranked fields fitted with different seeds as their surfaces' CD did
+    (docs/stage2-transmission.md). With one field, its result. The field info returned is the
+    kept one's, with ``field_candidates`` (every field's directory and loss) when several."""
+    if not field_dirs:
+        raise argument_error("field_dirs", "expected at least one field (None: fit one)")
+    best: tuple[float, Reconstruction, dict[str, Any]] | None = None
+    candidates = []
+    for candidate in field_dirs:
+        with timer.stage("field"):
+            fitted, field_extra = get_field(candidate)
+        result = run_method(dataset, request, fitted, timer, truth, dataset_name=str(dataset_dir))
+        del fitted
+        if len(field_dirs) == 1:
+            return result, field_extra
+        loss = float(result.info["occupancy_label_loss"])
+        candidates.append({"field_dir": field_extra["field_dir"], "occupancy_label_loss": loss})
+        if best is None or loss < best[0]:
+            best = (loss, result, field_extra)
+        del result
+    _, result, field_extra = best  # type: ignore[misc]
+    return result, {**field_extra, "field_candidates": candidates}
 
 
 def load_or_fit_field(

@@ -281,6 +281,41 @@ def fit_occupancy(
     return network, log
 
 
+#: At most this many labelled pixels (evenly strided) score :func:`label_loss`.
+LABEL_LOSS_POINTS = 2**18
+
+
+def label_loss(
+    network: OccupancyNetwork,
+    data: OccupancyTrainingData,
+    config: OccupancyTrainConfig,
+    max_points: int = LABEL_LOSS_POINTS,
+    chunk: int = 65536,
+) -> float:
+    """The training loss of the trained ``network`` over the labelled pixels (``config``'s
+    loss and class weight, every ⌈n / ``max_points``⌉-th pixel in label order): how well f(θ)
+    separates the labels with this field's θ and T. Deterministic (no minibatch draw), so that
+    two fits on the same labels — e.g. on fields fitted with different seeds — compare
+    (docs/stage2-transmission.md). No gradient; runs on the network's device."""
+    if isinstance(max_points, bool) or not isinstance(max_points, int) or max_points < 1:
+        raise argument_error("max_points", f"expected a positive integer, got {max_points!r}")
+    device = next(network.parameters()).device
+    n = data.labels.shape[0]
+    pick = torch.arange(0, n, max(1, math.ceil(n / max_points)))
+    labels = data.labels.to(torch.float32)
+    pos_weight = positive_class_weight(labels, config)
+    total = 0.0
+    with torch.no_grad():
+        for start in range(0, len(pick), chunk):
+            at = pick[start : start + chunk]
+            y = labels[at].to(device)
+            weight = torch.where(y > 0.5, pos_weight, 1.0)
+            f = network.occupancy(data.inputs[at].to(device))
+            loss = _loss(f, data.transmission[at].to(device), y, weight, config)
+            total += float(loss) * len(at)
+    return total / len(pick)
+
+
 def _initial_network(config: OccupancyTrainConfig, in_dim: int) -> OccupancyNetwork:
     """A fresh network for ``in_dim`` inputs, initialised from ``config.seed`` (torch's global
     RNG untouched)."""
