@@ -274,6 +274,14 @@ def test_stage_logs_and_tables():
     assert final_loss_rows(run) == [
         ("stage1/row", "loss", "0.0200"), ("stage3", "loss", "0.1000"), ("stage3", "zero", "0.0500")
     ]  # fmt: skip
+    ultron = {"occupancy_label_loss": 0.0205, "field_dir": "/f/b"}
+    assert final_loss_rows(ultron) == [("occupancy", "label loss", "0.02050")]
+    candidates = [{"field_dir": "/f/a", "occupancy_label_loss": 0.03},
+                  {"field_dir": "/f/b", "occupancy_label_loss": 0.0205}]  # fmt: skip
+    assert final_loss_rows({**ultron, "field_candidates": candidates}, prefix="x: ") == [
+        ("x: occupancy", "label loss, field /f/a", "0.03000"),
+        ("x: occupancy", "label loss, field /f/b (kept)", "0.02050"),
+    ]
     table = table_html(["a", "b"], [["<i>", 1.5]])
     assert "&lt;i&gt;" in table and '<td class="num">1.5</td>' in table
     with pytest.raises(UltronInputError, match="rows"):

@@ -299,8 +299,16 @@ def run_loss_curves(
 
 
 def final_loss_rows(run: Mapping[str, Any], prefix: str = "") -> list[tuple[str, str, str]]:
-    """(stage, loss, value) of every ``final_losses`` dict under the stage logs (RoCoSDF)."""
+    """(stage, loss, value) of every ``final_losses`` dict under the stage logs (RoCoSDF), and
+    UltrON's label loss (``occupancy_label_loss``; per candidate field when there were several,
+    ``field_candidates``)."""
     rows: list[tuple[str, str, str]] = []
+    for candidate in run.get("field_candidates") or []:
+        kept = " (kept)" if candidate.get("field_dir") == run.get("field_dir") else ""
+        name = f"label loss, field {candidate.get('field_dir')}{kept}"
+        rows.append((prefix + "occupancy", name, _number(candidate.get("occupancy_label_loss"), 5)))
+    if "occupancy_label_loss" in run and not run.get("field_candidates"):
+        rows.append((prefix + "occupancy", "label loss", _number(run["occupancy_label_loss"], 5)))
 
     def visit(node: Any, path: str) -> None:
         if isinstance(node, dict):
