@@ -288,14 +288,15 @@ def run_on_fields(
 ) -> tuple[Reconstruction, dict[str, Any]]:
     """Run ``request`` on each field (``get_field`` loads or fits it: :func:`load_or_fit_field`)
     and keep the result whose trained f has the lowest label loss (run info
-    ``occupancy_label_loss``, :func:`ultron.train.occupancy.label_loss`): on one dataset and
-    label draw, that loss ranked fields fitted with different seeds as their surfaces' CD did
-    (docs/stage2-transmission.md). With one field, its result. The field info returned is the
-    kept one's, with ``field_candidates`` (every field's directory and loss) when several."""
+    ``occupancy_label_loss``, :func:`ultron.train.occupancy.label_loss`): the loss stage 2 is
+    trained on, compared across fields of one dataset and label draw (how well it picks:
+    docs/stage2-transmission.md). With one field, its result. The field info returned is the
+    kept one's, with ``field_candidates`` (every field's directory and loss) when several; the
+    stages' times add up over the candidates."""
     if not field_dirs:
         raise argument_error("field_dirs", "expected at least one field (None: fit one)")
-    best: tuple[float, Reconstruction, dict[str, Any]] | None = None
-    candidates = []
+    kept: tuple[Reconstruction, dict[str, Any]] | None = None
+    candidates: list[dict[str, Any]] = []
     for candidate in field_dirs:
         with timer.stage("field"):
             fitted, field_extra = get_field(candidate)
@@ -304,11 +305,11 @@ def run_on_fields(
         if len(field_dirs) == 1:
             return result, field_extra
         loss = float(result.info["occupancy_label_loss"])
+        if not candidates or loss < min(c["occupancy_label_loss"] for c in candidates):
+            kept = (result, field_extra)
         candidates.append({"field_dir": field_extra["field_dir"], "occupancy_label_loss": loss})
-        if best is None or loss < best[0]:
-            best = (loss, result, field_extra)
         del result
-    _, result, field_extra = best  # type: ignore[misc]
+    result, field_extra = kept  # type: ignore[misc]  # set by the first candidate
     return result, {**field_extra, "field_candidates": candidates}
 
 
