@@ -203,3 +203,27 @@ def test_tile_for_factor():
     assert tile_for_factor(3) == 66
     with pytest.raises(UltronInputError, match="coarse_factor"):
         tile_for_factor(0)
+
+
+@pytest.mark.parametrize("isolated", [False, True])
+def test_jacobi_step_matrix_is_the_sparse_expression(isolated):
+    """J written on Q's entries has the bits of (1 − w)·I − w·D⁻¹(Q − D) built by sparse
+    products; a band with an isolated voxel (an empty row of Q) takes the sparse path."""
+    from scipy import sparse
+
+    from ultron.mesh.smoothing import jacobi_step_matrix
+
+    band = np.random.default_rng(2).random((7, 6, 5)) < 0.9
+    if isolated:
+        band = np.pad(band, ((0, 3), (0, 0), (0, 0)))
+        band[-1, 0, 0] = True
+    q = band_second_differences(np.flatnonzero(band), np.asarray(band.shape))
+    assert (np.diff(q.indptr) == 0).any() == isolated
+    with np.errstate(divide="ignore"):
+        ours = jacobi_step_matrix(q, 0.5)
+        d = q.diagonal()
+        expected = sparse.diags(-0.5 / d) @ (q - sparse.diags(d))
+    expected = (expected + sparse.identity(len(d)) * 0.5).tocsr()
+    expected.sort_indices()
+    for name in ("indptr", "indices", "data"):
+        np.testing.assert_array_equal(getattr(ours, name), getattr(expected, name))

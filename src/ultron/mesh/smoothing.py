@@ -131,10 +131,7 @@ def projected_jacobi(
     that step's product y = Jx, since Qx = D(x − y)/w: no second product. ``advance``, when
     given, is told (iterations done, ``max_iters``) at every energy check."""
     diagonal = q.diagonal()
-    step = sparse.diags(-weight / diagonal) @ (q - sparse.diags(diagonal))
-    step = (step + sparse.identity(len(diagonal)) * (1 - weight)).tocsr()
-    step.sort_indices()
-    matrix = _torch_csr(step)
+    matrix = _torch_csr(jacobi_step_matrix(q, weight))
     x = torch.from_numpy(np.array(x, dtype=np.float64))
     y = torch.empty_like(x)
     bounds = [torch.from_numpy(np.asarray(b, dtype=np.float64)) for b in (lower, upper)]
@@ -157,6 +154,26 @@ def projected_jacobi(
         torch.clamp(y, *bounds, out=y)
         x, y = y, x
     return x.numpy()
+
+
+def jacobi_step_matrix(q: sparse.csr_matrix, weight: float) -> sparse.csr_matrix:
+    """J = (1 − w)·I − w·D⁻¹(Q − D), D = diag(Q), with sorted indices: J_ij = (−w / Q_ii)·Q_ij
+    off the diagonal, 1 − w on it. Scaled on Q's own entries (the same products, so the same
+    bits, as the sparse expression) when Q holds every diagonal entry; otherwise (an isolated
+    voxel's empty row) by the sparse expression."""
+    diagonal = q.diagonal()
+    q = q.tocsr()
+    q.sort_indices()
+    rows = np.repeat(np.arange(q.shape[0]), np.diff(q.indptr))
+    on_diagonal = q.indices == rows
+    if np.count_nonzero(on_diagonal) == q.shape[0]:
+        data = (-weight / diagonal)[rows] * q.data
+        data[on_diagonal] = 1 - weight
+        return sparse.csr_matrix((data, q.indices.copy(), q.indptr.copy()), shape=q.shape)
+    step = sparse.diags(-weight / diagonal) @ (q - sparse.diags(diagonal))
+    step = (step + sparse.identity(len(diagonal)) * (1 - weight)).tocsr()
+    step.sort_indices()
+    return step
 
 
 def _torch_csr(matrix: sparse.csr_matrix) -> torch.Tensor:
