@@ -226,11 +226,13 @@ def test_several_fields_keep_the_lowest_label_loss(tiny: Path, monkeypatch):
         run_module, "run_method", lambda dataset, request, fitted, *a, **k: Result(fitted)
     )
     request = ReconstructionRequest(method="ultron")
+    timer = StageTimer()
     result, extra = run_module.run_on_fields(
-        tiny, None, request, ["a", "b", "c"], StageTimer(), None,
+        tiny, None, request, ["a", "b", "c"], timer, None,
         lambda name: (name, {"field_dir": f"/fields/{name}", "field_cached": True}),
     )  # fmt: skip
     assert result.name == "b" and extra["field_dir"] == "/fields/b"
+    assert set(timer.seconds) == {"field 1/3", "field 2/3", "field 3/3"}
     assert [c["occupancy_label_loss"] for c in extra["field_candidates"]] == [0.03, 0.02, 0.025]
     one, extra = run_module.run_on_fields(
         tiny, None, request, ["c"], StageTimer(), None, lambda name: (name, {"field_dir": name})

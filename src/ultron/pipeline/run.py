@@ -292,13 +292,15 @@ def run_on_fields(
     trained on, compared across fields of one dataset and label draw (how well it picks:
     docs/stage2-transmission.md). With one field, its result. The field info returned is the
     kept one's, with ``field_candidates`` (every field's directory and loss) when several; the
-    stages' times add up over the candidates."""
+    field stages are then named ``field k/K`` and the other stages' times add up over the
+    candidates."""
     if not field_dirs:
         raise argument_error("field_dirs", "expected at least one field (None: fit one)")
     kept: tuple[Reconstruction, dict[str, Any]] | None = None
     candidates: list[dict[str, Any]] = []
-    for candidate in field_dirs:
-        with timer.stage("field"):
+    for k, candidate in enumerate(field_dirs, 1):
+        # with several, the stage names the candidate ("field 2/3"), so that a log shows which
+        with timer.stage("field" if len(field_dirs) == 1 else f"field {k}/{len(field_dirs)}"):
             fitted, field_extra = get_field(candidate)
         result = run_method(dataset, request, fitted, timer, truth, dataset_name=str(dataset_dir))
         del fitted
