@@ -242,6 +242,32 @@ def test_several_fields_keep_the_lowest_label_loss(tiny: Path, monkeypatch):
         run_module.run_on_fields(tiny, None, request, [], StageTimer(), None, lambda n: (n, {}))
 
 
+def test_several_fields_are_each_checked_before_any_work(tiny: Path, tmp_path: Path, monkeypatch):
+    """A second field that cannot be read fails the run in its pre-flight checks, before the
+    first field's stage 2 (which would take minutes)."""
+    import ultron.pipeline.run as run_module
+    from ultron.errors import UltronInputError
+
+    def no_run(*args, **kwargs):
+        raise AssertionError("a method ran before every field was checked")
+
+    monkeypatch.setattr(run_module, "run_method", no_run)
+    loaded: list[Path] = []
+
+    def load(dataset_dir, dataset, field_dir, *args, **kwargs):
+        loaded.append(field_dir)
+        if field_dir.name == "broken":
+            raise UltronInputError(field_dir, "field_dir", "cannot be read")
+        return None, {}
+
+    monkeypatch.setattr(run_module, "load_or_fit_field", load)
+    request = ReconstructionRequest(method="ultron", label_fraction=0.5)
+    with pytest.raises(UltronInputError, match="broken"):
+        reconstruct(tiny, request, tmp_path / "out", [tmp_path / "good", tmp_path / "broken"])
+    assert loaded == [tmp_path / "good", tmp_path / "broken"]
+    assert not (tmp_path / "out").exists()
+
+
 def test_several_fields_for_a_method_without_one_is_an_error(tiny: Path, tmp_path: Path):
     request = ReconstructionRequest(method="compounding", label_fraction=1.0)
     with pytest.raises(ValueError, match=r"field_dir.*uses no acoustic field"):

@@ -229,6 +229,11 @@ def reconstruct(
         if to_fit is not None:
             check_run_resources(dataset, dataset_dir, mesh=False, field_config=to_fit,
                                 max_memory_gib=max_memory_gib)  # fmt: skip
+        if len(field_dirs) > 1:  # every candidate read and checked before the first one's run
+            for candidate in field_dirs:
+                load_or_fit_field(
+                    dataset_dir, dataset, candidate, allow_other_field=allow_other_field
+                )
         if warn is not None:  # after the pre-flight checks: a refused run prints its error alone
             reference = references[0]
             vertices = None if reference is None else reference.vertices
