@@ -3,12 +3,11 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated
 
 import typer
 
 from ultron.arguments import check_choice, check_count
-from ultron.cli.common import DeviceOption, check_device, console, user_errors
+from ultron.cli.common import check_device, command, console
 from ultron.errors import argument_error
 
 #: Exit code when the benchmark ran but some cells failed.
@@ -19,97 +18,46 @@ def _phantom_list(text: str) -> tuple[str, ...]:
     return tuple(name.strip() for name in text.split(",") if name.strip())
 
 
-BenchOut = Annotated[Path, typer.Option("--out", help="Output directory (resumed if it exists).")]
-Quick = Annotated[
-    bool,
-    typer.Option(
-        "--quick",
-        help="L3 (+ L2 for Table 2), one seed, fewer field/occupancy iterations and metric"
-        " points (≈ 10 min on 2 idle cores).",
-    ),
-]
-Seeds = Annotated[
-    int | None,
-    typer.Option("--seeds", help="Seeds 0..K-1 per phantom (default 3; 1 with --quick)."),
-]
-Phantoms = Annotated[
-    str | None,
-    typer.Option(
-        "--phantoms",
-        help="Comma-separated phantoms (default L2,L3,L3b,L4,condyle; L3 with --quick).",
-    ),
-]
-Jobs = Annotated[
-    int, typer.Option("--jobs", help="Tasks run in parallel (spawned worker processes).")
-]
-TaskThreads = Annotated[
-    int | None,
-    typer.Option("--threads", help="torch threads per task (default: cores // jobs)."),
-]
-Robustness = Annotated[
-    bool,
-    typer.Option(
-        "--robustness",
-        help="Also UltrON (10%) vs RoCoSDF (100%) on L3 with larger annotation errors and"
-        " with pose misalignment.",
-    ),
-]
-NoGeneralisation = Annotated[
-    bool,
-    typer.Option("--no-generalisation", help="Skip Table 2 (train on L3, apply to L2)."),
-]
-NoCellReports = Annotated[
-    bool,
-    typer.Option(
-        "--no-cell-reports",
-        help="Skip each cell's own report.html (DIR/report.html still shows every row).",
-    ),
-]
-BenchPreset = Annotated[
-    str,
-    typer.Option(
-        "--preset",
-        help="Settings of every stage: fast or paper (the UltrON paper's: 8 × 128 MLP field,"
-        " 75k + 50k iterations, RoCoSDF's paper settings; days on a CPU, for GPUs).",
-    ),
-]
-Executor = Annotated[
-    str,
-    typer.Option(
-        "--executor",
-        help="local (this machine, --jobs at a time) or ray (each task a Ray task of"
-        " --threads CPUs; needs Ray: pip install ray).",
-    ),
-]
-Address = Annotated[
-    str | None,
-    typer.Option(
-        "--address",
-        help="With --executor ray: the Ray cluster to join (auto, ray://host:10001);"
-        " default: start a local one.",
-    ),
-]
-
-
-@user_errors
+@command()
 def benchmark(
-    out: BenchOut,
-    quick: Quick = False,
-    seeds: Seeds = None,
-    phantoms: Phantoms = None,
-    jobs: Jobs = 1,
-    threads: TaskThreads = None,
-    robustness: Robustness = False,
-    no_generalisation: NoGeneralisation = False,
-    no_cell_reports: NoCellReports = False,
-    preset: BenchPreset = "fast",
-    executor: Executor = "local",
-    address: Address = None,
-    device: DeviceOption = "auto",
+    out: Path,
+    quick: bool = False,
+    seeds: int | None = None,
+    phantoms: str | None = None,
+    jobs: int = 1,
+    threads: int | None = None,
+    robustness: bool = False,
+    no_generalisation: bool = False,
+    no_cell_reports: bool = False,
+    preset: str = "fast",
+    executor: str = "local",
+    address: str | None = None,
+    device: str = "auto",
 ) -> None:
     """Run the paper's Tables 1 and 2: simulate, fit, reconstruct every cell, aggregate,
     print the tables next to the paper's figures and the targets; write DIR/benchmark.json,
-    DIR/tables.md and DIR/report.html. Exits 1 if any cell failed."""
+    DIR/tables.md and DIR/report.html. Exits 1 if any cell failed.
+
+    Args:
+        out: Output directory (resumed if it exists).
+        quick: L3 (+ L2 for Table 2), one seed, fewer field/occupancy iterations and metric
+            points (≈ 10 min on 2 idle cores).
+        seeds: Seeds 0..K-1 per phantom (default 3; 1 with --quick).
+        phantoms: Comma-separated phantoms (default L2,L3,L3b,L4,condyle; L3 with --quick).
+        jobs: Tasks run in parallel (spawned worker processes).
+        threads: torch threads per task (default: cores // jobs).
+        robustness: Also UltrON (10%) vs RoCoSDF (100%) on L3 with larger annotation errors
+            and with pose misalignment.
+        no_generalisation: Skip Table 2 (train on L3, apply to L2).
+        no_cell_reports: Skip each cell's own report.html (DIR/report.html still shows every
+            row).
+        preset: Settings of every stage: fast or paper (the UltrON paper's: 8 × 128 MLP field,
+            75k + 50k iterations, RoCoSDF's paper settings; days on a CPU, for GPUs).
+        executor: local (this machine, --jobs at a time) or ray (each task a Ray task of
+            --threads CPUs; needs Ray: pip install ray).
+        address: With --executor ray: the Ray cluster to join (auto, ray://host:10001);
+            default: start a local one.
+    """
     check_count("--seeds", seeds)
     check_count("--jobs", jobs)
     check_count("--threads", threads)

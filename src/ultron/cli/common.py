@@ -1,13 +1,17 @@
-"""Shared CLI plumbing: one-line errors with exit code 2, the consoles, progress lines."""
+"""Shared CLI plumbing: commands declared from their docstrings, one-line errors with exit
+code 2, the consoles, progress lines."""
 
 from __future__ import annotations
 
 import functools
+import inspect
+import re
 import time
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from contextlib import contextmanager
 from typing import Annotated, ParamSpec, TypeVar
 
+import docstring_parser
 import typer
 from rich.console import Console
 
@@ -45,6 +49,69 @@ def user_errors(func: Callable[P, R]) -> Callable[P, R]:
     return wrapper
 
 
+#: The help of options that mean the same in every command, where its docstring is silent.
+COMMON_HELP = {
+    "device": "Where networks compute: auto (CUDA when available, else the CPU), cpu, cuda,"
+    " cuda:N or mps. cpu reproduces the CPU figures exactly.",
+    "threads": "torch CPU threads (default: torch's choice).",
+}
+
+
+def command(
+    *arguments: str,
+    shared: Mapping[str, str] | None = None,
+    metavars: Mapping[str, str] | None = None,
+) -> Callable[[Callable[P, R]], Callable[P, R]]:
+    """A typer command from a documented function, as tyro (nerfstudio's CLI) reads one: each
+    parameter's help is its entry in the docstring's Google-style ``Args:`` section, else in
+    ``shared`` or :data:`COMMON_HELP`; the parameters named in ``arguments`` are positional,
+    the others options named after them (``label_fraction`` → ``--label-fraction``), a bool
+    that defaults to False a plain flag and an optional bool a ``--x/--no-x`` pair;
+    ``metavars`` names the values of some. The command's help is the docstring above
+    ``Args:``. Bad input is one line and exit 2 (:func:`user_errors`). A parameter left
+    without help, or help or an argument naming no parameter, is a TypeError when the command
+    is declared."""
+
+    def declare(func: Callable[P, R]) -> Callable[P, R]:
+        text = func.__doc__ or ""
+        documented = docstring_parser.parse(text, docstring_parser.DocstringStyle.GOOGLE)
+        helps = {**COMMON_HELP, **(shared or {})}
+        helps.update((p.arg_name, " ".join(p.description.split())) for p in documented.params)
+        signature = inspect.signature(func, eval_str=True)
+        unknown = {p.arg_name for p in documented.params} | set(arguments)
+        unknown -= set(signature.parameters)
+        if unknown:
+            raise TypeError(f"{func.__name__}: no parameter named {', '.join(sorted(unknown))}")
+        parameters = []
+        for parameter in signature.parameters.values():
+            if parameter.name not in helps:
+                raise TypeError(f"{func.__name__}: parameter {parameter.name!r} has no help")
+            info = _parameter_info(
+                parameter, helps[parameter.name], parameter.name in arguments, metavars or {}
+            )
+            parameters.append(parameter.replace(annotation=Annotated[parameter.annotation, info]))
+        wrapper = user_errors(func)
+        wrapper.__signature__ = signature.replace(parameters=parameters)  # type: ignore[attr-defined]
+        wrapper.__annotations__ = {p.name: p.annotation for p in parameters}
+        wrapper.__doc__ = re.split(r"\n[ \t]*Args:[ \t]*\n", text, maxsplit=1)[0]
+        return wrapper
+
+    return declare
+
+
+def _parameter_info(
+    parameter: inspect.Parameter, help: str, argument: bool, metavars: Mapping[str, str]
+):
+    """The typer Argument or Option of :func:`command`'s ``parameter``."""
+    metavar = metavars.get(parameter.name)
+    if argument:
+        return typer.Argument(help=help, metavar=metavar)
+    flag = "--" + parameter.name.replace("_", "-")
+    if parameter.annotation == bool | None:
+        flag = f"{flag}/--no-{flag[2:]}"
+    return typer.Option(flag, help=help, metavar=metavar)
+
+
 def warning_line(line: str) -> None:
     """One ``warning: …`` line on stderr."""
     err_console.print(f"warning: {line}", markup=False, highlight=False)
@@ -78,29 +145,12 @@ def stage_progress(
         yield report
 
 
-#: ``--device`` of every command that trains or evaluates a network.
-DeviceOption = Annotated[
-    str,
-    typer.Option(
-        "--device",
-        help="Where networks compute: auto (CUDA when available, else the CPU), cpu, cuda,"
-        " cuda:N or mps. cpu reproduces the CPU figures exactly.",
-    ),
-]
-
-
 def check_device(value: str) -> str:
     """``--device``'s value resolved to an available device (``auto`` → cuda or cpu), as the
     string the library takes; a malformed or unavailable one is a one-line error."""
     from ultron.device import resolve_device
 
     return str(resolve_device(value, "--device"))
-
-
-#: ``--threads`` of every command that computes with torch.
-ThreadsOption = Annotated[
-    int | None, typer.Option("--threads", help="torch CPU threads (default: torch's choice).")
-]
 
 
 def apply_threads(threads: int | None) -> None:

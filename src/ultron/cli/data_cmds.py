@@ -3,46 +3,41 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated
 
 import typer
 
 from ultron.arguments import check_range
-from ultron.cli.common import console, print_lines, user_errors
+from ultron.cli.common import command, console, print_lines
+
+#: The help of the options both importers take.
+IMPORT_HELP = {
+    "out": "Dataset directory (created, or extended by a new sweep).",
+    "kind": "Sweep kind: row, column, tilted or other.",
+    "replace": "Replace an existing sweep of the same name.",
+}
 
 
-@user_errors
+@command("src", shared=IMPORT_HELP)
 def import_ultranerf(
-    src: Annotated[
-        Path, typer.Argument(help="Ultra-NeRF folder: images/0.png… or images.npy, and poses.npy.")
-    ],
-    width_mm: Annotated[
-        float, typer.Option("--width-mm", help="Probe width (lateral field of view), mm.")
-    ],
-    depth_mm: Annotated[float, typer.Option("--depth-mm", help="Imaging depth, mm.")],
-    out: Annotated[
-        Path, typer.Option("--out", help="Dataset directory (created, or extended by a new sweep).")
-    ],
-    sweep_name: Annotated[
-        str | None,
-        typer.Option("--sweep-name", help="Name of the new sweep (default: SRC's folder name)."),
-    ] = None,
-    kind: Annotated[
-        str, typer.Option("--kind", help="Sweep kind: row, column, tilted or other.")
-    ] = "other",
-    orthonormalize_tol: Annotated[
-        float,
-        typer.Option(
-            "--orthonormalize-tol",
-            help="Largest rotation-block deviation from orthonormal that is repaired (nearest"
-            " rotation), in [0, 1).",
-        ),
-    ] = 0.05,
-    replace: Annotated[
-        bool, typer.Option("--replace", help="Replace an existing sweep of the same name.")
-    ] = False,
+    src: Path,
+    width_mm: float,
+    depth_mm: float,
+    out: Path,
+    sweep_name: str | None = None,
+    kind: str = "other",
+    orthonormalize_tol: float = 0.05,
+    replace: bool = False,
 ) -> None:
-    """Import an Ultra-NeRF sweep into an ultron-sweeps/1 dataset (repeat to add sweeps)."""
+    """Import an Ultra-NeRF sweep into an ultron-sweeps/1 dataset (repeat to add sweeps).
+
+    Args:
+        src: Ultra-NeRF folder: images/0.png… or images.npy, and poses.npy.
+        width_mm: Probe width (lateral field of view), mm.
+        depth_mm: Imaging depth, mm.
+        sweep_name: Name of the new sweep (default: SRC's folder name).
+        orthonormalize_tol: Largest rotation-block deviation from orthonormal that is
+            repaired (nearest rotation), in [0, 1).
+    """
     from ultron.data.importers import MAX_ORTHONORMALIZE_TOLERANCE
     from ultron.pipeline.sweep_import import import_ultranerf_sweep
 
@@ -57,53 +52,30 @@ def import_ultranerf(
     print_lines(imported.lines(out, kind))
 
 
-@user_errors
+@command("sequence", shared=IMPORT_HELP)
 def import_plus(
-    sequence: Annotated[
-        Path,
-        typer.Argument(
-            help="PLUS / 3D Slicer sequence: .igs.mha, .seq.mha, .mha, .igs.nrrd, .seq.nrrd"
-            " (raw or compressed)."
-        ),
-    ],
-    config: Annotated[
-        Path,
-        typer.Option("--config", help="PLUS configuration XML holding the Image → Probe matrix."),
-    ],
-    out: Annotated[
-        Path, typer.Option("--out", help="Dataset directory (created, or extended by a new sweep).")
-    ],
-    to: Annotated[
-        str,
-        typer.Option("--to", help="World frame: Reference (moves with the patient) or Tracker."),
-    ] = "Reference",
-    sweep_name: Annotated[
-        str | None,
-        typer.Option("--sweep-name", help="Name of the new sweep (default: the file's stem)."),
-    ] = None,
-    kind: Annotated[
-        str, typer.Option("--kind", help="Sweep kind: row, column, tilted or other.")
-    ] = "other",
-    downsample: Annotated[
-        float,
-        typer.Option(
-            "--downsample",
-            help="Shrink frames by this factor ≥ 1 (area-averaged; spacings updated).",
-        ),
-    ] = 1.0,
-    replace: Annotated[
-        bool, typer.Option("--replace", help="Replace an existing sweep of the same name.")
-    ] = False,
-    keep_blank_columns: Annotated[
-        bool,
-        typer.Option(
-            "--keep-blank-columns",
-            help="Keep the columns that are 0 in every frame (default: drop them, as outside"
-            " the probe's aperture).",
-        ),
-    ] = False,
+    sequence: Path,
+    config: Path,
+    out: Path,
+    to: str = "Reference",
+    sweep_name: str | None = None,
+    kind: str = "other",
+    downsample: float = 1.0,
+    replace: bool = False,
+    keep_blank_columns: bool = False,
 ) -> None:
-    """Import a tracked PLUS / 3D Slicer recording as a sweep (repeat to add sweeps)."""
+    """Import a tracked PLUS / 3D Slicer recording as a sweep (repeat to add sweeps).
+
+    Args:
+        sequence: PLUS / 3D Slicer sequence: .igs.mha, .seq.mha, .mha, .igs.nrrd, .seq.nrrd
+            (raw or compressed).
+        config: PLUS configuration XML holding the Image → Probe matrix.
+        to: World frame: Reference (moves with the patient) or Tracker.
+        sweep_name: Name of the new sweep (default: the file's stem).
+        downsample: Shrink frames by this factor ≥ 1 (area-averaged; spacings updated).
+        keep_blank_columns: Keep the columns that are 0 in every frame (default: drop them,
+            as outside the probe's aperture).
+    """
     from ultron.pipeline.sweep_import import import_plus_sweep
 
     check_range("--downsample", downsample, 1.0)
@@ -114,11 +86,13 @@ def import_plus(
     print_lines(imported.lines(out, kind))
 
 
-@user_errors
-def info(
-    dataset: Annotated[Path, typer.Argument(help="Dataset directory (ultron-sweeps/1).")],
-) -> None:
-    """Summarise a dataset: sweeps, frames, image size, pixel spacing, labels, extent."""
+@command("dataset")
+def info(dataset: Path) -> None:
+    """Summarise a dataset: sweeps, frames, image size, pixel spacing, labels, extent.
+
+    Args:
+        dataset: Dataset directory (ultron-sweeps/1).
+    """
     from rich.table import Table
 
     from ultron.pipeline.dataset_info import dataset_info

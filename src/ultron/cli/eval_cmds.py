@@ -3,46 +3,42 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated
 
 import typer
 
 from ultron.arguments import check_count, check_seed
-from ultron.cli.common import console, user_errors, warning_line
+from ultron.cli.common import command, console, warning_line
 from ultron.errors import argument_error
 
 
-@user_errors
+@command("mesh", "reference")
 def evaluate(
-    mesh: Annotated[Path, typer.Argument(help="Reconstructed mesh (.ply, .stl, .obj), world mm.")],
-    reference: Annotated[Path, typer.Argument(help="Reference mesh, world mm.")],
-    reference_visible: Annotated[
-        Path | None,
-        typer.Option(
-            "--reference-visible",
-            help="The part of the reference the sweeps could see (e.g. a simulated dataset's "
-            "reference_visible.ply): adds CD vis. and Comp. vis. (default: n/a).",
-        ),
-    ] = None,
-    crop_mm: Annotated[
-        float | None,
-        typer.Option(
-            "--crop-mm",
-            help="Keep only the mesh's faces within this distance (mm) of --reference-visible "
-            "before measuring (a real sweep images more than its reference holds, e.g. the "
-            "tibia beside a CT fibula); the area left outside is reported (default: no crop).",
-        ),
-    ] = None,
-    points: Annotated[int, typer.Option("--points", help="Points sampled per surface.")] = 100_000,
-    repeats: Annotated[int, typer.Option("--repeats", help="Repeats with different seeds.")] = 3,
-    seed: Annotated[int, typer.Option("--seed", help="First sampling seed.")] = 0,
-    out: Annotated[
-        Path | None, typer.Option("--out", help="JSON output (default: MESH with .metrics.json).")
-    ] = None,
+    mesh: Path,
+    reference: Path,
+    reference_visible: Path | None = None,
+    crop_mm: float | None = None,
+    points: int = 100_000,
+    repeats: int = 3,
+    seed: int = 0,
+    out: Path | None = None,
 ) -> None:
     """Compare MESH with REFERENCE: CD, HD, MAD, RMSE, HD95 (one-sided and symmetric),
     completeness, F-scores and, with --reference-visible, CD and completeness against the
-    visible part (mean ± std)."""
+    visible part (mean ± std).
+
+    Args:
+        mesh: Reconstructed mesh (.ply, .stl, .obj), world mm.
+        reference: Reference mesh, world mm.
+        reference_visible: The part of the reference the sweeps could see (e.g. a simulated
+            dataset's reference_visible.ply): adds CD vis. and Comp. vis. (default: n/a).
+        crop_mm: Keep only the mesh's faces within this distance (mm) of --reference-visible
+            before measuring (a real sweep images more than its reference holds, e.g. the
+            tibia beside a CT fibula); the area left outside is reported (default: no crop).
+        points: Points sampled per surface.
+        repeats: Repeats with different seeds.
+        seed: First sampling seed.
+        out: JSON output (default: MESH with .metrics.json).
+    """
     check_count("--points", points)
     check_count("--repeats", repeats)
     check_seed("--seed", seed)

@@ -3,20 +3,11 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated
 
 import typer
 
 from ultron.arguments import check_choice, check_count, check_range, check_seed
-from ultron.cli.common import (
-    DeviceOption,
-    ThreadsOption,
-    apply_threads,
-    check_device,
-    fit_progress,
-    print_lines,
-    user_errors,
-)
+from ultron.cli.common import apply_threads, check_device, command, fit_progress, print_lines
 from ultron.errors import argument_error
 
 
@@ -31,143 +22,75 @@ def _parse_shape(text: str) -> tuple[int, int] | str:
     return int(parts[0]), int(parts[1])
 
 
-FieldDirOut = Annotated[
-    Path, typer.Option("--out", help="FIELD_DIR to write (resumed if it exists).")
-]
-FieldPreset = Annotated[
-    str,
-    typer.Option(
-        "--preset",
-        help="default (grid, Ultra-NeRF's heads), shadow (grid, φ floor 0.1 and a 500-step"
-        " φ warm-up: the shadow goes into T) or paper (Ultra-NeRF as published: 8 × 128"
-        " MLP, 75k iterations).",
-    ),
-]
-Backend = Annotated[
-    str | None,
-    typer.Option("--backend", help="grid (fast) or mlp (the paper's network); default: preset's."),
-]
-Iters = Annotated[
-    int | None, typer.Option("--iters", help="Training iterations (default: preset's).")
-]
-ScatteringFloor = Annotated[
-    float | None,
-    typer.Option(
-        "--scattering-floor",
-        help="Lower bound φ_min of the scattering amplitude (0: allow anechoic regions);"
-        " default: preset's (shadow 0.1, else 0).",
-    ),
-]
-ScatteringWarmup = Annotated[
-    int | None,
-    typer.Option(
-        "--scattering-warmup",
-        help="Steps with φ held constant before it is learned (default: preset's).",
-    ),
-]
-ConfidencePrior = Annotated[
-    float | None,
-    typer.Option(
-        "--confidence-prior",
-        help="Weight of the one-sided prior T ≤ C + 0.3, C the frame's ultrasound confidence"
-        " map (0: off); default: preset's.",
-    ),
-]
-VolumeCell = Annotated[
-    float | None,
-    typer.Option(
-        "--volume-cell",
-        metavar="MM",
-        help="grid: cell of a dense 3D feature grid read beside the planes on every box; 0:"
-        " none (default: 2 on a long box, a long bone's sweep; none on a compact one:"
-        " docs/decisions.md).",
-    ),
-]
 ORIENTATIONS = ("auto", "world")  # ultron.data.orientation.ORIENTATIONS (lazy import)
-Orientation = Annotated[
-    str | None,
-    typer.Option(
-        "--orientation",
-        help="The field's axes: world (the tracker's, default) or auto (the sweep's where it"
-        " runs more than 5° oblique to the tracker's; measured worse on the real fibula:"
-        " docs/field.md).",
-    ),
-]
-FitSeed = Annotated[int, typer.Option("--seed", help="Seed of initialisation and batches.")]
-HoldoutEvery = Annotated[
-    int, typer.Option("--holdout-every", help="Hold out every K-th frame for checks (0: none).")
-]
-FitShape = Annotated[
-    str,
-    typer.Option(
-        "--fit-shape",
-        help="Fit at HxW pixels (frames area-resampled), native (the frames' own size) or auto"
-        " (the frames' own, or coarser where their pixels are finer than half a speckle grain).",
-    ),
-]
-TrainScatterers = Annotated[
-    str,
-    typer.Option(
-        "--train-scatterers",
-        help="expected (E[S], default) or sample (Ultra-NeRF's per-step draw) in training.",
-    ),
-]
-CheckEvery = Annotated[int, typer.Option("--check-every", help="Held-out check every N steps.")]
-CheckpointEvery = Annotated[
-    int | None,
-    typer.Option(
-        "--checkpoint-every",
-        help="Save checkpoint.pt (with train_log.jsonl and field.json) every N steps and at"
-        " the last; an interrupted fit resumes from the latest (default: the preset's, 500).",
-    ),
-]
-FitMaxMemory = Annotated[
-    float | None,
-    typer.Option(
-        "--max-memory",
-        help="GiB the fit may take: its planes, frames and working memory are estimated"
-        " before any work (default: the machine's memory, or the cgroup's limit).",
-    ),
-]
-NoResume = Annotated[
-    bool,
-    typer.Option(
-        "--no-resume",
-        help="Start afresh even if a checkpoint exists: a previous fit's files in --out"
-        " are removed first.",
-    ),
-]
 
 
-@user_errors
+@command("dataset", metavars={"volume_cell": "MM"})
 def fit_field_command(
-    dataset: Annotated[Path, typer.Argument(help="Dataset directory (ultron-sweeps/1).")],
-    out: FieldDirOut,
-    preset: FieldPreset = "default",
-    backend: Backend = None,
-    iters: Iters = None,
-    scattering_floor: ScatteringFloor = None,
-    scattering_warmup: ScatteringWarmup = None,
-    confidence_prior: ConfidencePrior = None,
-    volume_cell: VolumeCell = None,
-    orientation: Orientation = None,
-    seed: FitSeed = 0,
-    holdout_every: HoldoutEvery = 10,
-    fit_shape: FitShape = "auto",
-    train_scatterers: TrainScatterers = "expected",
-    check_every: CheckEvery = 250,
-    checkpoint_every: CheckpointEvery = None,
-    max_memory: FitMaxMemory = None,
-    threads: ThreadsOption = None,
-    device: DeviceOption = "auto",
-    no_resume: NoResume = False,
+    dataset: Path,
+    out: Path,
+    preset: str = "default",
+    backend: str | None = None,
+    iters: int | None = None,
+    scattering_floor: float | None = None,
+    scattering_warmup: int | None = None,
+    confidence_prior: float | None = None,
+    volume_cell: float | None = None,
+    orientation: str | None = None,
+    seed: int = 0,
+    holdout_every: int = 10,
+    fit_shape: str = "auto",
+    train_scatterers: str = "expected",
+    check_every: int = 250,
+    checkpoint_every: int | None = None,
+    max_memory: float | None = None,
+    threads: int | None = None,
+    device: str = "auto",
+    no_resume: bool = False,
 ) -> None:
     """Fit an acoustic neural field (Ultra-NeRF) to a dataset's frames and write FIELD_DIR.
 
     An existing checkpoint in --out is resumed if it was fitted on the same dataset (content
     hash in field.json) with the same settings; a larger --iters continues on the learning-rate
     schedule of the new total, one below the checkpoint's step is an error (--no-resume starts
-    afresh)."""
+    afresh).
+
+    Args:
+        dataset: Dataset directory (ultron-sweeps/1).
+        out: FIELD_DIR to write (resumed if it exists).
+        preset: default (grid, Ultra-NeRF's heads), shadow (grid, φ floor 0.1 and a 500-step
+            φ warm-up: the shadow goes into T) or paper (Ultra-NeRF as published: 8 × 128
+            MLP, 75k iterations).
+        backend: grid (fast) or mlp (the paper's network); default: preset's.
+        iters: Training iterations (default: preset's).
+        scattering_floor: Lower bound φ_min of the scattering amplitude (0: allow anechoic
+            regions); default: preset's (shadow 0.1, else 0).
+        scattering_warmup: Steps with φ held constant before it is learned (default:
+            preset's).
+        confidence_prior: Weight of the one-sided prior T ≤ C + 0.3, C the frame's
+            ultrasound confidence map (0: off); default: preset's.
+        volume_cell: grid: cell of a dense 3D feature grid read beside the planes on every
+            box; 0: none (default: 2 on a long box, a long bone's sweep; none on a compact
+            one: docs/decisions.md).
+        orientation: The field's axes: world (the tracker's, default) or auto (the sweep's
+            where it runs more than 5° oblique to the tracker's; measured worse on the real
+            fibula: docs/field.md).
+        seed: Seed of initialisation and batches.
+        holdout_every: Hold out every K-th frame for checks (0: none).
+        fit_shape: Fit at HxW pixels (frames area-resampled), native (the frames' own size)
+            or auto (the frames' own, or coarser where their pixels are finer than half a
+            speckle grain).
+        train_scatterers: expected (E[S], default) or sample (Ultra-NeRF's per-step draw) in
+            training.
+        check_every: Held-out check every N steps.
+        checkpoint_every: Save checkpoint.pt (with train_log.jsonl and field.json) every N
+            steps and at the last; an interrupted fit resumes from the latest (default: the
+            preset's, 500).
+        max_memory: GiB the fit may take: its planes, frames and working memory are
+            estimated before any work (default: the machine's memory, or the cgroup's limit).
+        no_resume: Start afresh even if a checkpoint exists: a previous fit's files in --out
+            are removed first.
+    """
     check_count("--iters", iters)
     check_range("--scattering-floor", scattering_floor, 0.0, 1.0, high_open=True)
     check_count("--scattering-warmup", scattering_warmup, 0)
@@ -225,39 +148,34 @@ def _check_holdout(holdout_every: int) -> None:
         )
 
 
-@user_errors
+@command("field_dir")
 def render_command(
-    field_dir: Annotated[Path, typer.Argument(help="FIELD_DIR written by ultron fit-field.")],
-    out: Annotated[Path, typer.Option("--out", help="Output .npy: (N, H, W) float32 in [0, 1].")],
-    poses: Annotated[
-        Path | None, typer.Option("--poses", help="POSES.npy: (N, 4, 4) probe-to-world, mm.")
-    ] = None,
-    dataset: Annotated[
-        Path | None, typer.Option("--dataset", help="Dataset whose sweep's poses to render.")
-    ] = None,
-    sweep: Annotated[
-        str | None, typer.Option("--sweep", help="Sweep name (with --dataset).")
-    ] = None,
-    maps: Annotated[
-        bool,
-        typer.Option("--maps", help="Also write OUT.theta.npy (N,H,W,C) and OUT.transmission.npy."),
-    ] = False,
-    seed: Annotated[int, typer.Option("--seed", help="Seed of the scatterer draw.")] = 0,
-    expected: Annotated[
-        bool, typer.Option("--expected", help="Render the scatterer expectation (no speckle).")
-    ] = False,
-    allow_other_field: Annotated[
-        bool,
-        typer.Option(
-            "--allow-other-field",
-            help="With --dataset: accept a field fitted on another dataset (its field.json's"
-            " dataset_sha256 differs).",
-        ),
-    ] = False,
-    device: DeviceOption = "auto",
-    threads: ThreadsOption = None,
+    field_dir: Path,
+    out: Path,
+    poses: Path | None = None,
+    dataset: Path | None = None,
+    sweep: str | None = None,
+    maps: bool = False,
+    seed: int = 0,
+    expected: bool = False,
+    allow_other_field: bool = False,
+    device: str = "auto",
+    threads: int | None = None,
 ) -> None:
-    """Render B-mode frames from a fitted field at given probe poses (field's probe geometry)."""
+    """Render B-mode frames from a fitted field at given probe poses (field's probe geometry).
+
+    Args:
+        field_dir: FIELD_DIR written by ultron fit-field.
+        out: Output .npy: (N, H, W) float32 in [0, 1].
+        poses: POSES.npy: (N, 4, 4) probe-to-world, mm.
+        dataset: Dataset whose sweep's poses to render.
+        sweep: Sweep name (with --dataset).
+        maps: Also write OUT.theta.npy (N,H,W,C) and OUT.transmission.npy.
+        seed: Seed of the scatterer draw.
+        expected: Render the scatterer expectation (no speckle).
+        allow_other_field: With --dataset: accept a field fitted on another dataset (its
+            field.json's dataset_sha256 differs).
+    """
     apply_threads(threads)
     check_seed("--seed", seed)
     device = check_device(device)

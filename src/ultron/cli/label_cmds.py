@@ -3,45 +3,30 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated
 
 import typer
 
 from ultron.arguments import sweep_names
-from ultron.cli.common import (
-    ThreadsOption,
-    apply_threads,
-    print_lines,
-    stage_progress,
-    user_errors,
-)
+from ultron.cli.common import apply_threads, command, print_lines, stage_progress
 
 
-@user_errors
+@command("dataset")
 def label(
-    dataset: Annotated[Path, typer.Argument(help="Dataset directory (ultron-sweeps/1).")],
-    auto: Annotated[
-        bool,
-        typer.Option(
-            "--auto",
-            help="Detect bone automatically: the last dominant echo of each scanline, traced as"
-            " one continuous surface (the only mode; required).",
-        ),
-    ] = False,
-    sweeps: Annotated[
-        list[str] | None,
-        typer.Option(
-            "--sweeps",
-            help="Sweep to label (repeat, or comma-separate; default: all sweeps).",
-        ),
-    ] = None,
-    replace: Annotated[
-        bool,
-        typer.Option("--replace", help="Overwrite the labels a sweep already has."),
-    ] = False,
-    threads: ThreadsOption = None,
+    dataset: Path,
+    auto: bool = False,
+    sweeps: list[str] | None = None,
+    replace: bool = False,
+    threads: int | None = None,
 ) -> None:
-    """Write bone labels (1 bone, 0 background, 255 unsure) into a dataset's sweeps."""
+    """Write bone labels (1 bone, 0 background, 255 unsure) into a dataset's sweeps.
+
+    Args:
+        dataset: Dataset directory (ultron-sweeps/1).
+        auto: Detect bone automatically: the last dominant echo of each scanline, traced as
+            one continuous surface (the only mode; required).
+        sweeps: Sweep to label (repeat, or comma-separate; default: all sweeps).
+        replace: Overwrite the labels a sweep already has.
+    """
     apply_threads(threads)
     from ultron.data.auto_label_dataset import check_labelling, label_checked_sweeps
     from ultron.errors import argument_error

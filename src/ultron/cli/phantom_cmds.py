@@ -3,12 +3,11 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated
 
 import typer
 
 from ultron.arguments import check_count, check_range, check_seed
-from ultron.cli.common import ThreadsOption, apply_threads, print_lines, stage_progress, user_errors
+from ultron.cli.common import apply_threads, command, print_lines, stage_progress
 
 
 def _check_numbers(
@@ -50,75 +49,49 @@ def _check_numbers(
     check_range("--voxel-mm", voxel_mm, 0.0, MAX_VOXEL_MM, low_open=True)
 
 
-Out = Annotated[Path, typer.Option("--out", help="Dataset directory to write (created).")]
-PhantomName = Annotated[
-    str,
-    typer.Option(
-        "--phantom",
-        help="Phantom: vertebrae L2, L3, L3b, L4; condyle (end of a long bone); femur (44 cm, long sweeps).",
-    ),
-]
-Seed = Annotated[int, typer.Option("--seed", help="Random seed (same seed → same files).")]
-Sweeps = Annotated[
-    str,
-    typer.Option("--sweeps", help="Comma-separated sweeps: row, column, tilt_p<deg>, tilt_m<deg>."),
-]
-Frames = Annotated[int, typer.Option("--frames", help="Frames per sweep.")]
-StepMm = Annotated[
-    float | None,
-    typer.Option(
-        "--step-mm", help="Probe step between frames, mm (default: spread over the bone extent)."
-    ),
-]
-ProbeWidthMm = Annotated[
-    float, typer.Option("--probe-width-mm", help="Linear probe width (lateral FOV), mm.")
-]
-DepthMm = Annotated[float, typer.Option("--depth-mm", help="Imaging depth, mm.")]
-HeightPx = Annotated[int, typer.Option("--height-px", help="Samples per scanline.")]
-WidthPx = Annotated[int, typer.Option("--width-px", help="Scanlines per frame.")]
-PoseNoiseMm = Annotated[
-    float, typer.Option("--pose-noise-mm", help="Tracking error σ per axis, mm (0: exact poses).")
-]
-PoseNoiseDeg = Annotated[
-    float, typer.Option("--pose-noise-deg", help="Tracking error σ per axis, degrees.")
-]
-LabelNoiseMm = Annotated[
-    float, typer.Option("--label-noise-mm", help="Annotation edge jitter σ, mm (0: exact edges).")
-]
-LabelMissing = Annotated[
-    float, typer.Option("--label-missing", help="Fraction of frames left unannotated (255).")
-]
-LabelErrors = Annotated[
-    float, typer.Option("--label-errors", help="Fraction of frames annotated with a coarse error.")
-]
-VoxelMm = Annotated[float, typer.Option("--voxel-mm", help="SDF grid / reference mesh voxel, mm.")]
-Preview = Annotated[
-    bool, typer.Option("--preview", help="Also write OUT/preview.png (frames + labels).")
-]
-
-
-@user_errors
+@command()
 def simulate(
-    out: Out,
-    phantom: PhantomName = "L3",
-    seed: Seed = 0,
-    sweeps: Sweeps = "row,column,tilt_p10,tilt_m10",
-    frames: Frames = 60,
-    step_mm: StepMm = None,
-    probe_width_mm: ProbeWidthMm = 38.0,
-    depth_mm: DepthMm = 70.0,
-    height_px: HeightPx = 128,
-    width_px: WidthPx = 96,
-    pose_noise_mm: PoseNoiseMm = 0.3,
-    pose_noise_deg: PoseNoiseDeg = 0.2,
-    label_noise_mm: LabelNoiseMm = 0.3,
-    label_missing: LabelMissing = 0.0,
-    label_errors: LabelErrors = 0.02,
-    voxel_mm: VoxelMm = 0.3,
-    preview: Preview = False,
-    threads: ThreadsOption = None,
+    out: Path,
+    phantom: str = "L3",
+    seed: int = 0,
+    sweeps: str = "row,column,tilt_p10,tilt_m10",
+    frames: int = 60,
+    step_mm: float | None = None,
+    probe_width_mm: float = 38.0,
+    depth_mm: float = 70.0,
+    height_px: int = 128,
+    width_px: int = 96,
+    pose_noise_mm: float = 0.3,
+    pose_noise_deg: float = 0.2,
+    label_noise_mm: float = 0.3,
+    label_missing: float = 0.0,
+    label_errors: float = 0.02,
+    voxel_mm: float = 0.3,
+    preview: bool = False,
+    threads: int | None = None,
 ) -> None:
-    """Simulate a tracked multi-sweep B-mode dataset of a digital bone phantom, with labels."""
+    """Simulate a tracked multi-sweep B-mode dataset of a digital bone phantom, with labels.
+
+    Args:
+        out: Dataset directory to write (created).
+        phantom: Phantom: vertebrae L2, L3, L3b, L4; condyle (end of a long bone); femur (44
+            cm, long sweeps).
+        seed: Random seed (same seed → same files).
+        sweeps: Comma-separated sweeps: row, column, tilt_p<deg>, tilt_m<deg>.
+        frames: Frames per sweep.
+        step_mm: Probe step between frames, mm (default: spread over the bone extent).
+        probe_width_mm: Linear probe width (lateral FOV), mm.
+        depth_mm: Imaging depth, mm.
+        height_px: Samples per scanline.
+        width_px: Scanlines per frame.
+        pose_noise_mm: Tracking error σ per axis, mm (0: exact poses).
+        pose_noise_deg: Tracking error σ per axis, degrees.
+        label_noise_mm: Annotation edge jitter σ, mm (0: exact edges).
+        label_missing: Fraction of frames left unannotated (255).
+        label_errors: Fraction of frames annotated with a coarse error.
+        voxel_mm: SDF grid / reference mesh voxel, mm.
+        preview: Also write OUT/preview.png (frames + labels).
+    """
     apply_threads(threads)
     _check_numbers(
         seed, frames, step_mm, probe_width_mm, depth_mm, height_px, width_px, pose_noise_mm,

@@ -3,176 +3,37 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated
 
 import typer
 
 from ultron.arguments import check_choice, check_count, check_range, check_seed
 from ultron.cli.common import (
-    DeviceOption,
     StageLines,
-    ThreadsOption,
     apply_threads,
     check_device,
+    command,
     console,
     fit_progress,
-    user_errors,
     warning_line,
 )
 from ultron.errors import argument_error
 from ultron.methods.catalog import method_help
 
 MESH_COORDINATES = ("lps", "ras")  # ultron.mesh.export.MESH_COORDINATES (lazy import)
-MeshCoordinates = Annotated[
-    str,
-    typer.Option(
-        "--mesh-coordinates",
-        help="Coordinates of the mesh files: lps (ultron's world; 3D Slicer's default for"
-        " models) or ras; either is tagged SPACE=… in the file header, which Slicer reads.",
-    ),
-]
-MaxMemory = Annotated[
-    float | None,
-    typer.Option(
-        "--max-memory",
-        help="GiB the run's grids may take, estimated before any work (default: the machine's"
-        " memory).",
-    ),
-]
-
-LabelFraction = Annotated[
-    float, typer.Option("--label-fraction", help="Share of annotated frames used, in (0, 1].")
-]
-RunSeed = Annotated[int, typer.Option("--seed", help="Seed of label selection and training.")]
-Points = Annotated[int, typer.Option("--points", help="Points per surface for metrics.")]
-FieldDir = Annotated[
-    Path | None,
-    typer.Option("--field", help="The dataset's FIELD_DIR (default: fit and cache one)."),
-]
-FieldDirs = Annotated[
-    list[Path] | None,
-    typer.Option(
-        "--field",
-        metavar="FIELD_DIR",
-        help="The dataset's FIELD_DIR (default: fit and cache one). Given more than once "
-        "(fields fitted with different --seed), UltrON trains on each and keeps the one whose "
-        "network fits the labels best (lowest label loss; run.json field_candidates).",
-    ),
-]
-FieldIters = Annotated[
-    int | None,
-    typer.Option(
-        "--field-iters",
-        help="Field iterations when fitting (default: the preset's: 3000; paper: 75000).",
-    ),
-]
-OccupancyIters = Annotated[
-    int | None,
-    typer.Option(
-        "--occupancy-iters",
-        help="Occupancy iterations of ultron* and on (default: the preset's: 1500; paper: 50000).",
-    ),
-]
-Method = Annotated[
-    str,
-    typer.Option("--method", help=method_help()),
-]
-Preset = Annotated[
-    str,
-    typer.Option(
-        "--preset",
-        help="Settings of every stage: fast (this project's, minutes on a CPU) or paper (the"
-        " UltrON paper's: 8 × 128 MLP field, 75k + 50k iterations, θ alone, BCE(T·f, y),"
-        " whole surface, RoCoSDF's paper settings; for a GPU). Options given win.",
-    ),
-]
-Visibility = Annotated[
-    str,
-    typer.Option(
-        "--visibility",
-        help="Source of the loss's transmission T (ultron*): field (the fitted acoustic "
-        "field), confidence (the frame's ultrasound confidence map) or labels (the "
-        "annotation's first bone run per scanline).",
-    ),
-]
-OracleTransmission = Annotated[
-    bool,
-    typer.Option(
-        "--oracle-transmission",
-        help="Diagnostic (ultron*): train with the simulator's true T "
-        "(<sweep>/transmission.npy of a simulated dataset).",
-    ),
-]
-Surface = Annotated[
-    str | None,
-    typer.Option(
-        "--surface",
-        help="ultron* and compounding: observed (keep the faces some frame saw facing the"
-        " probe with T ≥ 0.3 above them — compounding: T = 1) or all (the"
-        " closed iso-surface) (default: the preset's: observed; paper: all).",
-    ),
-]
-ThetaContext = Annotated[
-    str | None,
-    typer.Option(
-        "--theta-context",
-        help="ultron*: radii (mm, comma-separated) of the world-axis neighbours whose θ f"
-        " reads besides θ(x); 'none' for θ(x) alone, as in the paper (default: the"
-        " preset's: 1,2; paper: none).",
-    ),
-]
-PositiveWeight = Annotated[
-    str | None,
-    typer.Option(
-        "--positive-weight",
-        help="ultron*: loss weight of the bone labels: 1 (unweighted, the paper's), another"
-        " number > 0, or 'balanced' (n_background / n_bone, at most 20: a fuller but less"
-        " accurate surface, e.g. for very short runs) (default: 1).",
-    ),
-]
-Negatives = Annotated[
-    str | None,
-    typer.Option(
-        "--negatives",
-        help="ultron: background labels in the compensated loss: 'observed' (full weight"
-        " where T ≥ 0.3, none below: only observed free space is evidence) or 'weighted'"
-        " (scaled by T: the paper's BCE(T·f, y)) (default: the preset's: observed; paper:"
-        " weighted).",
-    ),
-]
-EchoSupport = Annotated[
-    bool | None,
-    typer.Option(
-        "--echo-support/--no-echo-support",
-        help="ultron*: keep only surface some frame shows as bone — a bone echo or the onset of"
-        " a shadow within ±1 mm (default: the preset's: on; paper: off).",
-    ),
-]
-LabelSupport = Annotated[
-    float | None,
-    typer.Option(
-        "--label-support",
-        metavar="MM",
-        help="ultron*: surface within MM of a labelled bone surface counts as observed"
-        " (default: the preset's: 1 mm; paper: 0, off).",
-    ),
-]
-LabelBridges = Annotated[
-    bool | None,
-    typer.Option(
-        "--label-bridges/--no-label-bridges",
-        help="ultron*: with --label-support, the labelled surface also runs between consecutive"
-        " labelled frames whose labelled cross-sections agree to within MM (default: on).",
-    ),
-]
-AllowOtherField = Annotated[
-    bool,
-    typer.Option(
-        "--allow-other-field",
-        help="Accept a --field fitted on another dataset (its field.json's dataset_sha256"
-        " differs); run.json records field_dataset_match false.",
-    ),
-]
+#: The help of the options reconstruct and finetune share.
+RUN_HELP = {
+    "out": "Output directory.",
+    "label_fraction": "Share of annotated frames used, in (0, 1].",
+    "seed": "Seed of label selection and training.",
+    "points": "Points per surface for metrics.",
+    "allow_other_field": "Accept a --field fitted on another dataset (its field.json's"
+    " dataset_sha256 differs); run.json records field_dataset_match false.",
+    "max_memory": "GiB the run's grids may take, estimated before any work (default: the"
+    " machine's memory).",
+    "mesh_coordinates": "Coordinates of the mesh files: lps (ultron's world; 3D Slicer's"
+    " default for models) or ras; either is tagged SPACE=… in the file header, which Slicer"
+    " reads.",
+}
 
 
 def _check_common(
@@ -195,39 +56,81 @@ def _field_progress():
     return fit_progress("fitting acoustic field")
 
 
-@user_errors
+@command(
+    "dataset",
+    shared={**RUN_HELP, "method": method_help()},
+    metavars={"field": "FIELD_DIR", "label_support": "MM"},
+)
 def reconstruct(
-    dataset: Annotated[
-        Path, typer.Argument(help="Dataset directory (ultron-sweeps/1) with labels.")
-    ],
-    out: Annotated[Path, typer.Option("--out", help="Output directory.")],
-    method: Method = "ultron",
-    label_fraction: LabelFraction = 0.1,
-    field: FieldDirs = None,
-    seed: RunSeed = 0,
-    field_iters: FieldIters = None,
-    occupancy_iters: OccupancyIters = None,
-    points: Points = 100_000,
-    preset: Preset = "fast",
-    visibility: Visibility = "field",
-    oracle_transmission: OracleTransmission = False,
-    surface: Surface = None,
-    theta_context: ThetaContext = None,
-    positive_weight: PositiveWeight = None,
-    negatives: Negatives = None,
-    echo_support: EchoSupport = None,
-    label_support: LabelSupport = None,
-    label_bridges: LabelBridges = None,
-    allow_other_field: AllowOtherField = False,
-    max_memory: MaxMemory = None,
-    mesh_coordinates: MeshCoordinates = "lps",
-    device: DeviceOption = "auto",
-    threads: ThreadsOption = None,
+    dataset: Path,
+    out: Path,
+    method: str = "ultron",
+    label_fraction: float = 0.1,
+    field: list[Path] | None = None,
+    seed: int = 0,
+    field_iters: int | None = None,
+    occupancy_iters: int | None = None,
+    points: int = 100_000,
+    preset: str = "fast",
+    visibility: str = "field",
+    oracle_transmission: bool = False,
+    surface: str | None = None,
+    theta_context: str | None = None,
+    positive_weight: str | None = None,
+    negatives: str | None = None,
+    echo_support: bool | None = None,
+    label_support: float | None = None,
+    label_bridges: bool | None = None,
+    allow_other_field: bool = False,
+    max_memory: float | None = None,
+    mesh_coordinates: str = "lps",
+    device: str = "auto",
+    threads: int | None = None,
 ) -> None:
     """Reconstruct a bone surface: mesh.ply/.stl/.obj, occupancy.nii.gz, metrics.json, run.json.
 
     --out must be new, empty or an earlier reconstruct run, which the new run replaces as a
-    whole."""
+    whole.
+
+    Args:
+        dataset: Dataset directory (ultron-sweeps/1) with labels.
+        field: The dataset's FIELD_DIR (default: fit and cache one). Given more than once
+            (fields fitted with different --seed), UltrON trains on each and keeps the one
+            whose network fits the labels best (lowest label loss; run.json
+            field_candidates).
+        field_iters: Field iterations when fitting (default: the preset's: 3000; paper:
+            75000).
+        occupancy_iters: Occupancy iterations of ultron* and on (default: the preset's: 1500;
+            paper: 50000).
+        preset: Settings of every stage: fast (this project's, minutes on a CPU) or paper
+            (the UltrON paper's: 8 × 128 MLP field, 75k + 50k iterations, θ alone, BCE(T·f,
+            y), whole surface, RoCoSDF's paper settings; for a GPU). Options given win.
+        visibility: Source of the loss's transmission T (ultron*): field (the fitted
+            acoustic field), confidence (the frame's ultrasound confidence map) or labels
+            (the annotation's first bone run per scanline).
+        oracle_transmission: Diagnostic (ultron*): train with the simulator's true T
+            (<sweep>/transmission.npy of a simulated dataset).
+        surface: ultron* and compounding: observed (keep the faces some frame saw facing the
+            probe with T ≥ 0.3 above them — compounding: T = 1) or all (the closed
+            iso-surface) (default: the preset's: observed; paper: all).
+        theta_context: ultron*: radii (mm, comma-separated) of the world-axis neighbours
+            whose θ f reads besides θ(x); 'none' for θ(x) alone, as in the paper (default:
+            the preset's: 1,2; paper: none).
+        positive_weight: ultron*: loss weight of the bone labels: 1 (unweighted, the
+            paper's), another number > 0, or 'balanced' (n_background / n_bone, at most 20:
+            a fuller but less accurate surface, e.g. for very short runs) (default: 1).
+        negatives: ultron: background labels in the compensated loss: 'observed' (full
+            weight where T ≥ 0.3, none below: only observed free space is evidence) or
+            'weighted' (scaled by T: the paper's BCE(T·f, y)) (default: the preset's:
+            observed; paper: weighted).
+        echo_support: ultron*: keep only surface some frame shows as bone — a bone echo or
+            the onset of a shadow within ±1 mm (default: the preset's: on; paper: off).
+        label_support: ultron*: surface within MM of a labelled bone surface counts as
+            observed (default: the preset's: 1 mm; paper: 0, off).
+        label_bridges: ultron*: with --label-support, the labelled surface also runs between
+            consecutive labelled frames whose labelled cross-sections agree to within MM
+            (default: on).
+    """
     apply_threads(threads)
     _check_common(label_fraction, seed, field_iters, points, max_memory)
     check_count("--occupancy-iters", occupancy_iters, 0)
@@ -290,18 +193,21 @@ def _print_summary(summaries: dict) -> None:
         console.print(f"{name}: {timings}")
 
 
-@user_errors
+@command()
 def demo(
-    out: Annotated[Path, typer.Option("--out", help="Output directory.")] = Path("runs/demo"),
-    seed: Annotated[
-        int, typer.Option("--seed", help="Seed of simulation, labels and training.")
-    ] = 0,
-    device: DeviceOption = "auto",
-    threads: ThreadsOption = None,
+    out: Path = Path("runs/demo"),
+    seed: int = 0,
+    device: str = "auto",
+    threads: int | None = None,
 ) -> None:
     """Simulate L3, fit the acoustic field, run UltrON and UltrON w/o loss at 10%, compare.
 
-    --out/ultron and --out/ultron-noloss must be new, empty or earlier reconstruct runs."""
+    --out/ultron and --out/ultron-noloss must be new, empty or earlier reconstruct runs.
+
+    Args:
+        out: Output directory.
+        seed: Seed of simulation, labels and training.
+    """
     apply_threads(threads)
     check_seed("--seed", seed)
     device = check_device(device)
@@ -320,44 +226,39 @@ def demo(
         )
 
 
-@user_errors
+@command("model_dir", "dataset", shared=RUN_HELP)
 def finetune(
-    model_dir: Annotated[
-        Path, typer.Argument(help="Output directory of a reconstruct --method ultron run.")
-    ],
-    dataset: Annotated[Path, typer.Argument(help="The new shape's dataset directory.")],
-    out: Annotated[Path, typer.Option("--out", help="Output directory.")],
-    label_fraction: LabelFraction = 0.01,
-    iters: Annotated[
-        int, typer.Option("--iters", help="Fine-tuning iterations; 0 applies the model as is.")
-    ] = 100,
-    field: FieldDir = None,
-    seed: RunSeed = 0,
-    field_iters: Annotated[
-        int | None,
-        typer.Option(
-            "--field-iters", help="Field iterations when fitting (default: the fast preset's 3000)."
-        ),
-    ] = None,
-    points: Points = 100_000,
-    visibility: Annotated[
-        str | None,
-        typer.Option(
-            "--visibility",
-            help="Source of the loss's T: field, confidence or labels (default: the model's).",
-        ),
-    ] = None,
-    allow_other_field: AllowOtherField = False,
-    max_memory: MaxMemory = None,
-    mesh_coordinates: MeshCoordinates = "lps",
-    device: DeviceOption = "auto",
-    threads: ThreadsOption = None,
+    model_dir: Path,
+    dataset: Path,
+    out: Path,
+    label_fraction: float = 0.01,
+    iters: int = 100,
+    field: Path | None = None,
+    seed: int = 0,
+    field_iters: int | None = None,
+    points: int = 100_000,
+    visibility: str | None = None,
+    allow_other_field: bool = False,
+    max_memory: float | None = None,
+    mesh_coordinates: str = "lps",
+    device: str = "auto",
+    threads: int | None = None,
 ) -> None:
     """Adapt a trained UltrON network to a new shape: freeze its last two layers, train the rest
     on a few labelled frames through the new dataset's own acoustic field, mesh, evaluate.
 
     --out must be new, empty or an earlier finetune run, which the new run replaces as a
-    whole."""
+    whole.
+
+    Args:
+        model_dir: Output directory of a reconstruct --method ultron run.
+        dataset: The new shape's dataset directory.
+        iters: Fine-tuning iterations; 0 applies the model as is.
+        field: The dataset's FIELD_DIR (default: fit and cache one).
+        field_iters: Field iterations when fitting (default: the fast preset's 3000).
+        visibility: Source of the loss's T: field, confidence or labels (default: the
+            model's).
+    """
     apply_threads(threads)
     _check_common(label_fraction, seed, field_iters, points, max_memory)
     check_count("--iters", iters, 0)

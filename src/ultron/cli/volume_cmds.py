@@ -3,56 +3,24 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated
 
 import typer
 
 from ultron.arguments import check_choice, check_range, sweep_names
-from ultron.cli.common import ThreadsOption, apply_threads, print_lines, user_errors
+from ultron.cli.common import apply_threads, command, print_lines
 
 
-@user_errors
+@command("dataset")
 def compound(
-    dataset: Annotated[Path, typer.Argument(help="Dataset directory (ultron-sweeps/1).")],
-    out: Annotated[
-        Path, typer.Option("--out", help="Output volume, .nii.gz or .nii (written atomically).")
-    ],
-    spacing: Annotated[
-        float, typer.Option("--spacing", help="Voxel size on all three axes, mm (PLUS: 0.5).")
-    ] = 0.5,
-    sweeps: Annotated[
-        str | None,
-        typer.Option("--sweeps", help="Comma-separated sweeps to compound (default: all)."),
-    ] = None,
-    interpolation: Annotated[
-        str,
-        typer.Option(
-            "--interpolation",
-            help="nearest (a pixel fills its nearest voxel) or linear (its 8 neighbours, with"
-            " trilinear weights).",
-        ),
-    ] = "nearest",
-    reduce: Annotated[
-        str,
-        typer.Option("--reduce", help="How a voxel combines its pixels: mean (weighted) or max."),
-    ] = "mean",
-    fill_holes: Annotated[
-        int,
-        typer.Option(
-            "--fill-holes",
-            help="Fill empty voxels with PLUS's stick filler: N = the longest stick in voxels,"
-            " both filled ends included (PLUS's StickLengthLimit; 0 = no filling).",
-        ),
-    ] = 0,
-    max_memory: Annotated[
-        float | None,
-        typer.Option(
-            "--max-memory",
-            help="GiB the volume may take, estimated before any work (default: the machine's"
-            " memory, or the cgroup's or ulimit -v's limit).",
-        ),
-    ] = None,
-    threads: ThreadsOption = None,
+    dataset: Path,
+    out: Path,
+    spacing: float = 0.5,
+    sweeps: str | None = None,
+    interpolation: str = "nearest",
+    reduce: str = "mean",
+    fill_holes: int = 0,
+    max_memory: float | None = None,
+    threads: int | None = None,
 ) -> None:
     """Compound B-mode frames into a NIfTI volume (PLUS's volume reconstruction).
 
@@ -64,6 +32,19 @@ def compound(
     meshes and PLUS's MetaImages); NIfTI is RAS, so the file's affine maps
     voxel (i, j, k) to (−x, −y, z) for world point (x, y, z): Slicer shows the
     volume where it shows the meshes.
+
+    Args:
+        dataset: Dataset directory (ultron-sweeps/1).
+        out: Output volume, .nii.gz or .nii (written atomically).
+        spacing: Voxel size on all three axes, mm (PLUS: 0.5).
+        sweeps: Comma-separated sweeps to compound (default: all).
+        interpolation: nearest (a pixel fills its nearest voxel) or linear (its 8 neighbours,
+            with trilinear weights).
+        reduce: How a voxel combines its pixels: mean (weighted) or max.
+        fill_holes: Fill empty voxels with PLUS's stick filler: N = the longest stick in
+            voxels, both filled ends included (PLUS's StickLengthLimit; 0 = no filling).
+        max_memory: GiB the volume may take, estimated before any work (default: the
+            machine's memory, or the cgroup's or ulimit -v's limit).
     """
     apply_threads(threads)
     from ultron.mesh.image_compounding import ImageCompoundingConfig

@@ -1,0 +1,115 @@
+"""``ultron.cli.common.command``: a typer command declared by its function's docstring."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import typer
+import typer.main
+from typer.testing import CliRunner
+
+from ultron.cli.common import COMMON_HELP, command
+from ultron.cli.main import app as ultron_app
+from ultron.errors import argument_error
+
+runner = CliRunner()
+
+
+@command("source", shared={"count": "Shared count help.", "unused": "Not a parameter here."},
+         metavars={"depth_mm": "MM"})  # fmt: skip
+def _example(
+    source: Path,
+    out: Path,
+    depth_mm: float = 1.5,
+    count: int = 3,
+    quiet: bool = False,
+    smooth: bool | None = None,
+    names: list[str] | None = None,
+    threads: int | None = None,
+) -> None:
+    """Do the example.
+
+    A second paragraph.
+
+    Args:
+        source: Where the input
+            lives, on two lines.
+        out: Output directory.
+        depth_mm: Depth, mm.
+        quiet: Print nothing.
+        smooth: Smooth or not (default: the preset's).
+        names: Names (repeat).
+    """
+    if count < 0:
+        raise argument_error("--count", f"expected ≥ 0, got {count}")
+    typer.echo(f"{source} {out} {depth_mm} {count} {quiet} {smooth} {names} {threads}")
+
+
+def _click_command():
+    app = typer.Typer()
+    app.command("example")(_example)
+    app.command("other")(lambda: None)  # two commands keep "example" a subcommand
+    return app, typer.main.get_command(app).commands["example"]
+
+
+def test_parameters_are_declared_from_the_docstring():
+    _, click_command = _click_command()
+    params = {p.name: p for p in click_command.params}
+    assert params["source"].param_type_name == "argument"
+    assert params["source"].help == "Where the input lives, on two lines."
+    assert params["out"].opts == ["--out"] and params["out"].required
+    assert params["depth_mm"].opts == ["--depth-mm"] and params["depth_mm"].metavar == "MM"
+    assert params["count"].help == "Shared count help."  # from ``shared``
+    assert params["threads"].help == COMMON_HELP["threads"]
+    # a bool defaulting to False is a plain flag; an optional bool a --x/--no-x pair
+    assert params["quiet"].is_flag and params["quiet"].secondary_opts == []
+    assert params["smooth"].opts == ["--smooth"]
+    assert params["smooth"].secondary_opts == ["--no-smooth"]
+    assert params["names"].multiple
+    # the command's help is the text above Args:, its paragraphs kept
+    assert click_command.help == "Do the example.\n\nA second paragraph."
+
+
+def test_a_declared_command_parses_and_refuses_bad_input(tmp_path: Path):
+    app, _ = _click_command()
+    args = ["example", "src", "--out", "o", "--depth-mm", "2", "--no-smooth", "--names", "a"]
+    result = runner.invoke(app, [*args, "--names", "b", "--quiet"])
+    assert result.exit_code == 0, result.output
+    assert result.output.strip() == "src o 2.0 3 True False ['a', 'b'] None"
+    result = runner.invoke(app, [*args, "--count", "-1"])
+    assert result.exit_code == 2
+    assert result.output.strip() == "error: argument: --count: expected ≥ 0, got -1"
+    assert "Traceback" not in result.output
+
+
+def test_a_parameter_without_help_is_refused_when_declared():
+    def no_help(value: int = 0) -> None:
+        """Nothing said of value."""
+
+    with pytest.raises(TypeError, match="'value' has no help"):
+        command()(no_help)
+
+
+@pytest.mark.parametrize(
+    ("arguments", "entries"),
+    [((), "value: The value.\n    valeu: The value, misspelt."), (("missing",), "value: V.")],
+    ids=["misspelt-entry", "absent-argument"],
+)
+def test_help_or_an_argument_naming_no_parameter_is_refused(arguments, entries):
+    def declared(value: int = 0) -> None:
+        pass
+
+    declared.__doc__ = f"A command.\n\nArgs:\n    {entries}\n"
+    with pytest.raises(TypeError, match=r"no parameter named (valeu|missing)"):
+        command(*arguments)(declared)
+
+
+def test_every_ultron_option_has_help_and_no_command_help_shows_its_args_section():
+    commands = typer.main.get_command(ultron_app).commands
+    assert len(commands) == 13
+    for name, click_command in commands.items():
+        assert "Args:" not in (click_command.help or ""), name
+        for param in click_command.params:
+            assert param.help and "\n" not in param.help, (name, param.name)
+            assert "  " not in param.help, (name, param.name)  # continuation lines joined
