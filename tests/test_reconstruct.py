@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import shutil
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 
@@ -211,33 +212,47 @@ def test_a_request_carries_its_own_methods_settings():
 
 
 def test_several_fields_keep_the_lowest_label_loss(tiny: Path, monkeypatch):
-    """run_on_fields runs the method on each field and keeps the result whose network fits the
-    labels best, recording every candidate."""
+    """run_on_fields trains stage 2 on each field, meshes only the f with the lowest label loss
+    (the first of equal ones) and records every candidate; one field is a plain run."""
     import ultron.pipeline.run as run_module
     from ultron.timing import StageTimer
 
-    losses = {"a": 0.03, "b": 0.02, "c": 0.025}
+    losses = {"a": 0.03, "b": 0.02, "c": 0.025, "d": 0.02}
+    finished: list[str] = []
 
-    class Result:
+    class Trained:
         def __init__(self, name: str):
-            self.name, self.info = name, {"occupancy_label_loss": losses[name]}
+            self.name, self.label_loss = name, losses[name]
 
+    class Method:
+        needs_field = True
+
+        def train(self, dataset, inputs):
+            return Trained(inputs.fitted)
+
+        def finish(self, dataset, inputs, trained):
+            assert inputs.fitted == trained.name  # the kept candidate's own field
+            finished.append(trained.name)
+            return SimpleNamespace(name=trained.name, observation=True)
+
+    monkeypatch.setattr(run_module, "get_method", lambda name: Method())
     monkeypatch.setattr(
-        run_module, "run_method", lambda dataset, request, fitted, *a, **k: Result(fitted)
+        run_module, "run_method", lambda dataset, request, fitted, *a, **k: Trained(fitted)
     )
     request = ReconstructionRequest(method="ultron")
     timer = StageTimer()
     result, extra = run_module.run_on_fields(
-        tiny, None, request, ["a", "b", "c"], timer, None,
+        tiny, None, request, ["a", "b", "c", "d"], timer, None,
         lambda name: (name, {"field_dir": f"/fields/{name}", "field_cached": True}),
     )  # fmt: skip
-    assert result.name == "b" and extra["field_dir"] == "/fields/b"
-    assert set(timer.seconds) == {"field 1/3", "field 2/3", "field 3/3"}
-    assert [c["occupancy_label_loss"] for c in extra["field_candidates"]] == [0.03, 0.02, 0.025]
+    assert result.name == "b" and extra["field_dir"] == "/fields/b" and finished == ["b"]
+    assert set(timer.seconds) == {f"field {k}/4" for k in range(1, 5)}
+    kept_losses = [c["occupancy_label_loss"] for c in extra["field_candidates"]]
+    assert kept_losses == [0.03, 0.02, 0.025, 0.02]
     one, extra = run_module.run_on_fields(
         tiny, None, request, ["c"], StageTimer(), None, lambda name: (name, {"field_dir": name})
     )
-    assert one.name == "c" and "field_candidates" not in extra
+    assert one.name == "c" and "field_candidates" not in extra and finished == ["b"]
     with pytest.raises(ValueError, match="field_dirs"):
         run_module.run_on_fields(tiny, None, request, [], StageTimer(), None, lambda n: (n, {}))
 

@@ -46,12 +46,13 @@ from ultron.methods.ultron_method import (
     mesh_occupancy,
     occupancy_function,
     occupancy_training_data,
+    training_data_info,
 )
 from ultron.metrics.surface import MetricsConfig
 from ultron.timing import StageTimer
 from ultron.train.loop import Progress
 from ultron.train.occupancy import OccupancyTrainConfig, fit_occupancy
-from ultron.train.visibility import VisibilityConfig, transmission_summary
+from ultron.train.visibility import VisibilityConfig
 
 
 @dataclass(frozen=True)
@@ -192,14 +193,7 @@ def finetune_ultron(
         info |= {
             "selection": selection.to_dict(),
             "n_label_frames": selection.n_frames,
-            "n_labelled_pixels": len(data.labels),
-            "n_bone_pixels": int(data.labels.sum()),
-            "transmission_stats": transmission_summary(
-                data.transmission,
-                data.labels,
-                data.labelled_shadow,
-                config.training(spec).observed_transmission,
-            ),
+            **training_data_info(data, config.training(spec).observed_transmission),
             "occupancy_log": log,
         }
     model.eval()

@@ -41,7 +41,13 @@ from ultron.methods.catalog import FIELD_METHODS, METHOD_NAMES
 from ultron.methods.compounding_method import CompoundingMethodConfig, reconstruct_compounding
 from ultron.methods.on_method import ONConfig, reconstruct_on
 from ultron.methods.rocosdf import RoCoSDFConfig, reconstruct_rocosdf
-from ultron.methods.ultron_method import Reconstruction, UltronConfig, reconstruct_ultron
+from ultron.methods.ultron_method import (
+    Reconstruction,
+    Stage2Fit,
+    UltronConfig,
+    mesh_ultron,
+    train_ultron,
+)
 from ultron.pipeline.resources import check_compounding_grid
 from ultron.timing import StageTimer
 from ultron.train.visibility import VisibilityConfig
@@ -159,12 +165,23 @@ class UltronMethod(MethodBase):
         return config.visibility
 
     def fit(self, dataset: SweepDataset, inputs: MethodInputs) -> Reconstruction:
+        return self.finish(dataset, inputs, self.train(dataset, inputs))
+
+    def train(self, dataset: SweepDataset, inputs: MethodInputs) -> Stage2Fit:
+        """Stage 2 alone (:func:`~ultron.methods.ultron_method.train_ultron`) on
+        ``inputs.fitted``: a run given several fields trains on each and meshes once."""
         if inputs.fitted is None:
             raise argument_error("field", f"method {self.name!r} needs a fitted acoustic field")
-        return reconstruct_ultron(
+        return train_ultron(
             dataset, inputs.fitted, self.loss, inputs.label_fraction, inputs.seed, inputs.config,
             inputs.timer, inputs.truth, inputs.device,
         )  # fmt: skip
+
+    def finish(
+        self, dataset: SweepDataset, inputs: MethodInputs, trained: Stage2Fit
+    ) -> Reconstruction:
+        """Stage 3 of :meth:`train`'s result (:func:`~ultron.methods.ultron_method.mesh_ultron`)."""
+        return mesh_ultron(dataset, trained, inputs.config, inputs.timer, inputs.truth)
 
 
 @dataclass(frozen=True)

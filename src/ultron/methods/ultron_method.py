@@ -277,6 +277,18 @@ def occupancy_training_data(
     return OccupancyTrainingData(inputs, transmission.detach().float(), labels, shadow)
 
 
+def training_data_info(data: OccupancyTrainingData, observed_transmission: float) -> dict:
+    """run.json's account of stage 2's training data: its labelled and bone pixels and its
+    transmission statistics (:func:`~ultron.train.visibility.transmission_summary`)."""
+    return {
+        "n_labelled_pixels": len(data.labels),
+        "n_bone_pixels": int(data.labels.sum()),
+        "transmission_stats": transmission_summary(
+            data.transmission, data.labels, data.labelled_shadow, observed_transmission
+        ),
+    }
+
+
 def occupancy_function(fitted, network: OccupancyNetwork, context: ThetaContextConfig):
     """points (M, 3) world mm → f(g(x)) ∈ (0, 1) on the CPU, g the input of ``context``
     (computed by the field on its device; f on the network's)."""
@@ -389,7 +401,22 @@ def keep_observed_surface(
     )
 
 
-def reconstruct_ultron(
+@dataclass(frozen=True)
+class Stage2Fit:
+    """UltrON's stage 2 on one fitted field, before meshing: the field, the label frames, the
+    trained f_ω with its training config and log, its label loss (:func:`label_loss`) and
+    run.json's account of the training data (``data_info``; the data itself is not kept)."""
+
+    fitted: Any
+    selection: FrameSelection
+    config: OccupancyTrainConfig
+    network: OccupancyNetwork
+    log: list[dict[str, Any]]
+    label_loss: float
+    data_info: dict[str, Any]
+
+
+def train_ultron(
     dataset: SweepDataset,
     fitted,
     loss: str,
@@ -399,12 +426,12 @@ def reconstruct_ultron(
     timer: StageTimer,
     truth: Mapping[str, np.ndarray] | None = None,
     device: torch.device | str | None = None,
-) -> Reconstruction:
-    """Run stages 2 and 3 of UltrON with ``loss`` (:data:`ultron.train.occupancy.LOSSES`:
-    "ultron", the attenuation-compensated loss, or "bce", the ablation's) on
-    ``label_fraction`` of the annotated frames, chosen with ``seed``; ``truth`` is the
-    oracle's true T per sweep (only for ``config.visibility.source == "oracle"``). f_ω trains
-    and is evaluated on ``device`` (default: the fitted field's)."""
+) -> Stage2Fit:
+    """Stage 2 of UltrON with ``loss`` (:data:`ultron.train.occupancy.LOSSES`: "ultron", the
+    attenuation-compensated loss, or "bce", the ablation's) on ``label_fraction`` of the
+    annotated frames, chosen with ``seed``; ``truth`` is the oracle's true T per sweep (only
+    for ``config.visibility.source == "oracle"``). f_ω trains on ``device`` (default: the
+    fitted field's)."""
     if loss not in LOSSES:
         raise argument_error("loss", f"expected one of {LOSSES}, got {loss!r}")
     occupancy_config = replace(
@@ -424,6 +451,20 @@ def reconstruct_ultron(
             data, occupancy_config, progress=timer.fit_progress, device=device
         )
         fitted_loss = label_loss(network, data, occupancy_config)
+    data_info = training_data_info(data, occupancy_config.observed_transmission)
+    return Stage2Fit(fitted, selection, occupancy_config, network, log, fitted_loss, data_info)
+
+
+def mesh_ultron(
+    dataset: SweepDataset,
+    trained: Stage2Fit,
+    config: UltronConfig,
+    timer: StageTimer,
+    truth: Mapping[str, np.ndarray] | None = None,
+) -> Reconstruction:
+    """Stage 3 of UltrON: mesh the trained f_ω of ``trained`` (:func:`train_ultron`, with the
+    same ``config`` and ``truth``) and keep its observed surface."""
+    fitted, network, selection = trained.fitted, trained.network, trained.selection
     fn = occupancy_function(fitted, network, config.context)
     mesh, volume, grid = mesh_occupancy(fn, dataset, config.meshing, timer, module_device(network))
     with timer.stage("mesh_observed"):
@@ -431,24 +472,20 @@ def reconstruct_ultron(
             mesh, dataset, fitted, config, grid.voxel_mm, truth, timer.counter("frames"),
             selection,
         )  # fmt: skip
+    occupancy_config = trained.config
     info = {
         **observation.info,
         "selection": selection.to_dict(),
         "n_label_frames": selection.n_frames,
-        "n_labelled_pixels": len(data.labels),
-        "n_bone_pixels": int(data.labels.sum()),
+        "n_labelled_pixels": trained.data_info["n_labelled_pixels"],
+        "n_bone_pixels": trained.data_info["n_bone_pixels"],
         **config.visibility.to_dict(),
         "theta_context": config.context.to_dict(),
         "label_outer_side_mm": config.label_outer_side_mm,
-        "transmission_stats": transmission_summary(
-            data.transmission,
-            data.labels,
-            data.labelled_shadow,
-            occupancy_config.observed_transmission,
-        ),
+        "transmission_stats": trained.data_info["transmission_stats"],
         "occupancy_config": occupancy_config.to_dict(),
-        "occupancy_log": log,
-        "occupancy_label_loss": fitted_loss,
+        "occupancy_log": trained.log,
+        "occupancy_label_loss": trained.label_loss,
         "grid": grid.to_dict(),
     }
     model = ThetaModel(

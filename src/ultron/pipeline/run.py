@@ -66,11 +66,29 @@ def run_method(
 
     Every result carries its observed / inferred split (:mod:`ultron.methods.evidence`): a
     method that computes none (ON, RoCoSDF) is flagged with T ≡ 1 and keeps its surface."""
-    inputs = MethodInputs(
+    inputs = method_inputs(request, fitted, timer, truth, dataset_name)
+    return with_observed_surface(get_method(request.method).fit(dataset, inputs), dataset, timer)
+
+
+def method_inputs(
+    request: ReconstructionRequest,
+    fitted,
+    timer: StageTimer,
+    truth: dict[str, Any] | None = None,
+    dataset_name: str | None = None,
+) -> MethodInputs:
+    """What ``request``'s method runs with (:class:`~ultron.methods.registry.MethodInputs`)."""
+    return MethodInputs(
         request.method_config, timer, request.label_fraction, request.seed, fitted, truth,
         dataset_name, resolve_device(request.device, "device"),
     )  # fmt: skip
-    result = get_method(request.method).fit(dataset, inputs)
+
+
+def with_observed_surface(
+    result: Reconstruction, dataset: SweepDataset, timer: StageTimer
+) -> Reconstruction:
+    """``result``, with the observed / inferred split computed (T ≡ 1) where its method did
+    not compute one."""
     if result.observation is None:
         with timer.stage("mesh_observed"):
             result = with_observation(result, dataset)
@@ -291,32 +309,40 @@ def run_on_fields(
     truth: dict[str, Any] | None,
     get_field: Callable[[str | Path | None], tuple[Any, dict[str, Any]]],
 ) -> tuple[Reconstruction, dict[str, Any]]:
-    """Run ``request`` on each field (``get_field`` loads or fits it: :func:`load_or_fit_field`)
-    and keep the result whose trained f has the lowest label loss (run info
-    ``occupancy_label_loss``, :func:`ultron.train.occupancy.label_loss`): the loss stage 2 is
-    trained on, compared across fields of one dataset and label draw (how well it picks:
-    docs/stage2-transmission.md). With one field, its result. The field info returned is the
-    kept one's, with ``field_candidates`` (every field's directory and loss) when several; the
-    field stages are then named ``field k/K`` and the other stages' times add up over the
-    candidates."""
+    """Run ``request`` on the field, or on the best of several (``get_field`` loads or fits
+    each: :func:`load_or_fit_field`). With several, the method (one that reads a field) trains
+    stage 2 on each and meshes only the f with the lowest label loss
+    (:func:`ultron.train.occupancy.label_loss`, run info ``occupancy_label_loss``): the loss
+    stage 2 is trained on, compared across fields of one dataset and label draw (how well it
+    picks: docs/stage2-transmission.md); the field info returned is the kept one's, with
+    ``field_candidates`` (every field's directory and loss), the field stages are named
+    ``field k/K`` and stage 2's times add up over the candidates."""
     if not field_dirs:
         raise argument_error("field_dirs", "expected at least one field (None: fit one)")
-    kept: tuple[Reconstruction, dict[str, Any]] | None = None
+    name = str(dataset_dir)
+    if len(field_dirs) == 1:
+        with timer.stage("field"):
+            fitted, field_extra = get_field(field_dirs[0])
+        return run_method(dataset, request, fitted, timer, truth, dataset_name=name), field_extra
+    method = get_method(request.method)
+    if not method.needs_field:
+        raise argument_error(
+            "field_dirs", f"{len(field_dirs)} fields given; {request.method} uses none"
+        )
+    kept: tuple[Any, MethodInputs, dict[str, Any]] | None = None
     candidates: list[dict[str, Any]] = []
     for k, candidate in enumerate(field_dirs, 1):
-        # with several, the stage names the candidate ("field 2/3"), so that a log shows which
-        with timer.stage("field" if len(field_dirs) == 1 else f"field {k}/{len(field_dirs)}"):
+        with timer.stage(f"field {k}/{len(field_dirs)}"):  # names the candidate in a log
             fitted, field_extra = get_field(candidate)
-        result = run_method(dataset, request, fitted, timer, truth, dataset_name=str(dataset_dir))
-        del fitted
-        if len(field_dirs) == 1:
-            return result, field_extra
-        loss = float(result.info["occupancy_label_loss"])
-        if not candidates or loss < min(c["occupancy_label_loss"] for c in candidates):
-            kept = (result, field_extra)
-        candidates.append({"field_dir": field_extra["field_dir"], "occupancy_label_loss": loss})
-        del result
-    result, field_extra = kept  # type: ignore[misc]  # set by the first candidate
+        inputs = method_inputs(request, fitted, timer, truth, name)
+        trained = method.train(dataset, inputs)
+        if kept is None or trained.label_loss < kept[0].label_loss:  # ties: the first
+            kept = (trained, inputs, field_extra)
+        loss = {"occupancy_label_loss": float(trained.label_loss)}
+        candidates.append({"field_dir": field_extra["field_dir"], **loss})
+        del fitted, trained, inputs  # a losing candidate's field and f go now
+    trained, inputs, field_extra = kept  # type: ignore[misc]  # set by the first candidate
+    result = with_observed_surface(method.finish(dataset, inputs, trained), dataset, timer)
     return result, {**field_extra, "field_candidates": candidates}
 
 
