@@ -120,6 +120,18 @@ class Method(Protocol):
     def fit(self, dataset: SweepDataset, inputs: MethodInputs) -> Reconstruction: ...
 
 
+class FieldMethod(Method, Protocol):
+    """A method that reads a fitted acoustic field (``needs_field``), its stage 2 and stage 3
+    apart: ``fit`` is ``finish(train(…))``, and a run given several fields trains on each and
+    finishes the one whose f fits its labels best (:func:`ultron.pipeline.run.run_on_fields`)."""
+
+    def train(self, dataset: SweepDataset, inputs: MethodInputs) -> Stage2Fit: ...
+
+    def finish(
+        self, dataset: SweepDataset, inputs: MethodInputs, trained: Stage2Fit
+    ) -> Reconstruction: ...
+
+
 @dataclass(frozen=True)
 class MethodBase:
     """The defaults of a :class:`Method`: no field, meshed on the scan grid, no T."""
@@ -292,6 +304,7 @@ def get_method(name: str) -> Method:
 
 __all__ = [
     "METHODS",
+    "FieldMethod",
     "Method",
     "MethodInputs",
     "StageSettings",

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 from ultron import atomic
 from ultron.data.dataset import SweepDataset
@@ -31,7 +31,7 @@ from ultron.device import describe_device, resolve_device
 from ultron.errors import argument_error
 from ultron.mesh.export import load_mesh, save_mesh, save_volume_nifti
 from ultron.methods.evidence import evidence_summary, reconstruction_evidence, with_observation
-from ultron.methods.registry import MethodInputs, get_method
+from ultron.methods.registry import FieldMethod, MethodInputs, get_method
 from ultron.methods.request import ReconstructionRequest
 from ultron.methods.ultron_method import Reconstruction
 from ultron.metrics.surface import MetricsConfig, evaluate_meshes
@@ -324,7 +324,7 @@ def run_on_fields(
         with timer.stage("field"):
             fitted, field_extra = get_field(field_dirs[0])
         return run_method(dataset, request, fitted, timer, truth, dataset_name=name), field_extra
-    method = get_method(request.method)
+    method = cast(FieldMethod, get_method(request.method))
     if not method.needs_field:
         raise argument_error(
             "field_dirs", f"{len(field_dirs)} fields given; {request.method} uses none"
