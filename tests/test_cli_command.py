@@ -43,6 +43,8 @@ def _example(
     """
     if count < 0:
         raise argument_error("--count", f"expected ≥ 0, got {count}")
+    if depth_mm > 10:  # as a library function would name its own parameter
+        raise argument_error("depth_mm" if count else "source", f"expected ≤ 10, got {depth_mm}")
     typer.echo(f"{source} {out} {depth_mm} {count} {quiet} {smooth} {names} {threads}")
 
 
@@ -81,6 +83,17 @@ def test_a_declared_command_parses_and_refuses_bad_input(tmp_path: Path):
     assert result.exit_code == 2
     assert result.output.strip() == "error: argument: --count: expected ≥ 0, got -1"
     assert "Traceback" not in result.output
+
+
+@pytest.mark.parametrize(("count", "named"), [("1", "--depth-mm"), ("0", "source")])
+def test_a_library_error_about_a_parameter_names_its_option(count: str, named: str):
+    """An argument error raised under an option's parameter name names the option; one about
+    a positional argument keeps the name."""
+    app, _ = _click_command()
+    args = ["example", "src", "--out", "o", "--depth-mm", "11", "--count", count]
+    result = runner.invoke(app, args)
+    assert result.exit_code == 2
+    assert result.output.strip() == f"error: argument: {named}: expected ≤ 10, got 11.0"
 
 
 def test_a_parameter_without_help_is_refused_when_declared():

@@ -16,7 +16,7 @@ import typer
 from rich.console import Console
 
 from ultron.arguments import check_count
-from ultron.errors import UltronError, resource_error
+from ultron.errors import UltronError, UltronInputError, resource_error
 
 P = ParamSpec("P")
 R = TypeVar("R")
@@ -28,15 +28,21 @@ console = Console()
 err_console = Console(stderr=True, soft_wrap=True)
 
 
-def user_errors(func: Callable[P, R]) -> Callable[P, R]:
+def user_errors(func: Callable[P, R], flags: Mapping[str, str] | None = None) -> Callable[P, R]:
     """Turn :class:`UltronError`, running out of memory and a full disk (or file-size limit)
-    into a one-line ``error: …`` message on stderr and exit 2."""
+    into a one-line ``error: …`` message on stderr and exit 2. An argument error about a
+    parameter the command passed on under its own name names the option instead (``flags``:
+    parameter → ``--flag``), so that the library's checks need no copy in the CLI."""
 
     @functools.wraps(func)
     def wrapper(*args: P.args, **kwargs: P.kwargs) -> R:
         try:
             return func(*args, **kwargs)
         except UltronError as exc:
+            if isinstance(exc, UltronInputError) and exc.where == "argument":
+                exc = UltronInputError(
+                    "argument", (flags or {}).get(exc.field, exc.field), exc.problem
+                )
             err_console.print(f"error: {exc}", markup=False, highlight=False)
             raise typer.Exit(EXIT_BAD_INPUT) from None
         except (MemoryError, RuntimeError, OSError) as exc:
@@ -90,7 +96,8 @@ def command(
                 parameter, helps[parameter.name], parameter.name in arguments, metavars or {}
             )
             parameters.append(parameter.replace(annotation=Annotated[parameter.annotation, info]))
-        wrapper = user_errors(func)
+        options = [p.name for p in signature.parameters.values() if p.name not in arguments]
+        wrapper = user_errors(func, {name: _flag(name) for name in options})
         wrapper.__signature__ = signature.replace(parameters=parameters)  # type: ignore[attr-defined]
         wrapper.__annotations__ = {p.name: p.annotation for p in parameters}
         wrapper.__doc__ = re.split(r"\n[ \t]*Args:[ \t]*\n", text, maxsplit=1)[0]
@@ -106,10 +113,15 @@ def _parameter_info(
     metavar = metavars.get(parameter.name)
     if argument:
         return typer.Argument(help=help, metavar=metavar)
-    flag = "--" + parameter.name.replace("_", "-")
+    flag = _flag(parameter.name)
     if parameter.annotation == bool | None:
         flag = f"{flag}/--no-{flag[2:]}"
     return typer.Option(flag, help=help, metavar=metavar)
+
+
+def _flag(name: str) -> str:
+    """The option a parameter is declared as: ``label_fraction`` → ``--label-fraction``."""
+    return "--" + name.replace("_", "-")
 
 
 def warning_line(line: str) -> None:

@@ -19,7 +19,6 @@ from ultron.cli.common import (
 from ultron.errors import argument_error
 from ultron.methods.catalog import method_help
 
-MESH_COORDINATES = ("lps", "ras")  # ultron.mesh.export.MESH_COORDINATES (lazy import)
 #: The help of the options reconstruct and finetune share.
 RUN_HELP = {
     "out": "Output directory.",
@@ -37,14 +36,12 @@ RUN_HELP = {
 
 
 def _check_common(
-    label_fraction: float,
     seed: int,
     field_iters: int | None,
     points: int,
     max_memory: float | None = None,
 ) -> None:
     """The numeric options reconstruct and finetune share."""
-    check_range("--label-fraction", label_fraction, 0.0, 1.0, low_open=True)
     check_seed("--seed", seed)
     check_count("--field-iters", field_iters)
     check_count("--points", points)
@@ -132,10 +129,9 @@ def reconstruct(
             (default: on).
     """
     apply_threads(threads)
-    _check_common(label_fraction, seed, field_iters, points, max_memory)
+    _check_common(seed, field_iters, points, max_memory)
     check_count("--occupancy-iters", occupancy_iters, 0)
     check_range("--label-support", label_support, low=0.0)
-    check_choice("--mesh-coordinates", mesh_coordinates, MESH_COORDINATES)
     device = check_device(device)
 
     from ultron.methods.registry import METHODS
@@ -260,9 +256,8 @@ def finetune(
             model's).
     """
     apply_threads(threads)
-    _check_common(label_fraction, seed, field_iters, points, max_memory)
+    _check_common(seed, field_iters, points, max_memory)
     check_count("--iters", iters, 0)
-    check_choice("--mesh-coordinates", mesh_coordinates, MESH_COORDINATES)
     device = check_device(device)
 
     from ultron.methods.finetune import FinetuneConfig
