@@ -59,6 +59,7 @@ def test_parameters_are_declared_from_the_docstring():
     _, click_command = _click_command()
     params = {p.name: p for p in click_command.params}
     assert params["source"].param_type_name == "argument"
+    assert params["source"].metavar == "SOURCE"  # as the help text names it
     assert params["source"].help == "Where the input lives, on two lines."
     assert params["out"].opts == ["--out"] and params["out"].required
     assert params["depth_mm"].opts == ["--depth-mm"] and params["depth_mm"].metavar == "MM"

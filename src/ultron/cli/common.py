@@ -71,12 +71,13 @@ def command(
     """A typer command from a documented function, as tyro (nerfstudio's CLI) reads one: each
     parameter's help is its entry in the docstring's Google-style ``Args:`` section, else in
     ``shared`` or :data:`COMMON_HELP`; the parameters named in ``arguments`` are positional,
-    the others options named after them (``label_fraction`` → ``--label-fraction``), a bool
-    that defaults to False a plain flag and an optional bool a ``--x/--no-x`` pair;
-    ``metavars`` names the values of some. The command's help is the docstring above
-    ``Args:``. Bad input is one line and exit 2 (:func:`user_errors`). A parameter left
-    without help, or help or an argument naming no parameter, is a TypeError when the command
-    is declared."""
+    shown in upper case as help texts name them (``DATASET``), the others options named after
+    them (``label_fraction`` → ``--label-fraction``), a bool that defaults to False a plain
+    flag and an optional bool a ``--x/--no-x`` pair; ``metavars`` names the values of some.
+    The command's help is the docstring above ``Args:``. Bad input is one line and exit 2
+    (:func:`user_errors`, which names the option of a library's error about its parameter).
+    A parameter left without help, or help or an argument naming no parameter, is a TypeError
+    when the command is declared."""
 
     def declare(func: Callable[P, R]) -> Callable[P, R]:
         text = func.__doc__ or ""
@@ -112,7 +113,7 @@ def _parameter_info(
     """The typer Argument or Option of :func:`command`'s ``parameter``."""
     metavar = metavars.get(parameter.name)
     if argument:
-        return typer.Argument(help=help, metavar=metavar)
+        return typer.Argument(help=help, metavar=metavar or parameter.name.upper())
     flag = _flag(parameter.name)
     if parameter.annotation == bool | None:
         flag = f"{flag}/--no-{flag[2:]}"
