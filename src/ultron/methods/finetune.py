@@ -46,7 +46,6 @@ from ultron.methods.ultron_method import (
     mesh_occupancy,
     occupancy_function,
     occupancy_training_data,
-    training_data_info,
 )
 from ultron.metrics.surface import MetricsConfig
 from ultron.timing import StageTimer
@@ -193,7 +192,7 @@ def finetune_ultron(
         info |= {
             "selection": selection.to_dict(),
             "n_label_frames": selection.n_frames,
-            **training_data_info(data, config.training(spec).observed_transmission),
+            **data.summary(config.training(spec).observed_transmission),
             "occupancy_log": log,
         }
     model.eval()

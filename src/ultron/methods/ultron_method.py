@@ -76,7 +76,6 @@ from ultron.train.visibility import (
     frame_transmission,
     in_labelled_shadow,
     pixel_transmission,
-    transmission_summary,
 )
 
 
@@ -277,18 +276,6 @@ def occupancy_training_data(
     return OccupancyTrainingData(inputs, transmission.detach().float(), labels, shadow)
 
 
-def training_data_info(data: OccupancyTrainingData, observed_transmission: float) -> dict:
-    """run.json's account of stage 2's training data: its labelled and bone pixels and its
-    transmission statistics (:func:`~ultron.train.visibility.transmission_summary`)."""
-    return {
-        "n_labelled_pixels": len(data.labels),
-        "n_bone_pixels": int(data.labels.sum()),
-        "transmission_stats": transmission_summary(
-            data.transmission, data.labels, data.labelled_shadow, observed_transmission
-        ),
-    }
-
-
 def occupancy_function(fitted, network: OccupancyNetwork, context: ThetaContextConfig):
     """points (M, 3) world mm → f(g(x)) ∈ (0, 1) on the CPU, g the input of ``context``
     (computed by the field on its device; f on the network's)."""
@@ -451,7 +438,7 @@ def train_ultron(
             data, occupancy_config, progress=timer.fit_progress, device=device
         )
         fitted_loss = label_loss(network, data, occupancy_config)
-    data_info = training_data_info(data, occupancy_config.observed_transmission)
+    data_info = data.summary(occupancy_config.observed_transmission)
     return Stage2Fit(fitted, selection, occupancy_config, network, log, fitted_loss, data_info)
 
 

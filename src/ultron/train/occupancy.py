@@ -41,6 +41,7 @@ from ultron.device import resolve_device
 from ultron.errors import argument_error
 from ultron.fields.occupancy import OccupancyNetwork, OccupancyNetworkConfig
 from ultron.train.loop import Progress, run_training
+from ultron.train.visibility import transmission_summary
 
 LOSSES = ("ultron", "bce")
 #: How the compensated loss treats background labels: scaled by T (``weighted``, the paper's
@@ -221,6 +222,17 @@ class OccupancyTrainingData:
             )
         if n == 0:
             raise argument_error("training data", "no labelled pixels")
+
+    def summary(self, observed_transmission: float) -> dict[str, Any]:
+        """run.json's account of this data: its labelled and bone pixels and its transmission
+        statistics (:func:`~ultron.train.visibility.transmission_summary`)."""
+        return {
+            "n_labelled_pixels": len(self.labels),
+            "n_bone_pixels": int(self.labels.sum()),
+            "transmission_stats": transmission_summary(
+                self.transmission, self.labels, self.labelled_shadow, observed_transmission
+            ),
+        }
 
 
 def positive_class_weight(labels: torch.Tensor, config: OccupancyTrainConfig) -> float:
