@@ -480,7 +480,7 @@ def test_calling_again_adds_a_sweep_and_replace(tmp_path: Path):
     assert _import(sequence, config, out, "--sweep-name", "second").exit_code == 0
     assert [s.name for s in SweepDataset.load(out).sweeps] == ["s", "second"]
     before = snapshot(tmp_path)
-    check_refused(_import(sequence, config, out), ("sweep_name", "already has a sweep"))
+    check_refused(_import(sequence, config, out), ("--sweep-name", "already has a sweep"))
     assert snapshot(tmp_path) == before
     result = _import(sequence, config, out, "--replace", "--downsample", "1")
     assert result.exit_code == 0, result.output
