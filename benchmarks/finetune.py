@@ -1,8 +1,9 @@
 """Benchmark: fine-tuning speed, 100 iterations with the last two layers frozen (target ≤ 2 s).
 
 Times what ``ultron finetune`` does on a dataset and its fitted field: gathering θ and T of the
-1 % label frames (once), then the 100-iteration fine-tuning loop of a copy of the model with its
-last two layers frozen, ``--repeats`` times (median and min are printed), then meshing once.
+1 % label frames and the anchor (the model's occupancy at ``anchor_points`` pixels; once), then
+the 100-iteration fine-tuning loop of a copy of the model with its last two layers frozen,
+``--repeats`` times (median and min are printed), then meshing once.
 The model is MODEL_DIR's network (``--model``, an ``ultron reconstruct --method ultron`` output);
 without it a freshly initialised f_ω of the same architecture is timed (the loop's cost does
 not depend on the weights).
@@ -31,6 +32,7 @@ def main() -> None:
     parser.add_argument("--model", type=Path, default=None, help="MODEL_DIR (default: fresh f_ω)")
     parser.add_argument("--iters", type=int, default=100)
     parser.add_argument("--label-fraction", type=float, default=0.01)
+    parser.add_argument("--anchor-weight", type=float, default=1.0, help="0: no anchor")
     args = parser.parse_args()
 
     import torch
@@ -38,7 +40,12 @@ def main() -> None:
     from ultron.data.dataset import SweepDataset
     from ultron.data.labels import select_label_frames
     from ultron.fields.occupancy import OccupancyNetwork, OccupancyNetworkConfig
-    from ultron.methods.finetune import FinetuneConfig, ThetaModel, freeze_last_layers
+    from ultron.methods.finetune import (
+        FinetuneConfig,
+        ThetaModel,
+        fit_anchor,
+        freeze_last_layers,
+    )
     from ultron.methods.ultron_method import (
         mesh_occupancy,
         occupancy_function,
@@ -60,12 +67,22 @@ def main() -> None:
         width = spec.context.n_inputs(len(fitted.channels))
         network = OccupancyNetwork(OccupancyNetworkConfig(in_dim=width))
         print("no --model: timing a freshly initialised f_ω (same architecture)")
-    config = FinetuneConfig(label_fraction=args.label_fraction, iters=args.iters, seed=args.seed)
+    config = FinetuneConfig(
+        label_fraction=args.label_fraction,
+        iters=args.iters,
+        seed=args.seed,
+        anchor_weight=args.anchor_weight,
+    )
 
     start = time.perf_counter()
     selection = select_label_frames(dataset, config.label_fraction, config.seed)
     data = occupancy_training_data(dataset, fitted, selection, context=spec.context)
     gather_s = time.perf_counter() - start
+    start = time.perf_counter()
+    anchor = None
+    if config.anchor_weight > 0:
+        anchor = fit_anchor(dataset, fitted, network, spec, config)
+    anchor_s = time.perf_counter() - start
 
     loop_s = []
     for _ in range(args.repeats):
@@ -73,7 +90,7 @@ def main() -> None:
         trainable = freeze_last_layers(model, config.frozen_layers)
         start = time.perf_counter()
         model, _ = fit_occupancy(
-            data, config.training(spec), model, lambda _, params=trainable: params
+            data, config.training(spec), model, lambda _, params=trainable: params, anchor=anchor
         )
         loop_s.append(time.perf_counter() - start)
 
@@ -86,6 +103,8 @@ def main() -> None:
         f"labels: {selection.n_frames} frames ({100 * config.label_fraction:g} %), "
         f"{len(data.labels)} labelled pixels, batch {config.batch_size}; θ/T gathering {gather_s:.2f} s"
     )
+    held = f"{config.anchor_points} pixels, weight {config.anchor_weight:g}" if anchor else "none"
+    print(f"anchor: {held}; its θ and occupancy {anchor_s:.2f} s")
     print(
         f"fine-tuning {config.iters} iterations, last {config.frozen_layers} layers frozen, "
         f"{args.repeats} repeats: median {statistics.median(loop_s):.2f} s, min {min(loop_s):.2f} s"

@@ -61,6 +61,8 @@ CASES = [
     ("reconstruct", "--max-memory", "nan"),
     ("finetune", "--max-memory", "-1"),
     ("finetune", "--iters", "-1"),
+    ("finetune", "--anchor-weight", "-1"),
+    ("finetune", "--anchor-weight", "nan"),
     ("finetune", "--label-fraction", "nan"),
     ("finetune", "--seed", "-2"),
     ("finetune", "--points", "-1"),

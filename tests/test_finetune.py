@@ -18,6 +18,7 @@ from ultron.fields.sdf import SDFNetwork, SDFNetworkConfig
 from ultron.methods.finetune import (
     FinetuneConfig,
     ThetaModel,
+    anchor_pixels,
     check_theta_model,
     finetune_ultron,
     freeze_last_layers,
@@ -249,6 +250,46 @@ def test_finetune_config_validation():
         FinetuneConfig(iters=-1)
     with pytest.raises(ValueError, match="frozen_layers"):
         freeze_last_layers(OccupancyNetwork(), 10)
+    for weight in (-1.0, float("nan"), float("inf"), True, "1"):
+        with pytest.raises(ValueError, match="anchor_weight"):
+            FinetuneConfig(anchor_weight=weight)
+    for points in (0, -5, 1.5, True):
+        with pytest.raises(ValueError, match="anchor_points"):
+            FinetuneConfig(anchor_points=points)
+
+
+def test_anchor_pixels_are_drawn_evenly_from_every_frame(shapes):
+    dataset = SweepDataset.load(shapes["new"])  # 2 sweeps × 12 frames of 64 × 48
+    pixels = anchor_pixels(dataset, 120_000, seed=3)
+    counts = np.zeros((2, 12))
+    np.add.at(counts, (pixels.sweep_index, pixels.frame), 1)
+    # 5000 expected per frame, binomial sd ≈ 70
+    assert counts.min() > 4700 and counts.max() < 5300
+    assert pixels.row.min() == 0 and pixels.row.max() == 63
+    assert pixels.col.min() == 0 and pixels.col.max() == 47
+    rows = np.bincount(pixels.row, minlength=64)
+    assert rows.min() > 0.85 * rows.mean()
+    again = anchor_pixels(dataset, 120_000, seed=3)
+    assert np.array_equal(again.frame, pixels.frame) and np.array_equal(again.col, pixels.col)
+    assert not np.array_equal(anchor_pixels(dataset, 120_000, seed=4).col, pixels.col)
+    world = pixels.take(np.arange(5)).world_mm(dataset)
+    assert world.shape == (5, 3) and np.isfinite(world).all()
+    with pytest.raises(ValueError, match="n"):
+        anchor_pixels(dataset, 0, seed=0)
+
+
+def test_the_anchor_is_recorded_and_zero_weight_is_the_plain_fine_tuning(shapes):
+    network, meta = load_network(shapes["model"])
+    dataset, fitted = SweepDataset.load(shapes["new"]), load_field(shapes["field"])
+    spec = ThetaModel.from_meta(meta)
+    anchored = finetune_ultron(dataset, fitted, network, spec, _config(anchor_points=4096))
+    plain = finetune_ultron(dataset, fitted, network, spec, _config(anchor_weight=0.0))
+    assert "anchor" in anchored.info["occupancy_log"][-1]
+    assert "anchor" not in plain.info["occupancy_log"][-1]
+    assert anchored.info["finetune_config"]["anchor_weight"] == 1.0
+    assert plain.info["finetune_config"]["anchor_weight"] == 0.0
+    # the same labels, batches and start: the anchor is the only difference
+    assert plain.info["occupancy_log"][0]["loss"] == anchored.info["occupancy_log"][0]["loss"]
 
 
 def test_network_round_trip(tmp_path):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import math
 from dataclasses import replace
 
@@ -11,6 +12,7 @@ import torch
 from ultron.errors import UltronInputError
 from ultron.fields.occupancy import OccupancyNetwork, OccupancyNetworkConfig
 from ultron.train.occupancy import (
+    OccupancyAnchor,
     OccupancyTrainConfig,
     OccupancyTrainingData,
     _minibatches,
@@ -191,6 +193,52 @@ def test_compensated_loss_ignores_shadowed_negatives():
     # measured f(0.8, 0, 0): compensated 0.68 / 0.99 / 0.75 at seeds 1 / 2 / 3, BCE < 1e-8
     assert results["bce"] < 0.01
     assert results["ultron"] > 0.5
+
+
+def test_an_anchor_keeps_the_answer_where_no_label_is_and_the_labels_win_where_they_are():
+    # a network trained on the rule x0 > 0.3 is fine-tuned on new labels that call the half
+    # x1 < 0 all background; the anchor holds it, on the half x1 > 0, to its earlier answer
+    data = _separable_data()
+    config = OccupancyTrainConfig(iters=300, batch_size=512, lr=1e-3, loss="bce", seed=1,
+                                  network=SMALL)  # fmt: skip
+    trained, _ = fit_occupancy(data, config)
+    lower = data.inputs[:, 1] < 0
+    relabelled = OccupancyTrainingData(
+        data.inputs[lower],
+        torch.ones(int(lower.sum())),
+        torch.zeros(int(lower.sum()), dtype=torch.uint8),
+    )
+    with torch.no_grad():
+        before = trained.occupancy(data.inputs[~lower])
+    anchor = OccupancyAnchor(data.inputs[~lower], before, weight=1.0)
+    tune = replace(config, iters=150, seed=2)
+    drift, bone_left = {}, {}
+    for name, held in (("plain", None), ("anchored", anchor)):
+        network, log = fit_occupancy(relabelled, tune, copy.deepcopy(trained), anchor=held)
+        with torch.no_grad():
+            drift[name] = float((network.occupancy(data.inputs[~lower]) - before).abs().mean())
+            relabelled_bone = lower & (data.inputs[:, 0] > 0.3)
+            bone_left[name] = float(
+                (network.occupancy(data.inputs[relabelled_bone]) > 0.5).float().mean()
+            )
+        assert ("anchor" in log[-1]) == (held is not None)
+    assert drift["anchored"] < 0.3 * drift["plain"]
+    assert drift["plain"] > 0.1  # without the anchor the new labels spill over
+    assert bone_left["plain"] < 0.1 and bone_left["anchored"] < 0.1  # the labels win (1 before)
+
+
+def test_anchor_validation():
+    inputs, targets = torch.zeros(4, 3), torch.full((4,), 0.5)
+    for bad_inputs, bad_targets, weight, match in (
+        (inputs, torch.zeros(3), 1.0, "do not match"),
+        (torch.zeros(4), targets, 1.0, "do not match"),
+        (torch.zeros(0, 3), torch.zeros(0), 1.0, "no anchor points"),
+        (inputs, targets, -1.0, "anchor.weight"),
+        (inputs, targets, math.nan, "anchor.weight"),
+        (inputs, torch.full((4,), 1.5), 1.0, r"\[0, 1\]"),
+    ):
+        with pytest.raises(UltronInputError, match=match):
+            OccupancyAnchor(bad_inputs, bad_targets, weight)
 
 
 def test_training_is_deterministic():

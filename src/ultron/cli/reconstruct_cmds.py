@@ -229,6 +229,7 @@ def finetune(
     out: Path,
     label_fraction: float = 0.01,
     iters: int = 100,
+    anchor_weight: float = 1.0,
     field: Path | None = None,
     seed: int = 0,
     field_iters: int | None = None,
@@ -250,6 +251,9 @@ def finetune(
         model_dir: Output directory of a reconstruct --method ultron run.
         dataset: The new shape's dataset directory.
         iters: Fine-tuning iterations; 0 applies the model as is.
+        anchor_weight: Weight of the term that holds the network, at pixels of every frame, to
+            what it predicted before fine-tuning; 0 fine-tunes as the paper does (on few
+            labels the plain fit can lose surface the model had found).
         field: The dataset's FIELD_DIR (default: fit and cache one).
         field_iters: Field iterations when fitting (default: the fast preset's 3000).
         visibility: Source of the loss's T: field, confidence or labels (default: the
@@ -269,6 +273,7 @@ def finetune(
     config = FinetuneConfig(
         label_fraction=label_fraction,
         iters=iters,
+        anchor_weight=anchor_weight,
         seed=seed,
         metrics=MetricsConfig(n_points=points),
         visibility=None if visibility is None else visibility_config(visibility),

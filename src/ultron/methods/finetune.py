@@ -8,6 +8,12 @@ on 1 % of the new shape's annotated frames for 100 iterations with the loss the 
 trained with (the attenuation-compensated BCE for ``ultron``). ``iters = 0`` is the paper's
 "w/o fine-tuning" row: the trained network applied as it is.
 
+Beyond the paper, the fit is anchored (``FinetuneConfig.anchor_weight``, 0 for the paper's plain
+fine-tuning): at pixels drawn uniformly from every frame of the new dataset, the copy is held
+to the occupancy the trained network predicted there before fine-tuning
+(:class:`~ultron.train.occupancy.OccupancyAnchor`), so that a few labelled frames correct f
+where they look without erasing what it finds elsewhere.
+
 The loss's transmission T comes from the same source as the model's training (``field``,
 ``confidence``, ``labels`` or the diagnostic ``oracle``, recorded in its ``network.pt``; a model
 saved before sources were recorded used ``field``), computed on the new dataset, unless
@@ -29,12 +35,15 @@ import copy
 from dataclasses import dataclass, field, replace
 from typing import Any
 
+import numpy as np
+import torch
 from torch import nn
 
 from ultron.data.dataset import SweepDataset
-from ultron.data.labels import select_label_frames
+from ultron.data.labels import LabelledPixels, select_label_frames
 from ultron.device import module_device, resolve_device
 from ultron.errors import UltronInputError, argument_error
+from ultron.fields.context import theta_features
 from ultron.fields.occupancy import OccupancyNetwork
 from ultron.mesh.export import check_mesh_coordinates
 from ultron.methods.ultron_method import (
@@ -50,7 +59,7 @@ from ultron.methods.ultron_method import (
 from ultron.metrics.surface import MetricsConfig
 from ultron.timing import StageTimer
 from ultron.train.loop import Progress
-from ultron.train.occupancy import OccupancyTrainConfig, fit_occupancy
+from ultron.train.occupancy import OccupancyAnchor, OccupancyTrainConfig, fit_occupancy
 from ultron.train.visibility import VisibilityConfig
 
 
@@ -65,6 +74,12 @@ class FinetuneConfig:
     ``batch_size`` 1024 (training uses 4096): on the same data it was as accurate as the larger
     batches, and the 8 × 128 GEMMs make the step's cost proportional to the batch. Figures in
     docs/decisions.md#fine-tuning-learning-rate-and-batch-methodsfinetunepy.
+
+    ``anchor_weight`` λ (module doc; 0: the paper's plain fine-tuning) and ``anchor_points``,
+    the pixels it is held at: on tuning shapes, plain fine-tuning on 1 % of the frames undid
+    what the trained network had found and did worse than no fine-tuning; with λ = 1 (set
+    once) it did not. Figures in
+    docs/decisions.md#fine-tuning-an-anchor-against-forgetting-methodsfinetunepy.
     """
 
     label_fraction: float = 0.01
@@ -74,6 +89,8 @@ class FinetuneConfig:
     lr: float = 1e-3
     final_lr_factor: float = 0.1
     batch_size: int = 1024
+    anchor_weight: float = 1.0
+    anchor_points: int = 2**17
     meshing: UltronConfig = field(default_factory=UltronConfig)
     metrics: MetricsConfig = field(default_factory=MetricsConfig)
     visibility: VisibilityConfig | None = None  # None: the model's own source
@@ -91,6 +108,16 @@ class FinetuneConfig:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 0:
                 raise argument_error(name, f"expected an integer ≥ 0, got {value!r}")
+        if isinstance(self.anchor_points, bool) or not (
+            isinstance(self.anchor_points, int) and self.anchor_points >= 1
+        ):
+            raise argument_error(
+                "anchor_points", f"expected an integer ≥ 1, got {self.anchor_points!r}"
+            )
+        weight = self.anchor_weight
+        number = isinstance(weight, int | float) and not isinstance(weight, bool)
+        if not (number and np.isfinite(weight) and weight >= 0):
+            raise argument_error("anchor_weight", f"expected a number ≥ 0, got {weight!r}")
 
     def training(self, model: ThetaModel) -> OccupancyTrainConfig:
         """The occupancy-training settings of the fine-tuning loop for ``model``."""
@@ -119,6 +146,43 @@ def freeze_last_layers(network: OccupancyNetwork, n: int) -> list[nn.Parameter]:
         if id(parameter) not in frozen:
             trainable.append(parameter)
     return trainable
+
+
+def anchor_pixels(dataset: SweepDataset, n: int, seed: int) -> LabelledPixels:
+    """``n`` pixels drawn uniformly (with replacement) from every pixel of every frame of
+    ``dataset``, in (sweep, frame) order; their ``label`` is 0 and means nothing."""
+    if isinstance(n, bool) or not isinstance(n, int) or n < 1:
+        raise argument_error("n", f"expected an integer ≥ 1, got {n!r}")
+    frames = np.array([sweep.n_frames for sweep in dataset.sweeps], dtype=np.int64)
+    height, width = dataset.probe.height_px, dataset.probe.width_px
+    draw = np.sort(np.random.default_rng(seed).integers(0, frames.sum() * height * width, n))
+    frame_index, pixel = np.divmod(draw, height * width)
+    sweep_index = np.searchsorted(np.cumsum(frames), frame_index, side="right")
+    starts = np.concatenate([[0], np.cumsum(frames)[:-1]])
+    return LabelledPixels(
+        sweep_index=sweep_index,
+        frame=frame_index - starts[sweep_index],
+        row=pixel // width,
+        col=pixel % width,
+        label=np.zeros(n, dtype=np.uint8),
+    )
+
+
+def fit_anchor(
+    dataset: SweepDataset,
+    fitted,
+    network: OccupancyNetwork,
+    spec: ThetaModel,
+    config: FinetuneConfig,
+) -> OccupancyAnchor:
+    """The anchor of ``config``: ``network``'s occupancy, before fine-tuning, at :func:`anchor_pixels` of ``dataset``, with its inputs from ``fitted``."""
+    pixels = anchor_pixels(dataset, config.anchor_points, config.seed)
+    with torch.no_grad():
+        world = torch.from_numpy(pixels.world_mm(dataset))
+        inputs = theta_features(fitted, world, spec.context).cpu()
+        network.eval()
+        targets = network.occupancy(inputs.to(module_device(network))).cpu()
+    return OccupancyAnchor(inputs, targets, float(config.anchor_weight))
 
 
 def check_theta_model(network: nn.Module, meta: dict[str, Any], fitted, where: str) -> ThetaModel:
@@ -182,11 +246,16 @@ def finetune_ultron(
                 dataset, fitted, selection, visibility, truth, spec.context,
                 spec.label_outer_side_mm,
             )  # fmt: skip
+        anchor = None
+        if config.anchor_weight > 0:
+            with timer.stage("anchor"):
+                anchor = fit_anchor(dataset, fitted, network, spec, config)
         trainable = freeze_last_layers(model, config.frozen_layers)
         with timer.stage("finetune"):
             model, log = fit_occupancy(
-                data, config.training(spec), model, lambda _: trainable, progress, fitted.device
-            )
+                data, config.training(spec), model, lambda _: trainable, progress,
+                fitted.device, anchor,
+            )  # fmt: skip
         for parameter in model.parameters():
             parameter.requires_grad_(True)
         info |= {

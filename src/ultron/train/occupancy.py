@@ -26,6 +26,14 @@ docs/decisions.md#occupancy-class-balance-trainoccupancypy.
 
 Optimisation: Adam (lr 1e-4) with an exponential decay that reaches ``final_lr_factor``× the
 initial rate at the last iteration, shuffled minibatches drawn with a seeded generator.
+
+Anchor (fine-tuning): with an :class:`OccupancyAnchor` — inputs g(a) of points a and the
+occupancy f₀(g(a)) a network predicted there before the fit — every step adds
+
+    λ · mean over an anchor minibatch of BCE(f(g(a)), f₀(g(a)))
+
+(λ the anchor's ``weight``): the labels teach f where they are, the anchor keeps f's answer
+elsewhere ("learning without forgetting", Li and Hoiem 2016).
 """
 
 from __future__ import annotations
@@ -235,6 +243,30 @@ class OccupancyTrainingData:
         }
 
 
+@dataclass(frozen=True)
+class OccupancyAnchor:
+    """Inputs (Q, D) of anchor points, the occupancy targets (Q,) in [0, 1] the fit is held to
+    there, and the term's weight λ ≥ 0 (module doc)."""
+
+    inputs: torch.Tensor
+    targets: torch.Tensor
+    weight: float = 1.0
+
+    def __post_init__(self) -> None:
+        if self.inputs.ndim != 2 or self.targets.shape != (self.inputs.shape[0],):
+            raise argument_error(
+                "anchor",
+                f"inputs {tuple(self.inputs.shape)} and targets {tuple(self.targets.shape)}"
+                " do not match",
+            )
+        if self.inputs.shape[0] == 0:
+            raise argument_error("anchor", "no anchor points")
+        if not (math.isfinite(self.weight) and self.weight >= 0):
+            raise argument_error("anchor.weight", f"expected a number ≥ 0, got {self.weight!r}")
+        if not bool(((self.targets >= 0) & (self.targets <= 1)).all()):
+            raise argument_error("anchor", "targets must lie in [0, 1]")
+
+
 def positive_class_weight(labels: torch.Tensor, config: OccupancyTrainConfig) -> float:
     """The configured ``positive_weight``; when it is None, n_neg / n_pos capped at
     ``max_positive_weight`` (1 when a class is absent)."""
@@ -254,6 +286,7 @@ def fit_occupancy(
     trainable: Callable[[OccupancyNetwork], list[torch.nn.Parameter]] | None = None,
     progress: Progress | None = None,
     device: torch.device | str = "cpu",
+    anchor: OccupancyAnchor | None = None,
 ) -> tuple[OccupancyNetwork, list[dict[str, float]]]:
     """Train (a copy-free, in-place) ``network`` on ``data``; returns it and a loss log (every
     :data:`LOG_EVERY` updates, :func:`ultron.train.loop.run_training`).
@@ -263,7 +296,8 @@ def fit_occupancy(
     ``loss``, ``seconds``). The network (built on the CPU, so its initial weights do not
     depend on the device) and the data are moved to ``device`` and the network is returned
     there; the minibatch order comes from a CPU generator seeded by ``config.seed``, the same
-    on every device.
+    on every device. ``anchor`` adds the anchor term (module doc), its minibatches drawn from
+    the same generator after the labels' (``anchor`` None draws nothing more).
     """
     device = resolve_device(device, "device")
     generator = torch.Generator().manual_seed(config.seed)
@@ -275,6 +309,9 @@ def fit_occupancy(
     labels = data.labels.to(device, torch.float32)
     pos_weight = positive_class_weight(labels, config)
     batches = _minibatches(labels.shape[0], config.batch_size, generator)
+    if anchor is not None:
+        anchor_inputs, anchor_targets = anchor.inputs.to(device), anchor.targets.to(device)
+        anchor_batches = _minibatches(anchor_inputs.shape[0], config.batch_size, generator)
 
     def objective(step: int) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         batch = next(batches).to(device)
@@ -282,7 +319,13 @@ def fit_occupancy(
         weight = torch.where(y > 0.5, pos_weight, 1.0)
         f = network.occupancy(inputs[batch])
         loss = _loss(f, transmission[batch], y, weight, config)
-        return loss, {"loss": loss.detach()}
+        if anchor is None:
+            return loss, {"loss": loss.detach()}
+        held = next(anchor_batches).to(device)
+        kept = binary_cross_entropy(
+            network.occupancy(anchor_inputs[held]), anchor_targets[held].float()
+        )
+        return loss + anchor.weight * kept, {"loss": loss.detach(), "anchor": kept.detach()}
 
     network.train()
     log = run_training(
