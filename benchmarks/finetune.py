@@ -43,8 +43,8 @@ def main() -> None:
     from ultron.methods.finetune import (
         FinetuneConfig,
         ThetaModel,
-        fit_anchor,
         freeze_last_layers,
+        prediction_anchor,
     )
     from ultron.methods.ultron_method import (
         mesh_occupancy,
@@ -81,7 +81,7 @@ def main() -> None:
     start = time.perf_counter()
     anchor = None
     if config.anchor_weight > 0:
-        anchor = fit_anchor(dataset, fitted, network, spec, config)
+        anchor = prediction_anchor(dataset, fitted, network, spec, config)
     anchor_s = time.perf_counter() - start
 
     loop_s = []

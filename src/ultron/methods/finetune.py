@@ -168,7 +168,7 @@ def anchor_pixels(dataset: SweepDataset, n: int, seed: int) -> LabelledPixels:
     )
 
 
-def fit_anchor(
+def prediction_anchor(
     dataset: SweepDataset,
     fitted,
     network: OccupancyNetwork,
@@ -249,7 +249,7 @@ def finetune_ultron(
         anchor = None
         if config.anchor_weight > 0:
             with timer.stage("anchor"):
-                anchor = fit_anchor(dataset, fitted, network, spec, config)
+                anchor = prediction_anchor(dataset, fitted, network, spec, config)
         trainable = freeze_last_layers(model, config.frozen_layers)
         with timer.stage("finetune"):
             model, log = fit_occupancy(
