@@ -67,6 +67,12 @@ def check_seed(option: str, value: int | None) -> None:
 MAX_COUNT = 10**9
 
 
+def check_integer(name: str, value: object, low: int = 0) -> None:
+    """A one-line error naming ``name`` unless ``value`` is an integer (not a bool) ≥ ``low``."""
+    if isinstance(value, bool) or not isinstance(value, int) or value < low:
+        raise argument_error(name, f"expected an integer ≥ {low}, got {value!r}")
+
+
 def check_count(option: str, value: int | None, minimum: int = 1) -> None:
     """A count (iterations, points, frames, threads …) must be an integer in
     [``minimum``, :data:`MAX_COUNT`]."""

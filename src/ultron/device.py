@@ -23,7 +23,8 @@ from typing import Any
 
 import torch
 
-from ultron.errors import UltronInputError, argument_error
+from ultron.arguments import check_integer
+from ultron.errors import UltronInputError
 
 CPU = torch.device("cpu")
 
@@ -128,8 +129,7 @@ def map_chunks(
     moved to ``device`` (None: left where it is), each result to the CPU, and the results are
     concatenated along their first axis; ``inputs`` without rows give ``empty`` (default: a
     float32 (0,))."""
-    if isinstance(chunk, bool) or not isinstance(chunk, int) or chunk < 1:
-        raise argument_error("chunk", f"expected an integer ≥ 1, got {chunk!r}")
+    check_integer("chunk", chunk, 1)
     parts = []
     with torch.set_grad_enabled(gradients and torch.is_grad_enabled()):
         for start in range(0, inputs.shape[0], chunk):

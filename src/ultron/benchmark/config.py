@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from ultron.arguments import check_integer
 from ultron.data.auto_labels import AutoLabelConfig
 from ultron.device import resolve_device
 from ultron.errors import argument_error
@@ -172,9 +173,7 @@ class BenchmarkConfig:
             raise argument_error("phantoms", f"phantoms must be unique, got {list(phantoms)}")
         object.__setattr__(self, "phantoms", tuple(phantoms))
         for name in ("seeds", "jobs"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise argument_error(name, f"expected an integer ≥ 1, got {value!r}")
+            check_integer(name, getattr(self, name), 1)
         threads = self.threads
         if threads is not None and (
             isinstance(threads, bool) or not isinstance(threads, int) or threads < 1

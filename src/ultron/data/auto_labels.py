@@ -56,6 +56,7 @@ from typing import Any
 import numpy as np
 from scipy import ndimage
 
+from ultron.arguments import check_integer
 from ultron.data.dataset import ProbeGeometry
 from ultron.data.validation import LABEL_BACKGROUND, LABEL_TARGET, LABEL_UNANNOTATED
 from ultron.errors import argument_error
@@ -434,8 +435,7 @@ def bone_precision_recall(
     predicted, truth = np.asarray(predicted), np.asarray(truth)
     if predicted.shape != truth.shape or predicted.ndim < 2:
         raise argument_error("predicted", f"shape {predicted.shape} differs from {truth.shape}")
-    if isinstance(tolerance_px, bool) or not isinstance(tolerance_px, int) or tolerance_px < 0:
-        raise argument_error("tolerance_px", f"expected an integer ≥ 0, got {tolerance_px!r}")
+    check_integer("tolerance_px", tolerance_px)
     frames = truth.reshape(-1, *truth.shape[-2:])
     annotated = (frames != LABEL_UNANNOTATED).any(axis=(1, 2))
     true_frames = frames[annotated]

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ultron.arguments import check_integer
 from ultron.data.dataset import SweepDataset
 from ultron.data.geometry import apply_pose, probe_points_mm
 from ultron.data.validation import LABEL_BACKGROUND, LABEL_TARGET, LABEL_UNANNOTATED
@@ -213,8 +214,7 @@ def surface_outer_side(labels: np.ndarray, rows: int) -> np.ndarray:
     labels = np.asarray(labels)
     if labels.ndim < 2:
         raise argument_error("labels", f"expected (..., H, W) labels, got shape {labels.shape}")
-    if isinstance(rows, bool) or not isinstance(rows, int) or rows < 0:
-        raise argument_error("rows", f"expected an integer ≥ 0, got {rows!r}")
+    check_integer("rows", rows)
     unsure = labels == LABEL_UNANNOTATED
     outer = np.zeros(labels.shape, dtype=bool)
     reached = labels == LABEL_TARGET  # the pixels whose upper neighbour is k rows from a band

@@ -34,6 +34,7 @@ import torch.nn.functional as F
 from torch import nn
 from torch.nn.utils.parametrizations import weight_norm
 
+from ultron.arguments import check_integer
 from ultron.errors import argument_error
 
 IN_DIM = 3
@@ -51,9 +52,7 @@ class SDFNetworkConfig:
 
     def __post_init__(self) -> None:
         for name, low in (("hidden", IN_DIM + 1), ("layers", 1)):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < low:
-                raise argument_error(f"sdf.{name}", f"expected an integer ≥ {low}, got {value!r}")
+            check_integer(f"sdf.{name}", getattr(self, name), low)
         if self.skip_at is not None and not (
             isinstance(self.skip_at, int) and 0 < self.skip_at < self.layers
         ):

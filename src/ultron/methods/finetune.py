@@ -39,6 +39,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from ultron.arguments import check_integer
 from ultron.data.dataset import SweepDataset
 from ultron.data.labels import LabelledPixels, select_label_frames
 from ultron.device import module_device, resolve_device
@@ -105,15 +106,8 @@ class FinetuneConfig:
                 "label_fraction", f"expected a value in (0, 1], got {self.label_fraction!r}"
             )
         for name in ("iters", "frozen_layers", "seed"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 0:
-                raise argument_error(name, f"expected an integer ≥ 0, got {value!r}")
-        if isinstance(self.anchor_points, bool) or not (
-            isinstance(self.anchor_points, int) and self.anchor_points >= 1
-        ):
-            raise argument_error(
-                "anchor_points", f"expected an integer ≥ 1, got {self.anchor_points!r}"
-            )
+            check_integer(name, getattr(self, name))
+        check_integer("anchor_points", self.anchor_points, 1)
         weight = self.anchor_weight
         number = isinstance(weight, int | float) and not isinstance(weight, bool)
         if not (number and np.isfinite(weight) and weight >= 0):
@@ -151,8 +145,7 @@ def freeze_last_layers(network: OccupancyNetwork, n: int) -> list[nn.Parameter]:
 def anchor_pixels(dataset: SweepDataset, n: int, seed: int) -> LabelledPixels:
     """``n`` pixels drawn uniformly (with replacement) from every pixel of every frame of
     ``dataset``, in (sweep, frame) order; their ``label`` is 0 and means nothing."""
-    if isinstance(n, bool) or not isinstance(n, int) or n < 1:
-        raise argument_error("n", f"expected an integer ≥ 1, got {n!r}")
+    check_integer("n", n, 1)
     frames = np.array([sweep.n_frames for sweep in dataset.sweeps], dtype=np.int64)
     height, width = dataset.probe.height_px, dataset.probe.width_px
     draw = np.sort(np.random.default_rng(seed).integers(0, frames.sum() * height * width, n))

@@ -44,6 +44,7 @@ import numpy as np
 import torch
 
 from ultron import atomic
+from ultron.arguments import check_integer
 from ultron.data.dataset import ProbeGeometry, Sweep, SweepDataset
 from ultron.data.geometry import field_of_view_bounds_mm
 from ultron.errors import argument_error
@@ -98,8 +99,7 @@ class SimulationConfig:
 
     def __post_init__(self) -> None:
         get_phantom(self.phantom)
-        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
-            raise argument_error("seed", f"expected an integer ≥ 0, got {self.seed!r}")
+        check_integer("seed", self.seed)
         if isinstance(self.sweeps, str) or not self.sweeps:
             raise argument_error(
                 "sweeps", f"expected a non-empty tuple of names, got {self.sweeps!r}"

@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from ultron import atomic
+from ultron.arguments import check_integer
 from ultron.data.dataset import SweepDataset
 from ultron.data.outliers import check_pose_array_outliers
 from ultron.data.validation import load_npy, validate_poses
@@ -141,8 +142,7 @@ def render_frames(
     is loaded, so a bad path costs no rendering."""
     if (poses is None) == (dataset is None):
         raise argument_error("--poses/--dataset", "give exactly one of --poses or --dataset")
-    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
-        raise argument_error("--seed", f"expected an integer ≥ 0, got {seed!r}")
+    check_integer("--seed", seed)
     out = Path(out)
     if out.suffix != ".npy":
         raise argument_error("--out", f"expected a .npy file name, got {out}")

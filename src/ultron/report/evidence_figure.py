@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ultron.arguments import check_integer
 from ultron.errors import argument_error
 from ultron.report.figures import VIEWS, _draw_points, _style_axes, _view_limits
 from ultron.report.plotting import figure_png, new_figure, place_grid, top_title
@@ -46,8 +47,7 @@ def surface_evidence_figure(
     flags = np.asarray(observed).astype(bool)
     distance = np.asarray(label_distance_mm, dtype=np.float64)
     _check(vertices, flags, distance)
-    if isinstance(max_points, bool) or not isinstance(max_points, int) or max_points < 1:
-        raise argument_error("max_points", f"expected an integer ≥ 1, got {max_points!r}")
+    check_integer("max_points", max_points, 1)
     if len(vertices) > max_points:
         pick = np.sort(np.random.default_rng(seed).choice(len(vertices), max_points, False))
         vertices, flags, distance = vertices[pick], flags[pick], distance[pick]

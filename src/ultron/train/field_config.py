@@ -8,6 +8,7 @@ from dataclasses import asdict, dataclass, replace
 from dataclasses import field as dataclass_field
 from typing import Any
 
+from ultron.arguments import check_integer
 from ultron.data.orientation import ORIENTATIONS
 from ultron.errors import argument_error
 from ultron.fields.factory import FieldConfig
@@ -85,9 +86,7 @@ class FieldTrainConfig:
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise argument_error(name, f"expected a positive integer, got {value!r}")
         for name in ("seed", "holdout_every"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 0:
-                raise argument_error(name, f"expected an integer ≥ 0, got {value!r}")
+            check_integer(name, getattr(self, name))
         if self.patch_width < MIN_FIT_SIDE:
             raise argument_error(
                 "patch_width",

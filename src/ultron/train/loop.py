@@ -32,6 +32,7 @@ from typing import Any
 
 import torch
 
+from ultron.arguments import check_integer
 from ultron.errors import argument_error
 from ultron.memory import freed_memory_reused
 
@@ -94,10 +95,8 @@ def run_training(
     return the log: ``log`` (e.g. a resumed fit's entries so far) with the new entries
     appended. ``after_update(n)`` runs after each update, once its entry is logged (e.g. to
     save a checkpoint that holds the log)."""
-    if isinstance(iterations, bool) or not isinstance(iterations, int) or iterations < 0:
-        raise argument_error("iterations", f"expected an integer ≥ 0, got {iterations!r}")
-    if isinstance(log_every, bool) or not isinstance(log_every, int) or log_every < 1:
-        raise argument_error("log_every", f"expected an integer ≥ 1, got {log_every!r}")
+    check_integer("iterations", iterations)
+    check_integer("log_every", log_every, 1)
     optimizers = list(optimizers)
     if not optimizers:
         raise argument_error("optimizers", "expected at least one optimiser to step")

@@ -73,6 +73,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from ultron.arguments import check_integer
 from ultron.device import map_chunks, resolve_device
 from ultron.errors import argument_error
 from ultron.fields.sdf import SDFDiscriminator, SDFNetwork, SDFNetworkConfig
@@ -191,8 +192,8 @@ class ViewFitConfig:
     def __post_init__(self) -> None:
         _check_training(self.iterations, self.batch_size, self.lr, self.warmup)
         for name in ("queries_per_point", "sigma_neighbour", "max_points", "discriminator_hidden"):
-            _check_int(getattr(self, name), name, 1)
-        _check_int(self.grid_queries, "grid_queries", 0)
+            check_integer(name, getattr(self, name), 1)
+        check_integer("grid_queries", self.grid_queries, 0)
         if not self.fps_sizes or any(not isinstance(k, int) or k < 1 for k in self.fps_sizes):
             raise argument_error("fps_sizes", f"expected positive integers, got {self.fps_sizes!r}")
         for name in ("scc_weight", "adversarial_weight", "scc_decay"):
@@ -222,7 +223,7 @@ class ResampleConfig:
             )
         for name, low in (("grid_samples", 1), ("surface_samples", 0), ("grid_resolution", 2),
                           ("candidate_batch", 1), ("max_rounds", 1)):  # fmt: skip
-            _check_int(getattr(self, name), name, low)
+            check_integer(name, getattr(self, name), low)
         if not self.sigma > 0:
             raise argument_error("sigma", f"expected > 0, got {self.sigma}")
 
@@ -250,15 +251,10 @@ class RefineConfig:
         return asdict(self)
 
 
-def _check_int(value: object, name: str, low: int) -> None:
-    if isinstance(value, bool) or not isinstance(value, int) or value < low:
-        raise argument_error(name, f"expected an integer ≥ {low}, got {value!r}")
-
-
 def _check_training(iterations: int, batch_size: int, lr: float, warmup: int) -> None:
-    _check_int(iterations, "iterations", 1)
-    _check_int(batch_size, "batch_size", 1)
-    _check_int(warmup, "warmup", 0)
+    check_integer("iterations", iterations, 1)
+    check_integer("batch_size", batch_size, 1)
+    check_integer("warmup", warmup, 0)
     if warmup >= iterations:
         raise argument_error("warmup", f"expected < iterations={iterations}, got {warmup}")
     if not (math.isfinite(lr) and lr > 0):
