@@ -219,7 +219,9 @@ def test_allowed_other_field_is_recorded_in_run_json(
     # so that only the field's path to run.json is exercised
     original = run_module.run_method
 
-    def compounding(dataset, request, fitted, timer, truth=None, dataset_name=None):
+    def compounding(
+        dataset, request, fitted, timer, truth=None, dataset_name=None, checkpoint=None
+    ):
         assert fitted is not None  # the other dataset's field was loaded
         return original(
             dataset, replace(request, method="compounding", method_config=None), None, timer

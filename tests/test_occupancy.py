@@ -15,7 +15,6 @@ from ultron.train.occupancy import (
     OccupancyAnchor,
     OccupancyTrainConfig,
     OccupancyTrainingData,
-    _minibatches,
     attenuation_compensated_bce,
     binary_cross_entropy,
     fit_occupancy,
@@ -258,15 +257,6 @@ def test_log_and_progress_come_from_the_one_training_loop():
     assert [e["step"] for e in log] == [1, 50, 100, 120]  # first, every 50th, last
     assert reports == [{"iterations": 120, **entry} for entry in log]
     assert all(set(e) == {"step", "loss", "seconds"} for e in log)
-
-
-def test_minibatches_cover_each_permutation_before_the_next():
-    generator = torch.Generator().manual_seed(0)
-    batches = _minibatches(10, 4, generator)
-    first, second, third = next(batches), next(batches), next(batches)
-    assert torch.cat([first, second]).unique().numel() == 8  # one permutation, no repeats
-    assert third.numel() == 4  # 2 left < 4: a new permutation
-    assert next(_minibatches(3, 8, torch.Generator())).sort().values.tolist() == [0, 1, 2]
 
 
 def test_network_shapes_and_last_layers():

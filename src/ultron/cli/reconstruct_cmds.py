@@ -165,6 +165,9 @@ def reconstruct(
             advance=lines.advance,
         )
     _print_summary({method: summary})
+    if "occupancy_resumed_from_step" in summary:
+        done = summary["occupancy_resumed_from_step"]
+        console.print(f"occupancy fit resumed from its checkpoint after {done} updates")
     for candidate in summary.get("field_candidates", []):
         kept = " (kept)" if candidate["field_dir"] == summary["field_dir"] else ""
         console.print(

@@ -16,6 +16,7 @@ phantom's ≈ 70 mm half-extent), the scale of the labels' 2 mm band.
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -34,6 +35,7 @@ from ultron.methods.ultron_method import (
 )
 from ultron.timing import StageTimer
 from ultron.train.occupancy import OccupancyTrainConfig, OccupancyTrainingData, fit_occupancy
+from ultron.train.occupancy_checkpoint import OccupancyCheckpoint, resumed_info
 
 
 def _on_training() -> OccupancyTrainConfig:
@@ -76,8 +78,10 @@ def reconstruct_on(
     config: ONConfig | None = None,
     timer: StageTimer | None = None,
     device: torch.device | str = "cpu",
+    checkpoint: Path | None = None,
 ) -> Reconstruction:
-    """Fit ON on ``label_fraction`` of the annotated frames (on ``device``) and mesh it."""
+    """Fit ON on ``label_fraction`` of the annotated frames (on ``device``; resumable with a
+    ``checkpoint`` file, :mod:`ultron.train.occupancy_checkpoint`) and mesh it."""
     config = config or ONConfig()
     timer = timer or StageTimer()
     occupancy = replace(config.occupancy, seed=seed)
@@ -86,7 +90,10 @@ def reconstruct_on(
         cube = scan_unit_cube(dataset)
         data = on_training_data(dataset, cube, selection)
     with timer.stage("occupancy_fit"):
-        network, log = fit_occupancy(data, occupancy, progress=timer.fit_progress, device=device)
+        saved = None if checkpoint is None else OccupancyCheckpoint(checkpoint)
+        network, log = fit_occupancy(
+            data, occupancy, progress=timer.fit_progress, device=device, checkpoint=saved
+        )
 
     def fn(points_mm: torch.Tensor) -> torch.Tensor:
         unit = cube.to_unit(points_mm, dtype=torch.float32)
@@ -101,6 +108,7 @@ def reconstruct_on(
         "unit_cube": cube.to_dict(),
         "occupancy_config": occupancy.to_dict(),
         "occupancy_log": log,
+        **resumed_info(None if saved is None else saved.resumed_from),
         "grid": grid.to_dict(),
     }  # fmt: skip
     model = {"input": "unit_cube", "unit_cube": cube.to_dict()}

@@ -37,6 +37,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -70,6 +71,7 @@ from ultron.train.occupancy import (
     fit_occupancy,
     label_loss,
 )
+from ultron.train.occupancy_checkpoint import OccupancyCheckpoint, resumed_info
 from ultron.train.visibility import (
     VisibilityConfig,
     field_theta_transmission,
@@ -392,7 +394,8 @@ def keep_observed_surface(
 class Stage2Fit:
     """UltrON's stage 2 on one fitted field, before meshing: the field, the label frames, the
     trained f_ω with its training config and log, its label loss (:func:`label_loss`) and
-    run.json's account of the training data (``data_info``; the data itself is not kept)."""
+    run.json's account of the training data (``data_info``; the data itself is not kept) and
+    the update its fit resumed at from a checkpoint (None: it ran from the start)."""
 
     fitted: Any
     selection: FrameSelection
@@ -401,6 +404,7 @@ class Stage2Fit:
     log: list[dict[str, Any]]
     label_loss: float
     data_info: dict[str, Any]
+    resumed_from: int | None = None
 
 
 def train_ultron(
@@ -413,12 +417,14 @@ def train_ultron(
     timer: StageTimer,
     truth: Mapping[str, np.ndarray] | None = None,
     device: torch.device | str | None = None,
+    checkpoint: Path | None = None,
 ) -> Stage2Fit:
     """Stage 2 of UltrON with ``loss`` (:data:`ultron.train.occupancy.LOSSES`: "ultron", the
     attenuation-compensated loss, or "bce", the ablation's) on ``label_fraction`` of the
     annotated frames, chosen with ``seed``; ``truth`` is the oracle's true T per sweep (only
     for ``config.visibility.source == "oracle"``). f_ω trains on ``device`` (default: the
-    fitted field's)."""
+    fitted field's); with ``checkpoint`` (a file) the fit is resumable
+    (:mod:`ultron.train.occupancy_checkpoint`)."""
     if loss not in LOSSES:
         raise argument_error("loss", f"expected one of {LOSSES}, got {loss!r}")
     occupancy_config = replace(
@@ -434,12 +440,16 @@ def train_ultron(
         )  # fmt: skip
     with timer.stage("occupancy_fit"):
         device = fitted.device if device is None else device
+        saved = None if checkpoint is None else OccupancyCheckpoint(checkpoint)
         network, log = fit_occupancy(
-            data, occupancy_config, progress=timer.fit_progress, device=device
+            data, occupancy_config, progress=timer.fit_progress, device=device, checkpoint=saved
         )
         fitted_loss = label_loss(network, data, occupancy_config)
     data_info = data.summary(occupancy_config.observed_transmission)
-    return Stage2Fit(fitted, selection, occupancy_config, network, log, fitted_loss, data_info)
+    resumed = None if saved is None else saved.resumed_from
+    return Stage2Fit(
+        fitted, selection, occupancy_config, network, log, fitted_loss, data_info, resumed
+    )
 
 
 def mesh_ultron(
@@ -472,6 +482,7 @@ def mesh_ultron(
         "transmission_stats": trained.data_info["transmission_stats"],
         "occupancy_config": occupancy_config.to_dict(),
         "occupancy_log": trained.log,
+        **resumed_info(trained.resumed_from),
         "occupancy_label_loss": trained.label_loss,
         "grid": grid.to_dict(),
     }

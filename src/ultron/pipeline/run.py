@@ -15,6 +15,7 @@ oracle's files, outlier poses and the grids' memory (:mod:`ultron.pipeline.resou
 
 from __future__ import annotations
 
+import shutil
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, cast
@@ -41,15 +42,19 @@ from ultron.pipeline.field_cache import get_or_fit_field
 from ultron.pipeline.model_io import save_network
 from ultron.pipeline.record import write_run_json
 from ultron.pipeline.resources import check_run_resources
-from ultron.pipeline.rundir import check_run_dir, staged_run_dir
+from ultron.pipeline.rundir import check_run_dir, resume_dir, staged_run_dir
 from ultron.report.run_report import write_run_report
 from ultron.timing import Advance, Announce, StageTimer
 from ultron.train.field_fit import FieldTrainConfig
 from ultron.train.loop import Progress
+from ultron.train.occupancy_checkpoint import resumed_info
 from ultron.train.visibility import load_oracle_truth
 
 #: The whole iso-surface with its evidence, written when the observed crop dropped faces.
 EXTRACTED_MESH = "surface_extracted.ply"
+#: The stage-2 checkpoint of the k-th field candidate (1 without candidates) in the run's
+#: resume directory (:func:`~ultron.pipeline.rundir.resume_dir`).
+STAGE2_CHECKPOINT = "occupancy-{}.pt"
 
 
 def run_method(
@@ -59,14 +64,16 @@ def run_method(
     timer: StageTimer,
     truth: dict[str, Any] | None = None,
     dataset_name: str | None = None,
+    checkpoint: Path | None = None,
 ) -> Reconstruction:
     """Reconstruct with ``request.method`` (``fitted`` is the acoustic field, for UltrON;
     ``truth`` the oracle's true transmission per sweep, see :mod:`ultron.train.visibility`;
-    ``dataset_name``, e.g. its directory, names the dataset in RoCoSDF's input errors).
+    ``dataset_name``, e.g. its directory, names the dataset in RoCoSDF's input errors;
+    ``checkpoint`` the file where a stage-2 fit keeps its checkpoint).
 
     Every result carries its observed / inferred split (:mod:`ultron.methods.evidence`): a
     method that computes none (ON, RoCoSDF) is flagged with T ≡ 1 and keeps its surface."""
-    inputs = method_inputs(request, fitted, timer, truth, dataset_name)
+    inputs = method_inputs(request, fitted, timer, truth, dataset_name, checkpoint)
     return with_observed_surface(get_method(request.method).fit(dataset, inputs), dataset, timer)
 
 
@@ -76,11 +83,12 @@ def method_inputs(
     timer: StageTimer,
     truth: dict[str, Any] | None = None,
     dataset_name: str | None = None,
+    checkpoint: Path | None = None,
 ) -> MethodInputs:
     """What ``request``'s method runs with (:class:`~ultron.methods.registry.MethodInputs`)."""
     return MethodInputs(
         request.method_config, timer, request.label_fraction, request.seed, fitted, truth,
-        dataset_name, resolve_device(request.device, "device"),
+        dataset_name, resolve_device(request.device, "device"), checkpoint,
     )  # fmt: skip
 
 
@@ -225,38 +233,19 @@ def reconstruct(
     grids' estimated memory (default: this machine's); ``announce`` is told as each stage
     starts and ends and ``advance`` how far a long stage has come (the occupancy fit's steps,
     the meshing's tiles and smoothing iterations, the observed crop's frames:
-    :class:`~ultron.timing.StageTimer`)."""
+    :class:`~ultron.timing.StageTimer`). The stage-2 fit keeps checkpoints in the run's
+    resume directory (:func:`~ultron.pipeline.rundir.resume_dir`), so that the same run
+    started again after an interruption resumes it (run.json ``occupancy_resumed_from_step``,
+    also in the summary); the directory is removed once the run is in place."""
     timer = StageTimer(announce=announce, advance=advance)
-    method, config = get_method(request.method), request.method_config
+    resume = resume_dir(out_dir)
+    method = get_method(request.method)
     field_dirs = field_candidates(field_dir, method.needs_field)
-    to_fit = None  # the field that may be fitted, whose grid is checked too
-    if method.needs_field and not field_dirs:
-        to_fit = field_config or FieldTrainConfig()
     with timer.stage("load"):
-        dataset, references = prepare_run(
-            out_dir, "reconstruct", dataset_dir, tuple(field_dirs),
-            method.meshing_voxel(config), method.scan_grid, None, max_memory_gib,
+        dataset, references, truth = preflight(
+            dataset_dir, request, out_dir, field_dirs, field_config, allow_other_field,
+            max_memory_gib, warn,
         )  # fmt: skip
-        # labels without bone: refused before minutes of field fit and training
-        selection = select_label_frames(dataset, request.label_fraction, request.seed, dataset_dir)
-        check_selection_has_bone(dataset, selection, dataset_dir)
-        method.check_resources(dataset, config, selection, dataset_dir, max_memory_gib)
-        # the oracle's files (an input) before the field to fit (its memory and frame size)
-        visibility = method.visibility(config)
-        truth = None if visibility is None else load_oracle_truth(visibility, dataset_dir, dataset)
-        if to_fit is not None:
-            check_run_resources(dataset, dataset_dir, mesh=False, field_config=to_fit,
-                                max_memory_gib=max_memory_gib)  # fmt: skip
-        if len(field_dirs) > 1:  # every candidate read and checked before the first one's run
-            for candidate in field_dirs:
-                load_or_fit_field(
-                    dataset_dir, dataset, candidate, allow_other_field=allow_other_field
-                )
-        if warn is not None:  # after the pre-flight checks: a refused run prints its error alone
-            reference = references[0]
-            vertices = None if reference is None else reference.vertices
-            for line in selection_warnings(dataset, selection) + units_warnings(dataset, vertices):
-                warn(line)
     device = resolve_device(request.device, "device")
     extra: dict[str, Any] = {"device": describe_device(device)}
     if method.needs_field:
@@ -265,11 +254,12 @@ def reconstruct(
             lambda candidate: load_or_fit_field(
                 dataset_dir, dataset, candidate, field_config, progress, allow_other_field,
                 device,
-            ),
+            ), resume,
         )  # fmt: skip
         extra |= field_extra
     else:
-        result = run_method(dataset, request, None, timer, truth, dataset_name=str(dataset_dir))
+        checkpoint = _checkpoint(resume, 1)
+        result = run_method(dataset, request, None, timer, truth, str(dataset_dir), checkpoint)
     identity = {
         "command": "reconstruct",
         "method": request.method,
@@ -281,9 +271,53 @@ def reconstruct(
         out_dir, dataset, identity, result, timer, request.metrics, extra, report, references,
         request.mesh_coordinates,
     )  # fmt: skip
+    shutil.rmtree(resume, ignore_errors=True)  # the run is in place: nothing left to resume
+    summary |= resumed_info(result.info.get("occupancy_resumed_from_step"))
     if "field_candidates" in extra:
         summary |= {"field_dir": extra["field_dir"], "field_candidates": extra["field_candidates"]}
     return summary
+
+
+def preflight(
+    dataset_dir: str | Path,
+    request: ReconstructionRequest,
+    out_dir: str | Path,
+    field_dirs: Sequence[str | Path],
+    field_config: Any = None,
+    allow_other_field: bool = False,
+    max_memory_gib: float | None = None,
+    warn: Callable[[str], None] | None = None,
+) -> tuple[SweepDataset, References, dict[str, Any] | None]:
+    """:func:`reconstruct`'s checks before any work (:func:`prepare_run`; labels with bone;
+    the method's resources; the oracle's files; the memory of the field to fit, when none is
+    given; every field candidate), then ``warn`` told the selection's and the units' warnings.
+    Returns the dataset, its references and the oracle's true T per sweep (None unless the
+    run uses it)."""
+    method, config = get_method(request.method), request.method_config
+    dataset, references = prepare_run(
+        out_dir, "reconstruct", dataset_dir, tuple(field_dirs),
+        method.meshing_voxel(config), method.scan_grid, None, max_memory_gib,
+    )  # fmt: skip
+    # labels without bone: refused before minutes of field fit and training
+    selection = select_label_frames(dataset, request.label_fraction, request.seed, dataset_dir)
+    check_selection_has_bone(dataset, selection, dataset_dir)
+    method.check_resources(dataset, config, selection, dataset_dir, max_memory_gib)
+    # the oracle's files (an input) before the field to fit (its memory and frame size)
+    visibility = method.visibility(config)
+    truth = None if visibility is None else load_oracle_truth(visibility, dataset_dir, dataset)
+    if method.needs_field and not field_dirs:  # the field to fit: its grid too
+        check_run_resources(dataset, dataset_dir, mesh=False,
+                            field_config=field_config or FieldTrainConfig(),
+                            max_memory_gib=max_memory_gib)  # fmt: skip
+    if len(field_dirs) > 1:  # every candidate read and checked before the first one's run
+        for candidate in field_dirs:
+            load_or_fit_field(dataset_dir, dataset, candidate, allow_other_field=allow_other_field)
+    if warn is not None:  # after the pre-flight checks: a refused run prints its error alone
+        reference = references[0]
+        vertices = None if reference is None else reference.vertices
+        for line in selection_warnings(dataset, selection) + units_warnings(dataset, vertices):
+            warn(line)
+    return dataset, references, truth
 
 
 def field_candidates(
@@ -308,6 +342,7 @@ def run_on_fields(
     timer: StageTimer,
     truth: dict[str, Any] | None,
     get_field: Callable[[str | Path | None], tuple[Any, dict[str, Any]]],
+    resume: Path | None = None,
 ) -> tuple[Reconstruction, dict[str, Any]]:
     """Run ``request`` on the field, or on the best of several (``get_field`` loads or fits
     each: :func:`load_or_fit_field`). With several, the method (one that reads a field) trains
@@ -316,14 +351,17 @@ def run_on_fields(
     stage 2 is trained on, compared across fields of one dataset and label draw (how well it
     picks: docs/stage2-transmission.md); the field info returned is the kept one's, with
     ``field_candidates`` (every field's directory and loss), the field stages are named
-    ``field k/K`` and stage 2's times add up over the candidates."""
+    ``field k/K`` and stage 2's times add up over the candidates. With ``resume`` (a
+    directory) the k-th candidate's stage-2 fit keeps its checkpoint there
+    (:data:`STAGE2_CHECKPOINT`)."""
     if not field_dirs:
         raise argument_error("field_dirs", "expected at least one field (None: fit one)")
     name = str(dataset_dir)
     if len(field_dirs) == 1:
         with timer.stage("field"):
             fitted, field_extra = get_field(field_dirs[0])
-        return run_method(dataset, request, fitted, timer, truth, dataset_name=name), field_extra
+        result = run_method(dataset, request, fitted, timer, truth, name, _checkpoint(resume, 1))
+        return result, field_extra
     method = cast(FieldMethod, get_method(request.method))
     if not method.needs_field:
         raise argument_error(
@@ -334,7 +372,7 @@ def run_on_fields(
     for k, candidate in enumerate(field_dirs, 1):
         with timer.stage(f"field {k}/{len(field_dirs)}"):  # names the candidate in a log
             fitted, field_extra = get_field(candidate)
-        inputs = method_inputs(request, fitted, timer, truth, name)
+        inputs = method_inputs(request, fitted, timer, truth, name, _checkpoint(resume, k))
         trained = method.train(dataset, inputs)
         if kept is None or trained.label_loss < kept[0].label_loss:  # ties: the first
             kept = (trained, inputs, field_extra)
@@ -344,6 +382,11 @@ def run_on_fields(
     trained, inputs, field_extra = kept  # type: ignore[misc]  # set by the first candidate
     result = with_observed_surface(method.finish(dataset, inputs, trained), dataset, timer)
     return result, {**field_extra, "field_candidates": candidates}
+
+
+def _checkpoint(resume: Path | None, k: int) -> Path | None:
+    """The k-th candidate's stage-2 checkpoint file in ``resume`` (None without one)."""
+    return None if resume is None else resume / STAGE2_CHECKPOINT.format(k)
 
 
 def load_or_fit_field(

@@ -14,6 +14,10 @@ that fails or is killed before the swap leaves the previous complete run untouch
 holds an ``flock`` on ``.lock`` in its staging directory; the next run into the same ``--out``
 removes the staging directories of dead runs and, should a run have died between the two
 renames, puts the previous run back first.
+
+What a run's stages save to resume from (:func:`resume_dir`: the stage-2 fit's checkpoints)
+lives in a third hidden sibling, ``.<name>.resume``, which survives a failed or killed run and
+is removed once a run has been swapped in.
 """
 
 from __future__ import annotations
@@ -167,3 +171,10 @@ def staged_run_dir(out: str | Path, kind: str) -> Iterator[Path]:
         raise
     finally:
         os.close(lock)
+
+
+def resume_dir(out: str | Path) -> Path:
+    """The hidden sibling ``.<name>.resume`` of ``out`` where a run into ``out`` keeps what
+    it can resume from (module doc); nothing is created."""
+    target = Path(out).resolve()
+    return target.with_name(f".{target.name}.resume")

@@ -39,7 +39,7 @@ elsewhere ("learning without forgetting", Li and Hoiem 2016).
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
@@ -49,6 +49,12 @@ from ultron.device import resolve_device
 from ultron.errors import argument_error
 from ultron.fields.occupancy import OccupancyNetwork, OccupancyNetworkConfig
 from ultron.train.loop import Progress, run_training
+from ultron.train.occupancy_checkpoint import (
+    MinibatchOrder,
+    OccupancyCheckpoint,
+    fit_fingerprint,
+    restore_fit,
+)
 from ultron.train.visibility import transmission_summary
 
 LOSSES = ("ultron", "bce")
@@ -287,6 +293,7 @@ def fit_occupancy(
     progress: Progress | None = None,
     device: torch.device | str = "cpu",
     anchor: OccupancyAnchor | None = None,
+    checkpoint: OccupancyCheckpoint | None = None,
 ) -> tuple[OccupancyNetwork, list[dict[str, float]]]:
     """Train (a copy-free, in-place) ``network`` on ``data``; returns it and a loss log (every
     :data:`LOG_EVERY` updates, :func:`ultron.train.loop.run_training`).
@@ -297,7 +304,11 @@ def fit_occupancy(
     depend on the device) and the data are moved to ``device`` and the network is returned
     there; the minibatch order comes from a CPU generator seeded by ``config.seed``, the same
     on every device. ``anchor`` adds the anchor term (module doc), its minibatches drawn from
-    the same generator after the labels' (``anchor`` None draws nothing more).
+    the same generator after the labels' (``anchor`` None draws nothing more). With
+    ``checkpoint`` the fit saves its state every ``checkpoint.every`` updates and after the
+    last, and first resumes a checkpoint of this same fit found at ``checkpoint.path``
+    (:mod:`ultron.train.occupancy_checkpoint`), setting ``checkpoint.resumed_from``: the
+    result is the uninterrupted fit's, bit for bit.
     """
     device = resolve_device(device, "device")
     generator = torch.Generator().manual_seed(config.seed)
@@ -308,10 +319,12 @@ def fit_occupancy(
     gamma = config.final_lr_factor ** (1.0 / max(config.iters, 1))
     labels = data.labels.to(device, torch.float32)
     pos_weight = positive_class_weight(labels, config)
-    batches = _minibatches(labels.shape[0], config.batch_size, generator)
+    batches = MinibatchOrder(labels.shape[0], config.batch_size, generator)
+    orders = [batches]
     if anchor is not None:
         anchor_inputs, anchor_targets = anchor.inputs.to(device), anchor.targets.to(device)
-        anchor_batches = _minibatches(anchor_inputs.shape[0], config.batch_size, generator)
+        anchor_batches = MinibatchOrder(anchor_inputs.shape[0], config.batch_size, generator)
+        orders.append(anchor_batches)
 
     def objective(step: int) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         batch = next(batches).to(device)
@@ -327,13 +340,46 @@ def fit_occupancy(
         )
         return loss + anchor.weight * kept, {"loss": loss.detach(), "anchor": kept.detach()}
 
+    start, log, after_update = 0, [], None
+    if checkpoint is not None:
+        fingerprint = _fingerprint(data, config, network, parameters, anchor)
+        state = checkpoint.matching(fingerprint, config.iters)
+        if state is not None:
+            start, log = restore_fit(state, network, optimiser, generator, orders)
+            checkpoint.resumed_from = start
+
+        def after_update(done: int) -> None:  # the log grows in place: saved with the state
+            if done % checkpoint.every == 0 or done == config.iters:
+                checkpoint.save(fingerprint, done, config.iters, network, optimiser, generator,
+                                orders, log)  # fmt: skip
+
     network.train()
-    log = run_training(
+    run_training(
         objective, config.iters, name="occupancy", log_every=LOG_EVERY, progress=progress,
-        optimizers=[optimiser], learning_rate=lambda k: config.lr * gamma**k,
+        optimizers=[optimiser], learning_rate=lambda k: config.lr * gamma**k, start=start,
+        log=log, after_update=after_update,
     )  # fmt: skip
     network.eval()
     return network, log
+
+
+def _fingerprint(
+    data: OccupancyTrainingData,
+    config: OccupancyTrainConfig,
+    network: OccupancyNetwork,
+    parameters: list[torch.nn.Parameter],
+    anchor: OccupancyAnchor | None,
+) -> str:
+    """:func:`~ultron.train.occupancy_checkpoint.fit_fingerprint` of a fit before its first
+    update: its data, settings, initial network, trained parameters and anchor."""
+    trained = {id(p) for p in parameters}
+    names = [name for name, p in network.named_parameters() if id(p) in trained]
+    tensors = [data.inputs, data.transmission, data.labels, *network.state_dict().values()]
+    settings = {"config": config.to_dict(), "trained": names, "anchor": None}
+    if anchor is not None:
+        tensors += [anchor.inputs, anchor.targets]
+        settings["anchor"] = anchor.weight
+    return fit_fingerprint(tensors, settings)
 
 
 #: At most this many labelled pixels (evenly strided) score :func:`label_loss`.
@@ -380,19 +426,6 @@ def _initial_network(config: OccupancyTrainConfig, in_dim: int) -> OccupancyNetw
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(config.seed)
         return OccupancyNetwork(network_config)
-
-
-def _minibatches(n: int, batch_size: int, generator: torch.Generator) -> Iterator[torch.Tensor]:
-    """Index batches of ``batch_size`` (at most n) from random permutations of n; a new
-    permutation when the current one has fewer than ``batch_size`` left."""
-    order = torch.randperm(n, generator=generator)
-    cursor = 0
-    while True:
-        if cursor + batch_size > n:
-            order = torch.randperm(n, generator=generator)
-            cursor = 0
-        yield order[cursor : cursor + min(batch_size, n)]
-        cursor += batch_size
 
 
 def _loss(

@@ -1,0 +1,174 @@
+"""Checkpoints of a stage-2 fit (:func:`ultron.train.occupancy.fit_occupancy`): an interrupted
+``reconstruct`` resumes its occupancy fit where it stopped and ends bit for bit where an
+uninterrupted run ends.
+
+A checkpoint is one file, a ``torch.save`` of plain data (read with ``weights_only=True``)::
+
+    {"format": FORMAT, "fingerprint": hex, "step": n, "iterations": N,
+     "network": state, "optimizer": state, "generator": state,
+     "batches": [{"order": permutation or None, "cursor": c}, …], "log": [entries]}
+
+written atomically (:mod:`ultron.atomic`) every ``every`` updates and after the last one.
+``fingerprint`` is a SHA-256 digest of everything that decides the fit
+(:func:`fit_fingerprint`): the training data's tensors, the settings, the initial network's
+parameters, which of them are trained, and the anchor. A fit resumes only a checkpoint whose
+fingerprint is its own; any other file at the path — another fit's (other labels, field, seed or
+settings), an older format, an unreadable one — is ignored and overwritten at the first save, so
+a stale checkpoint can never change a result, only fail to save time.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from ultron import atomic
+from ultron.arguments import check_integer
+from ultron.device import cpu_state
+
+#: Names the file's layout (bumped when it changes; another format is never resumed).
+FORMAT = "ultron-occupancy-checkpoint/1"
+#: Updates between two checkpoints of a fit (and one after its last update).
+CHECKPOINT_EVERY = 250
+
+
+class MinibatchOrder:
+    """Index batches of ``batch_size`` (at most n) from random permutations of n drawn from
+    ``generator``: a new permutation when the current one has fewer than ``batch_size`` left
+    (the first drawn at the first batch). Its state — the permutation and the cursor — goes
+    into a checkpoint, so that a resumed fit draws the batches an uninterrupted one draws."""
+
+    def __init__(self, n: int, batch_size: int, generator: torch.Generator) -> None:
+        check_integer("n", n, 1)
+        check_integer("batch_size", batch_size, 1)
+        self.n, self.batch_size, self.generator = n, batch_size, generator
+        self.order: torch.Tensor | None = None
+        self.cursor = 0
+
+    def __iter__(self) -> MinibatchOrder:
+        return self
+
+    def __next__(self) -> torch.Tensor:
+        if self.order is None:
+            self.order, self.cursor = torch.randperm(self.n, generator=self.generator), 0
+        if self.cursor + self.batch_size > self.n:
+            self.order, self.cursor = torch.randperm(self.n, generator=self.generator), 0
+        batch = self.order[self.cursor : self.cursor + min(self.batch_size, self.n)]
+        self.cursor += self.batch_size
+        return batch
+
+    def state(self) -> dict[str, Any]:
+        """The permutation (None before the first batch; 32-bit where n allows, half the
+        file) and the cursor."""
+        order = self.order
+        if order is not None and self.n <= torch.iinfo(torch.int32).max:
+            order = order.to(torch.int32)
+        return {"order": order, "cursor": self.cursor}
+
+    def restore(self, state: Mapping[str, Any]) -> None:
+        """Continue from :meth:`state`'s result."""
+        order = state["order"]
+        if order is not None:
+            if tuple(order.shape) != (self.n,):
+                raise ValueError(f"a permutation of {tuple(order.shape)}, expected ({self.n},)")
+            order = order.to(torch.int64)  # randperm's dtype: the same indices, exactly
+        self.order, self.cursor = order, int(state["cursor"])
+
+
+def fit_fingerprint(tensors: Iterable[torch.Tensor], settings: Mapping[str, Any]) -> str:
+    """SHA-256 (hex) of ``settings`` (as sorted JSON) and of each tensor's shape, dtype and
+    bytes, in order: equal only for the same fit."""
+    digest = hashlib.sha256(json.dumps(settings, sort_keys=True, default=str).encode())
+    for tensor in tensors:
+        values = tensor.detach().cpu().contiguous()
+        digest.update(f"{tuple(values.shape)} {values.dtype};".encode())
+        digest.update(memoryview(values.numpy()).cast("B"))
+    return digest.hexdigest()
+
+
+@dataclass
+class OccupancyCheckpoint:
+    """Where a fit keeps its checkpoint (``path``) and how often (``every`` updates); the fit
+    sets ``resumed_from`` to the step it resumed at (None: it started afresh)."""
+
+    path: Path
+    every: int = CHECKPOINT_EVERY
+    resumed_from: int | None = None
+
+    def __post_init__(self) -> None:
+        self.path = Path(self.path)
+        check_integer("every", self.every, 1)
+
+    def matching(self, fingerprint: str, iterations: int) -> dict[str, Any] | None:
+        """The checkpoint at ``path`` if it is this fit's (``fingerprint``) and within its
+        ``iterations``; None otherwise (module doc: never an error)."""
+        try:
+            data = self.path.read_bytes()
+            state = torch.load(io.BytesIO(data), map_location="cpu", weights_only=True)
+        except Exception:  # missing, unreadable or foreign: the fit starts afresh
+            return None
+        if not isinstance(state, dict) or state.get("format") != FORMAT:
+            return None
+        if state.get("fingerprint") != fingerprint or state.get("iterations") != iterations:
+            return None
+        step = state.get("step")
+        return state if isinstance(step, int) and 0 < step <= iterations else None
+
+    def save(
+        self,
+        fingerprint: str,
+        step: int,
+        iterations: int,
+        network: torch.nn.Module,
+        optimizer: torch.optim.Optimizer,
+        generator: torch.Generator,
+        batches: Sequence[MinibatchOrder],
+        log: list[dict[str, Any]],
+    ) -> None:
+        """Write the fit's state after ``step`` of ``iterations`` updates (CPU tensors, so that
+        it resumes on any device)."""
+        state = {
+            "format": FORMAT,
+            "fingerprint": fingerprint,
+            "step": step,
+            "iterations": iterations,
+            "network": cpu_state(network.state_dict()),
+            "optimizer": cpu_state(optimizer.state_dict()),
+            "generator": generator.get_state(),
+            "batches": [b.state() for b in batches],
+            "log": log,
+        }
+        buffer = io.BytesIO()
+        torch.save(state, buffer)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        atomic.write_bytes(self.path, buffer.getvalue())
+
+
+def restore_fit(
+    state: Mapping[str, Any],
+    network: torch.nn.Module,
+    optimizer: torch.optim.Optimizer,
+    generator: torch.Generator,
+    batches: Sequence[MinibatchOrder],
+) -> tuple[int, list[dict[str, Any]]]:
+    """Load :meth:`OccupancyCheckpoint.save`'s state into the fit's objects; returns the step
+    to continue from and the log so far."""
+    network.load_state_dict(state["network"])
+    optimizer.load_state_dict(state["optimizer"])
+    generator.set_state(state["generator"])
+    for order, saved in zip(batches, state["batches"], strict=True):
+        order.restore(saved)
+    return int(state["step"]), list(state["log"])
+
+
+def resumed_info(step: int | None) -> dict[str, int]:
+    """run.json's record of a resumed fit: ``{"occupancy_resumed_from_step": step}``, empty
+    for a fit that ran from the start (so that its run.json is the one before checkpoints)."""
+    return {} if step is None else {"occupancy_resumed_from_step": int(step)}
