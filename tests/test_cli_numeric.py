@@ -155,3 +155,25 @@ def test_an_option_of_the_wrong_type_is_one_line(
     lines = capsys.readouterr().err.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith(f"error: argument: {option}: "), lines
     assert not (tmp_path / "out").exists()
+
+
+def test_an_interrupted_command_says_how_to_resume(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture
+) -> None:
+    import sys
+
+    import ultron.pipeline.run as run_module
+    from ultron.cli.main import EXIT_INTERRUPTED, main
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(run_module, "reconstruct", interrupted)
+    out = tmp_path / "out"
+    monkeypatch.setattr(sys, "argv", ["ultron", "reconstruct", str(tmp_path), "--out", str(out)])
+    with pytest.raises(SystemExit) as caught:
+        main()
+    assert caught.value.code == EXIT_INTERRUPTED == 130
+    lines = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error: interrupted"), lines
+    assert "run the same command again to resume" in lines[0].lower()

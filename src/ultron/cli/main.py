@@ -21,6 +21,14 @@ from ultron.cli import (
 )
 from ultron.cli.common import EXIT_BAD_INPUT
 
+#: Exit code of an interrupted command (128 + SIGINT, as a shell reports one).
+EXIT_INTERRUPTED = 130
+#: The line an interrupted command prints.
+INTERRUPTED = (
+    "interrupted; nothing half-written. Run the same command again to resume: a field fit and"
+    " reconstruct's occupancy fit continue from their last checkpoint"
+)
+
 app = typer.Typer(
     name="ultron",
     help="Ultrasound Occupancy Networks: 3D bone surfaces from tracked 2D ultrasound sweeps.",
@@ -69,7 +77,8 @@ def _root(
 def main() -> None:
     """Console-script entry point. An option value of the wrong type (``--frames ten``) is one
     ``error:`` line naming the option, exit 2, like every other bad input; other usage errors
-    print click's usage message. Everything is written when the command returns, so the
+    print click's usage message; Ctrl-C is one ``error: interrupted …`` line saying how to
+    resume, exit 130. Everything is written when the command returns, so the
     objects then alive are frozen out of the garbage collector (:func:`gc.freeze`): the
     interpreter's exit then skips collecting torch's ≈ 10⁵ objects, 0.3 s of every command."""
     try:
@@ -93,6 +102,8 @@ def _run() -> None:
             raise
         exc.show()
         sys.exit(exc.exit_code)
+    if code == EXIT_INTERRUPTED:  # typer's answer to Ctrl-C (a KeyboardInterrupt)
+        print(f"error: {INTERRUPTED}", file=sys.stderr)
     sys.exit(code if isinstance(code, int) else 0)
 
 
