@@ -105,7 +105,7 @@ def killed_and_resumed(args: argparse.Namespace, dataset_dir: Path, field_dir: P
         and np.array_equal(meshes[0].faces, meshes[1].faces)
         and metrics[0] == metrics[1]
     )
-    return seconds, summary.get("occupancy_resumed_from_step"), same
+    return seconds, summary.get("resumed_from_step", {}).get("occupancy"), same
 
 
 def main() -> None:

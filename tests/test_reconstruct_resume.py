@@ -14,9 +14,10 @@ from ultron.mesh.export import load_mesh
 from ultron.methods.on_method import ONConfig
 from ultron.methods.ultron_method import UltronConfig
 from ultron.metrics.surface import MetricsConfig
-from ultron.pipeline.run import STAGE2_CHECKPOINT, ReconstructionRequest, reconstruct
+from ultron.pipeline.run import CANDIDATE_CHECKPOINTS, ReconstructionRequest, reconstruct
 from ultron.pipeline.rundir import resume_dir
 from ultron.train.field_fit import FieldTrainConfig
+from ultron.train.fit_checkpoint import OCCUPANCY_CHECKPOINT
 from ultron.train.occupancy import OccupancyTrainConfig
 
 METRICS = MetricsConfig(n_points=2_000, repeats=1)
@@ -60,7 +61,7 @@ def whole_on(tiny_l3: Path, tmp_path_factory) -> Path:
     """ON's uninterrupted run (:data:`ON_REQUEST`)."""
     out = tmp_path_factory.mktemp("on") / "whole"
     summary = reconstruct(tiny_l3, ON_REQUEST, out, report=False)
-    assert "occupancy_resumed_from_step" not in summary
+    assert "resumed_from_step" not in summary
     assert not resume_dir(out).exists()  # a finished run leaves none
     return out
 
@@ -72,11 +73,11 @@ def test_a_killed_run_resumes_its_fit(tiny_l3, whole_on, tmp_path: Path, stage, 
     with pytest.raises(Killed):
         reconstruct(tiny_l3, ON_REQUEST, out, report=False, advance=_killed_at(stage, step))
     assert not out.exists()
-    assert (resume_dir(out) / STAGE2_CHECKPOINT.format(1)).is_file()
+    assert (resume_dir(out) / CANDIDATE_CHECKPOINTS.format(1) / OCCUPANCY_CHECKPOINT).is_file()
     again = reconstruct(tiny_l3, ON_REQUEST, out, report=False)
-    assert again["occupancy_resumed_from_step"] == resumed
+    assert again["resumed_from_step"] == {"occupancy": resumed}
     run = json.loads((out / "run.json").read_text())
-    assert run["occupancy_resumed_from_step"] == resumed
+    assert run["resumed_from_step"] == {"occupancy": resumed}
     _same_outputs(whole_on, out)
     assert not resume_dir(out).exists()
 
@@ -87,7 +88,7 @@ def test_another_request_does_not_resume(tiny_l3: Path, tmp_path: Path):
         reconstruct(tiny_l3, ON_REQUEST, out, report=False, advance=_killed_at("mesh_evaluate", 1))
     other = replace(ON_REQUEST, seed=1)  # other labels' draw and network
     result = reconstruct(tiny_l3, other, out, report=False)
-    assert "occupancy_resumed_from_step" not in result
+    assert "resumed_from_step" not in result
     reconstruct(tiny_l3, other, tmp_path / "whole", report=False)
     _same_outputs(tmp_path / "whole", out)
 
@@ -111,8 +112,8 @@ def test_ultron_resumes_each_field_candidates_fit(tiny_l3: Path, tmp_path: Path,
     with pytest.raises(Killed):
         reconstruct(tiny_l3, request, out, [field_dir, field_dir], report=False,
                     advance=_killed_at("mesh_evaluate", 1))  # fmt: skip
-    saved = sorted(p.name for p in resume_dir(out).iterdir())
-    assert saved == [STAGE2_CHECKPOINT.format(1), STAGE2_CHECKPOINT.format(2)]
+    saved = sorted(str(p.relative_to(resume_dir(out))) for p in resume_dir(out).glob("*/*"))
+    assert saved == [f"{CANDIDATE_CHECKPOINTS.format(k)}/{OCCUPANCY_CHECKPOINT}" for k in (1, 2)]
     again = reconstruct(tiny_l3, request, out, [field_dir, field_dir], report=False)
-    assert again["occupancy_resumed_from_step"] == 400
+    assert again["resumed_from_step"] == {"occupancy": 400}
     _same_outputs(tmp_path / "whole", out)

@@ -339,3 +339,40 @@ def test_config_is_never_mutated_by_a_preset_copy():
     copy = RoCoSDFConfig.preset("fast")
     changed = replace(copy, mesh_resolution=32)
     assert PRESETS["fast"].mesh_resolution == 128 and changed.mesh_resolution == 32
+
+
+def test_rocosdf_resumes_its_fits_bit_for_bit(tiny_phantom: Path, tmp_path: Path):
+    from ultron.train.fit_checkpoint import FitCheckpoint
+
+    class Killed(Exception):
+        pass
+
+    def kill_in_stage3(entry: dict) -> None:
+        if entry.get("stage") == "stage3" and entry["step"] >= 300:
+            raise Killed
+
+    dataset = SweepDataset.load(tiny_phantom)
+    selection = select_label_frames(dataset, 1.0, 0)
+    plain = reconstruct_rocosdf(dataset, selection, TINY, seed=0)
+    with pytest.raises(Killed):  # stage 1's two fits done, stage 3 saved at update 250
+        reconstruct_rocosdf(dataset, selection, TINY, seed=0, progress=kill_in_stage3,
+                            checkpoints=tmp_path)  # fmt: skip
+    assert sorted(p.name for p in tmp_path.iterdir()) == [
+        "stage1_column.pt", "stage1_row.pt", "stage3.pt",
+    ]  # fmt: skip
+    assert FitCheckpoint(tmp_path / "stage3.pt").matching("another fit", 400) is None
+    resumed = reconstruct_rocosdf(dataset, selection, TINY, seed=0, checkpoints=tmp_path)
+    assert resumed.info["resumed_from_step"] == {
+        "stage1_row": 400, "stage1_column": 400, "stage3": 250,
+    }  # fmt: skip
+    assert "resumed_from_step" not in plain.info
+    assert np.array_equal(plain.mesh.vertices, resumed.mesh.vertices)
+    assert np.array_equal(plain.mesh.faces, resumed.mesh.faces)
+    assert np.array_equal(plain.volume, resumed.volume)
+    assert plain.info["stage2"] == resumed.info["stage2"]
+    fits = [("stage1", "row"), ("stage1", "column"), ("stage3",)]
+    for path in fits:  # each fit's own log, not only the mesh, is the uninterrupted one's
+        a, b = plain.info, resumed.info
+        for key in path:
+            a, b = a[key], b[key]
+        assert a["final_losses"] == b["final_losses"], path

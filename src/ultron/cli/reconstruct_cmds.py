@@ -165,9 +165,8 @@ def reconstruct(
             advance=lines.advance,
         )
     _print_summary({method: summary})
-    if "occupancy_resumed_from_step" in summary:
-        done = summary["occupancy_resumed_from_step"]
-        console.print(f"occupancy fit resumed from its checkpoint after {done} updates")
+    for fit, done in summary.get("resumed_from_step", {}).items():
+        console.print(f"{fit} fit resumed from its checkpoint after {done} updates")
     for candidate in summary.get("field_candidates", []):
         kept = " (kept)" if candidate["field_dir"] == summary["field_dir"] else ""
         console.print(

@@ -34,8 +34,8 @@ from ultron.methods.ultron_method import (
     mesh_occupancy,
 )
 from ultron.timing import StageTimer
+from ultron.train.fit_checkpoint import OCCUPANCY_CHECKPOINT, FitCheckpoint, resumed_steps
 from ultron.train.occupancy import OccupancyTrainConfig, OccupancyTrainingData, fit_occupancy
-from ultron.train.occupancy_checkpoint import OccupancyCheckpoint, resumed_info
 
 
 def _on_training() -> OccupancyTrainConfig:
@@ -78,10 +78,10 @@ def reconstruct_on(
     config: ONConfig | None = None,
     timer: StageTimer | None = None,
     device: torch.device | str = "cpu",
-    checkpoint: Path | None = None,
+    checkpoints: Path | None = None,
 ) -> Reconstruction:
     """Fit ON on ``label_fraction`` of the annotated frames (on ``device``; resumable with a
-    ``checkpoint`` file, :mod:`ultron.train.occupancy_checkpoint`) and mesh it."""
+    ``checkpoints`` directory, :mod:`ultron.train.fit_checkpoint`) and mesh it."""
     config = config or ONConfig()
     timer = timer or StageTimer()
     occupancy = replace(config.occupancy, seed=seed)
@@ -90,7 +90,7 @@ def reconstruct_on(
         cube = scan_unit_cube(dataset)
         data = on_training_data(dataset, cube, selection)
     with timer.stage("occupancy_fit"):
-        saved = None if checkpoint is None else OccupancyCheckpoint(checkpoint)
+        saved = None if checkpoints is None else FitCheckpoint(checkpoints / OCCUPANCY_CHECKPOINT)
         network, log = fit_occupancy(
             data, occupancy, progress=timer.fit_progress, device=device, checkpoint=saved
         )
@@ -108,7 +108,7 @@ def reconstruct_on(
         "unit_cube": cube.to_dict(),
         "occupancy_config": occupancy.to_dict(),
         "occupancy_log": log,
-        **resumed_info(None if saved is None else saved.resumed_from),
+        **resumed_steps({"occupancy": saved}),
         "grid": grid.to_dict(),
     }  # fmt: skip
     model = {"input": "unit_cube", "unit_cube": cube.to_dict()}

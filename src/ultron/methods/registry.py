@@ -68,8 +68,8 @@ class MethodInputs:
     """What a method runs with besides the dataset: its settings (``config``, an instance of
     its ``config_class``), the label fraction and seed, the stage timer, the fitted field (None
     unless the method needs one), the oracle's true T per sweep (diagnostic runs), the
-    dataset's name for input errors, the device, and the file where a stage-2 fit keeps its
-    checkpoint (None: none; :mod:`ultron.train.occupancy_checkpoint`)."""
+    dataset's name for input errors, the device, and the directory where its fits keep their
+    checkpoints (None: none; :mod:`ultron.train.fit_checkpoint`)."""
 
     config: Any
     timer: StageTimer = field(default_factory=StageTimer)
@@ -79,7 +79,7 @@ class MethodInputs:
     truth: Mapping[str, Any] | None = None
     dataset_name: str | None = None
     device: torch.device = CPU
-    checkpoint: Path | None = None
+    checkpoints: Path | None = None
 
 
 class Method(Protocol):
@@ -188,7 +188,7 @@ class UltronMethod(MethodBase):
             raise argument_error("field", f"method {self.name!r} needs a fitted acoustic field")
         return train_ultron(
             dataset, inputs.fitted, self.loss, inputs.label_fraction, inputs.seed, inputs.config,
-            inputs.timer, inputs.truth, inputs.device, inputs.checkpoint,
+            inputs.timer, inputs.truth, inputs.device, inputs.checkpoints,
         )  # fmt: skip
 
     def finish(
@@ -245,7 +245,7 @@ class ONMethod(MethodBase):
     def fit(self, dataset: SweepDataset, inputs: MethodInputs) -> Reconstruction:
         return reconstruct_on(
             dataset, inputs.label_fraction, inputs.seed, inputs.config, inputs.timer,
-            inputs.device, inputs.checkpoint,
+            inputs.device, inputs.checkpoints,
         )  # fmt: skip
 
 
@@ -271,6 +271,7 @@ class SDFMethod(MethodBase):
             dataset, selection, inputs.config, inputs.seed, self.views,
             progress=inputs.timer.fit_progress, timer=inputs.timer,
             dataset_name=inputs.dataset_name, device=inputs.device,
+            checkpoints=inputs.checkpoints,
         )  # fmt: skip
 
 

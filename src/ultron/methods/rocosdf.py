@@ -39,6 +39,7 @@ import contextlib
 import zlib
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
 from types import MappingProxyType
 from typing import Any
 
@@ -64,6 +65,7 @@ from ultron.methods.rocosdf_input import (
 )
 from ultron.methods.ultron_method import Reconstruction, TrainedModel
 from ultron.timing import StageTimer
+from ultron.train.fit_checkpoint import FitCheckpoint, resumed_steps
 from ultron.train.neural_pull import (
     Progress,
     RefineConfig,
@@ -260,13 +262,15 @@ def _fit_views(
     seed: int,
     progress: Progress | None,
     device: torch.device | str,
+    checkpoints: dict[str, FitCheckpoint | None],
 ) -> tuple[dict[str, SDFNetwork], dict[str, Any]]:
-    """Stage 1: each view's SDF network and its fit's log, by view."""
+    """Stage 1: each view's SDF network and its fit's log, by view (each fit's checkpoint
+    ``checkpoints["stage1_<view>"]``)."""
     fits, logs = {}, {}
     for view in views:
         fit = fit_view_sdf(
             clouds_unit[view], config.view_fit, _stage_generator(seed, f"stage1_{view}"), progress,
-            name=view, device=device,
+            name=view, device=device, checkpoint=checkpoints[f"stage1_{view}"],
         )  # fmt: skip
         fits[view], logs[view] = fit.network, fit.log
     return fits, logs
@@ -281,6 +285,7 @@ def _fuse_and_refine(
     stage: Callable[[str], contextlib.AbstractContextManager[Any]],
     info: dict[str, Any],
     device: torch.device | str,
+    checkpoint: FitCheckpoint | None = None,
 ) -> SDFNetwork:
     """Stages 2 and 3: the views' SDFs fused (CSG intersection) and resampled, then one
     network regressing the fused SDF; their accounts go into ``info``."""
@@ -295,7 +300,7 @@ def _fuse_and_refine(
     info["stage2"] = {k: getattr(samples, k) for k in ("n_grid", "n_surface", "rounds")}
     with stage("rocosdf_stage3"):
         refined = fit_refined_sdf(
-            samples, config.refine, _stage_generator(seed, "stage3"), progress, device
+            samples, config.refine, _stage_generator(seed, "stage3"), progress, device, checkpoint
         )
     info["stage3"] = refined.log
     return refined.network
@@ -311,6 +316,7 @@ def reconstruct_rocosdf(
     timer: StageTimer | None = None,
     dataset_name: str | None = None,
     device: torch.device | str = "cpu",
+    checkpoints: Path | None = None,
 ) -> Reconstruction:
     """RoCoSDF (``views`` = ("row", "column")) or UNSR on one view (("row",) → ``unsr-row``,
     ("column",) → ``unsr-col``) from the selected frames' bone labels (module doc).
@@ -320,7 +326,9 @@ def reconstruct_rocosdf(
     steps; ``timer`` records ``rocosdf_points``, ``rocosdf_stage1/2/3`` and ``mesh``. Raises
     :class:`UltronInputError` for missing sweeps or bone labels and :class:`NoSurfaceError`
     when the final SDF has no zero level on the meshing grid. The networks train on
-    ``device``; every draw comes from the stages' CPU generators.
+    ``device``; every draw comes from the stages' CPU generators. With ``checkpoints`` (a
+    directory) each SDF fit keeps a checkpoint there (``stage1_<view>.pt``, ``stage3.pt``) and
+    resumes it (:mod:`ultron.train.fit_checkpoint`; info ``resumed_from_step``).
     """
     config = config or RoCoSDFConfig()
     views = check_views(views)
@@ -335,8 +343,10 @@ def reconstruct_rocosdf(
         normalisation = cloud_normalisation(frame_clouds.values())
         clouds_unit = {v: _to_unit(normalisation, p) for v, p in clouds_mm.items()}
         frame_unit = [_to_unit(normalisation, p) for p in frame_clouds.values()]
+    saved = {name: None if checkpoints is None else FitCheckpoint(checkpoints / f"{name}.pt")
+             for name in (*(f"stage1_{v}" for v in views), "stage3")}  # fmt: skip
     with stage("rocosdf_stage1"):
-        fits, stage1 = _fit_views(clouds_unit, views, config, seed, progress, device)
+        fits, stage1 = _fit_views(clouds_unit, views, config, seed, progress, device, saved)
     info: dict[str, Any] = {
         "variant": METHOD_NAMES[views],
         "preset": config.preset_name,
@@ -353,7 +363,9 @@ def reconstruct_rocosdf(
         network = fits[views[0]]
     else:
         fused = [fits[v] for v in views]
-        network = _fuse_and_refine(fused, frame_unit, config, seed, progress, stage, info, device)
+        network = _fuse_and_refine(fused, frame_unit, config, seed, progress, stage, info, device,
+                                   saved["stage3"])  # fmt: skip
+    info |= resumed_steps(saved)
     with stage("mesh"):
         grid = mesh_grid(frame_unit, normalisation, config)
         mesh, volume = mesh_sdf(network, normalisation, grid, config)

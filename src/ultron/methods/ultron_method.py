@@ -64,6 +64,7 @@ from ultron.mesh.label_bridges import bridged_labelled_surface_mm
 from ultron.mesh.observed import ObservedSurfaceConfig, SurfaceObservation, observe_surface
 from ultron.mesh.tiles import evaluate_tiles, field_of_view_tiles, tile_for_factor
 from ultron.timing import Advanced, StageTimer
+from ultron.train.fit_checkpoint import OCCUPANCY_CHECKPOINT, FitCheckpoint, resumed_steps
 from ultron.train.occupancy import (
     LOSSES,
     OccupancyTrainConfig,
@@ -71,7 +72,6 @@ from ultron.train.occupancy import (
     fit_occupancy,
     label_loss,
 )
-from ultron.train.occupancy_checkpoint import OccupancyCheckpoint, resumed_info
 from ultron.train.visibility import (
     VisibilityConfig,
     field_theta_transmission,
@@ -395,7 +395,7 @@ class Stage2Fit:
     """UltrON's stage 2 on one fitted field, before meshing: the field, the label frames, the
     trained f_ω with its training config and log, its label loss (:func:`label_loss`) and
     run.json's account of the training data (``data_info``; the data itself is not kept) and
-    the update its fit resumed at from a checkpoint (None: it ran from the start)."""
+    its fit's checkpoint (``resumed_from``: the update it resumed at; None: no checkpoint)."""
 
     fitted: Any
     selection: FrameSelection
@@ -404,7 +404,7 @@ class Stage2Fit:
     log: list[dict[str, Any]]
     label_loss: float
     data_info: dict[str, Any]
-    resumed_from: int | None = None
+    checkpoint: FitCheckpoint | None = None
 
 
 def train_ultron(
@@ -417,14 +417,14 @@ def train_ultron(
     timer: StageTimer,
     truth: Mapping[str, np.ndarray] | None = None,
     device: torch.device | str | None = None,
-    checkpoint: Path | None = None,
+    checkpoints: Path | None = None,
 ) -> Stage2Fit:
     """Stage 2 of UltrON with ``loss`` (:data:`ultron.train.occupancy.LOSSES`: "ultron", the
     attenuation-compensated loss, or "bce", the ablation's) on ``label_fraction`` of the
     annotated frames, chosen with ``seed``; ``truth`` is the oracle's true T per sweep (only
     for ``config.visibility.source == "oracle"``). f_ω trains on ``device`` (default: the
-    fitted field's); with ``checkpoint`` (a file) the fit is resumable
-    (:mod:`ultron.train.occupancy_checkpoint`)."""
+    fitted field's); with ``checkpoints`` (a directory) the fit is resumable
+    (:mod:`ultron.train.fit_checkpoint`)."""
     if loss not in LOSSES:
         raise argument_error("loss", f"expected one of {LOSSES}, got {loss!r}")
     occupancy_config = replace(
@@ -440,15 +440,14 @@ def train_ultron(
         )  # fmt: skip
     with timer.stage("occupancy_fit"):
         device = fitted.device if device is None else device
-        saved = None if checkpoint is None else OccupancyCheckpoint(checkpoint)
+        saved = None if checkpoints is None else FitCheckpoint(checkpoints / OCCUPANCY_CHECKPOINT)
         network, log = fit_occupancy(
             data, occupancy_config, progress=timer.fit_progress, device=device, checkpoint=saved
         )
         fitted_loss = label_loss(network, data, occupancy_config)
     data_info = data.summary(occupancy_config.observed_transmission)
-    resumed = None if saved is None else saved.resumed_from
     return Stage2Fit(
-        fitted, selection, occupancy_config, network, log, fitted_loss, data_info, resumed
+        fitted, selection, occupancy_config, network, log, fitted_loss, data_info, saved
     )
 
 
@@ -482,7 +481,7 @@ def mesh_ultron(
         "transmission_stats": trained.data_info["transmission_stats"],
         "occupancy_config": occupancy_config.to_dict(),
         "occupancy_log": trained.log,
-        **resumed_info(trained.resumed_from),
+        **resumed_steps({"occupancy": trained.checkpoint}),
         "occupancy_label_loss": trained.label_loss,
         "grid": grid.to_dict(),
     }

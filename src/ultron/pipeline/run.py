@@ -47,14 +47,13 @@ from ultron.report.run_report import write_run_report
 from ultron.timing import Advance, Announce, StageTimer
 from ultron.train.field_fit import FieldTrainConfig
 from ultron.train.loop import Progress
-from ultron.train.occupancy_checkpoint import resumed_info
 from ultron.train.visibility import load_oracle_truth
 
 #: The whole iso-surface with its evidence, written when the observed crop dropped faces.
 EXTRACTED_MESH = "surface_extracted.ply"
-#: The stage-2 checkpoint of the k-th field candidate (1 without candidates) in the run's
-#: resume directory (:func:`~ultron.pipeline.rundir.resume_dir`).
-STAGE2_CHECKPOINT = "occupancy-{}.pt"
+#: The checkpoint directory of the method's fits on the k-th field candidate (1 without
+#: candidates) in the run's resume directory (:func:`~ultron.pipeline.rundir.resume_dir`).
+CANDIDATE_CHECKPOINTS = "candidate-{}"
 
 
 def run_method(
@@ -64,16 +63,16 @@ def run_method(
     timer: StageTimer,
     truth: dict[str, Any] | None = None,
     dataset_name: str | None = None,
-    checkpoint: Path | None = None,
+    checkpoints: Path | None = None,
 ) -> Reconstruction:
     """Reconstruct with ``request.method`` (``fitted`` is the acoustic field, for UltrON;
     ``truth`` the oracle's true transmission per sweep, see :mod:`ultron.train.visibility`;
     ``dataset_name``, e.g. its directory, names the dataset in RoCoSDF's input errors;
-    ``checkpoint`` the file where a stage-2 fit keeps its checkpoint).
+    ``checkpoints`` the directory where its fits keep their checkpoints).
 
     Every result carries its observed / inferred split (:mod:`ultron.methods.evidence`): a
     method that computes none (ON, RoCoSDF) is flagged with T ≡ 1 and keeps its surface."""
-    inputs = method_inputs(request, fitted, timer, truth, dataset_name, checkpoint)
+    inputs = method_inputs(request, fitted, timer, truth, dataset_name, checkpoints)
     return with_observed_surface(get_method(request.method).fit(dataset, inputs), dataset, timer)
 
 
@@ -83,12 +82,12 @@ def method_inputs(
     timer: StageTimer,
     truth: dict[str, Any] | None = None,
     dataset_name: str | None = None,
-    checkpoint: Path | None = None,
+    checkpoints: Path | None = None,
 ) -> MethodInputs:
     """What ``request``'s method runs with (:class:`~ultron.methods.registry.MethodInputs`)."""
     return MethodInputs(
         request.method_config, timer, request.label_fraction, request.seed, fitted, truth,
-        dataset_name, resolve_device(request.device, "device"), checkpoint,
+        dataset_name, resolve_device(request.device, "device"), checkpoints,
     )  # fmt: skip
 
 
@@ -235,8 +234,8 @@ def reconstruct(
     the meshing's tiles and smoothing iterations, the observed crop's frames:
     :class:`~ultron.timing.StageTimer`). The stage-2 fit keeps checkpoints in the run's
     resume directory (:func:`~ultron.pipeline.rundir.resume_dir`), so that the same run
-    started again after an interruption resumes it (run.json ``occupancy_resumed_from_step``,
-    also in the summary); the directory is removed once the run is in place."""
+    started again after an interruption resumes it (run.json ``resumed_from_step``: fit →
+    update, also in the summary); the directory is removed once the run is in place."""
     timer = StageTimer(announce=announce, advance=advance)
     resume = resume_dir(out_dir)
     method = get_method(request.method)
@@ -258,8 +257,8 @@ def reconstruct(
         )  # fmt: skip
         extra |= field_extra
     else:
-        checkpoint = _checkpoint(resume, 1)
-        result = run_method(dataset, request, None, timer, truth, str(dataset_dir), checkpoint)
+        checkpoints = _checkpoints(resume, 1)
+        result = run_method(dataset, request, None, timer, truth, str(dataset_dir), checkpoints)
     identity = {
         "command": "reconstruct",
         "method": request.method,
@@ -272,7 +271,8 @@ def reconstruct(
         request.mesh_coordinates,
     )  # fmt: skip
     shutil.rmtree(resume, ignore_errors=True)  # the run is in place: nothing left to resume
-    summary |= resumed_info(result.info.get("occupancy_resumed_from_step"))
+    if "resumed_from_step" in result.info:
+        summary["resumed_from_step"] = result.info["resumed_from_step"]
     if "field_candidates" in extra:
         summary |= {"field_dir": extra["field_dir"], "field_candidates": extra["field_candidates"]}
     return summary
@@ -352,15 +352,15 @@ def run_on_fields(
     picks: docs/stage2-transmission.md); the field info returned is the kept one's, with
     ``field_candidates`` (every field's directory and loss), the field stages are named
     ``field k/K`` and stage 2's times add up over the candidates. With ``resume`` (a
-    directory) the k-th candidate's stage-2 fit keeps its checkpoint there
-    (:data:`STAGE2_CHECKPOINT`)."""
+    directory) the fits on the k-th candidate keep their checkpoints there
+    (:data:`CANDIDATE_CHECKPOINTS`)."""
     if not field_dirs:
         raise argument_error("field_dirs", "expected at least one field (None: fit one)")
     name = str(dataset_dir)
     if len(field_dirs) == 1:
         with timer.stage("field"):
             fitted, field_extra = get_field(field_dirs[0])
-        result = run_method(dataset, request, fitted, timer, truth, name, _checkpoint(resume, 1))
+        result = run_method(dataset, request, fitted, timer, truth, name, _checkpoints(resume, 1))
         return result, field_extra
     method = cast(FieldMethod, get_method(request.method))
     if not method.needs_field:
@@ -372,7 +372,7 @@ def run_on_fields(
     for k, candidate in enumerate(field_dirs, 1):
         with timer.stage(f"field {k}/{len(field_dirs)}"):  # names the candidate in a log
             fitted, field_extra = get_field(candidate)
-        inputs = method_inputs(request, fitted, timer, truth, name, _checkpoint(resume, k))
+        inputs = method_inputs(request, fitted, timer, truth, name, _checkpoints(resume, k))
         trained = method.train(dataset, inputs)
         if kept is None or trained.label_loss < kept[0].label_loss:  # ties: the first
             kept = (trained, inputs, field_extra)
@@ -384,9 +384,10 @@ def run_on_fields(
     return result, {**field_extra, "field_candidates": candidates}
 
 
-def _checkpoint(resume: Path | None, k: int) -> Path | None:
-    """The k-th candidate's stage-2 checkpoint file in ``resume`` (None without one)."""
-    return None if resume is None else resume / STAGE2_CHECKPOINT.format(k)
+def _checkpoints(resume: Path | None, k: int) -> Path | None:
+    """The checkpoint directory of the fits on the k-th candidate in ``resume`` (None without
+    one)."""
+    return None if resume is None else resume / CANDIDATE_CHECKPOINTS.format(k)
 
 
 def load_or_fit_field(

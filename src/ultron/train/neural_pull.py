@@ -77,6 +77,7 @@ from ultron.arguments import check_integer
 from ultron.device import map_chunks, resolve_device
 from ultron.errors import argument_error
 from ultron.fields.sdf import SDFDiscriminator, SDFNetwork, SDFNetworkConfig
+from ultron.train.fit_checkpoint import FitCheckpoint, FitState, fit_fingerprint, resumable
 from ultron.train.loop import Objective, Progress, descend, run_training
 from ultron.train.sdf_queries import (  # noqa: F401  (re-exported: the stage-1 data API)
     QuerySet,
@@ -277,13 +278,15 @@ def fit_view_sdf(
     progress: Progress | None = None,
     name: str = "view",
     device: torch.device | str = "cpu",
+    checkpoint: FitCheckpoint | None = None,
 ) -> SDFFit:
     """Stage 1: fit one view's SDF to its point cloud (normalised coordinates) by Neural-Pull
     with the sign-consistency and adversarial terms (module doc). ``progress`` receives a dict
     (stage, step, iterations, losses, seconds) at the first update, every 100th and the last
     (:func:`ultron.train.loop.run_training`). The networks are built on the CPU from
     ``generator`` (the CPU generator that also draws the batches) and trained on ``device``,
-    where the returned network stays."""
+    where the returned network stays; with ``checkpoint`` the fit is resumable
+    (:mod:`ultron.train.fit_checkpoint`)."""
     start = time.perf_counter()
     device = resolve_device(device, "device")
     data = make_queries(points_unit, config, numpy_rng(generator))
@@ -318,8 +321,13 @@ def fit_view_sdf(
                    "discriminator": d_loss}  # fmt: skip
         return loss, {k: v.detach() for k, v in scalars.items()}
 
+    fit = FitState([network, discriminator], [optimiser, d_optimiser], generator)
+    tensors = (data.queries, data.targets)
+    resume = _resumable(checkpoint, fit, tensors, {"config": config.to_dict(), "view": name},
+                        config.iterations)  # fmt: skip
     network.train()
-    entries = _train(objective, config, optimiser, progress, f"stage1_{name}", f"{name} SDF")
+    entries = _train(objective, config, optimiser, progress, f"stage1_{name}", f"{name} SDF",
+                     fit, resume)  # fmt: skip
     network.eval()
     log = {"iterations": config.iterations, "n_points_used": int(data.points.shape[0]),
            "n_queries": int(n_queries), "final_losses": _final_losses(entries),
@@ -334,9 +342,12 @@ def _train(
     progress: Progress | None,
     stage: str,
     name: str,
+    fit: FitState,
+    resume: tuple[int, Callable[[int], None] | None],
 ) -> list[dict[str, Any]]:
     """:func:`~ultron.train.loop.run_training` with the warm-up + cosine learning rate of
-    ``config`` and an entry every :data:`LOG_EVERY` updates."""
+    ``config`` and an entry every :data:`LOG_EVERY` updates, from ``resume`` (the update to
+    start from and the checkpoint's ``after_update``: :func:`_resumable`) into ``fit``'s log."""
 
     def learning_rate(step: int) -> float:
         return warmup_cosine_lr(step, config.iterations, config.warmup, config.lr)
@@ -344,7 +355,24 @@ def _train(
     return run_training(
         objective, config.iterations, name=name, log_every=LOG_EVERY, progress=progress,
         learning_rate=learning_rate, optimizers=[optimiser], stage={"stage": stage},
+        start=resume[0], after_update=resume[1], log=fit.log,
     )  # fmt: skip
+
+
+def _resumable(
+    checkpoint: FitCheckpoint | None,
+    fit: FitState,
+    data: Sequence[torch.Tensor],
+    settings: dict[str, Any],
+    iterations: int,
+) -> tuple[int, Callable[[int], None] | None]:
+    """:func:`~ultron.train.fit_checkpoint.resumable` for an SDF fit, fingerprinted by its
+    ``data``, ``settings``, initial networks and generator."""
+    if checkpoint is None:
+        return 0, None
+    modules = [t for m in fit.modules for t in m.state_dict().values()]
+    tensors = [*data, *modules, fit.generator.get_state()]
+    return resumable(checkpoint, fit_fingerprint(tensors, settings), iterations, fit)
 
 
 def _final_losses(entries: list[dict[str, Any]]) -> dict[str, float]:
@@ -436,9 +464,11 @@ def fit_refined_sdf(
     generator: torch.Generator,
     progress: Progress | None = None,
     device: torch.device | str = "cpu",
+    checkpoint: FitCheckpoint | None = None,
 ) -> SDFFit:
     """Stage 3: a fresh SDF network regressing f_csg with L = mean|f − f_csg| + 0.4·mean|f|,
-    built on the CPU from ``generator`` and trained on ``device`` (where it stays)."""
+    built on the CPU from ``generator`` and trained on ``device`` (where it stays); resumable
+    with ``checkpoint``."""
     start = time.perf_counter()
     device = resolve_device(device, "device")
     n = samples.points.shape[0]
@@ -455,8 +485,11 @@ def fit_refined_sdf(
         loss = refine_loss(pred, targets[index], config.zero_weight)
         return loss, {"loss": loss.detach()}
 
+    fit = FitState([network], [optimiser], generator)
+    resume = _resumable(checkpoint, fit, (samples.points, samples.sdf),
+                        {"config": config.to_dict()}, config.iterations)  # fmt: skip
     network.train()
-    entries = _train(objective, config, optimiser, progress, "stage3", "refined SDF")
+    entries = _train(objective, config, optimiser, progress, "stage3", "refined SDF", fit, resume)
     network.eval()
     log = {"iterations": config.iterations, "n_samples": int(n),
            "final_losses": _final_losses(entries),

@@ -48,13 +48,14 @@ import torch
 from ultron.device import resolve_device
 from ultron.errors import argument_error
 from ultron.fields.occupancy import OccupancyNetwork, OccupancyNetworkConfig
-from ultron.train.loop import Progress, run_training
-from ultron.train.occupancy_checkpoint import (
+from ultron.train.fit_checkpoint import (
+    FitCheckpoint,
+    FitState,
     MinibatchOrder,
-    OccupancyCheckpoint,
     fit_fingerprint,
-    restore_fit,
+    resumable,
 )
+from ultron.train.loop import Progress, run_training
 from ultron.train.visibility import transmission_summary
 
 LOSSES = ("ultron", "bce")
@@ -293,7 +294,7 @@ def fit_occupancy(
     progress: Progress | None = None,
     device: torch.device | str = "cpu",
     anchor: OccupancyAnchor | None = None,
-    checkpoint: OccupancyCheckpoint | None = None,
+    checkpoint: FitCheckpoint | None = None,
 ) -> tuple[OccupancyNetwork, list[dict[str, float]]]:
     """Train (a copy-free, in-place) ``network`` on ``data``; returns it and a loss log (every
     :data:`LOG_EVERY` updates, :func:`ultron.train.loop.run_training`).
@@ -307,7 +308,7 @@ def fit_occupancy(
     the same generator after the labels' (``anchor`` None draws nothing more). With
     ``checkpoint`` the fit saves its state every ``checkpoint.every`` updates and after the
     last, and first resumes a checkpoint of this same fit found at ``checkpoint.path``
-    (:mod:`ultron.train.occupancy_checkpoint`), setting ``checkpoint.resumed_from``: the
+    (:mod:`ultron.train.fit_checkpoint`), setting ``checkpoint.resumed_from``: the
     result is the uninterrupted fit's, bit for bit.
     """
     device = resolve_device(device, "device")
@@ -340,27 +341,18 @@ def fit_occupancy(
         )
         return loss + anchor.weight * kept, {"loss": loss.detach(), "anchor": kept.detach()}
 
-    start, log, after_update = 0, [], None
-    if checkpoint is not None:
-        fingerprint = _fingerprint(data, config, network, parameters, anchor)
-        state = checkpoint.matching(fingerprint, config.iters)
-        if state is not None:
-            start, log = restore_fit(state, network, optimiser, generator, orders)
-            checkpoint.resumed_from = start
-
-        def after_update(done: int) -> None:  # the log grows in place: saved with the state
-            if done % checkpoint.every == 0 or done == config.iters:
-                checkpoint.save(fingerprint, done, config.iters, network, optimiser, generator,
-                                orders, log)  # fmt: skip
-
+    fit = FitState([network], [optimiser], generator, orders)
+    fingerprint = "" if checkpoint is None else _fingerprint(data, config, network, parameters,
+                                                             anchor)  # fmt: skip
+    start, after_update = resumable(checkpoint, fingerprint, config.iters, fit)
     network.train()
     run_training(
         objective, config.iters, name="occupancy", log_every=LOG_EVERY, progress=progress,
         optimizers=[optimiser], learning_rate=lambda k: config.lr * gamma**k, start=start,
-        log=log, after_update=after_update,
+        log=fit.log, after_update=after_update,
     )  # fmt: skip
     network.eval()
-    return network, log
+    return network, fit.log
 
 
 def _fingerprint(
@@ -370,7 +362,7 @@ def _fingerprint(
     parameters: list[torch.nn.Parameter],
     anchor: OccupancyAnchor | None,
 ) -> str:
-    """:func:`~ultron.train.occupancy_checkpoint.fit_fingerprint` of a fit before its first
+    """:func:`~ultron.train.fit_checkpoint.fit_fingerprint` of a fit before its first
     update: its data, settings, initial network, trained parameters and anchor."""
     trained = {id(p) for p in parameters}
     names = [name for name, p in network.named_parameters() if id(p) in trained]

@@ -1,5 +1,5 @@
-"""Checkpoints of the occupancy fit: a fit interrupted and resumed ends bit for bit where an
-uninterrupted one ends; a checkpoint of another fit, or a damaged one, is never resumed."""
+"""Checkpoints of a fit: an occupancy or SDF fit interrupted and resumed ends bit for bit where
+an uninterrupted one ends; a checkpoint of another fit, or a damaged one, is never resumed."""
 
 from __future__ import annotations
 
@@ -10,16 +10,16 @@ import torch
 
 from ultron.errors import UltronInputError
 from ultron.fields.occupancy import OccupancyNetwork, OccupancyNetworkConfig
+from ultron.train.fit_checkpoint import (
+    FitCheckpoint,
+    MinibatchOrder,
+    fit_fingerprint,
+)
 from ultron.train.occupancy import (
     OccupancyAnchor,
     OccupancyTrainConfig,
     OccupancyTrainingData,
     fit_occupancy,
-)
-from ultron.train.occupancy_checkpoint import (
-    MinibatchOrder,
-    OccupancyCheckpoint,
-    fit_fingerprint,
 )
 
 SMALL = OccupancyNetworkConfig(width=32, depth=4, skip_at=2, n_frequencies=2)
@@ -116,7 +116,7 @@ def test_fingerprint_sees_every_tensor_and_setting():
 
 
 def test_a_checkpointed_fit_is_the_plain_fit(tmp_path):
-    checkpoint = OccupancyCheckpoint(tmp_path / "occupancy.pt", every=50)
+    checkpoint = FitCheckpoint(tmp_path / "occupancy.pt", every=50)
     _same_fit(fit_occupancy(_data(), CONFIG), fit_occupancy(_data(), CONFIG, checkpoint=checkpoint))
     assert checkpoint.resumed_from is None
     assert checkpoint.path.is_file()
@@ -132,10 +132,10 @@ def test_an_interrupted_fit_resumes_bit_for_bit(tmp_path, anchored):
     path = tmp_path / "occupancy.pt"
     with pytest.raises(Interrupted):  # dies at update 100 (reported), saved at 25, 50 and 75
         fit_occupancy(
-            _data(), CONFIG, anchor=anchor, checkpoint=OccupancyCheckpoint(path, every=25),
+            _data(), CONFIG, anchor=anchor, checkpoint=FitCheckpoint(path, every=25),
             progress=_interrupt_after(75),
         )  # fmt: skip
-    checkpoint = OccupancyCheckpoint(path, every=25)
+    checkpoint = FitCheckpoint(path, every=25)
     resumed = fit_occupancy(_data(), CONFIG, anchor=anchor, checkpoint=checkpoint)
     assert checkpoint.resumed_from == 75
     _same_fit(uninterrupted, resumed)
@@ -143,8 +143,8 @@ def test_an_interrupted_fit_resumes_bit_for_bit(tmp_path, anchored):
 
 def test_a_finished_checkpoint_skips_the_updates(tmp_path):
     path = tmp_path / "occupancy.pt"
-    first = fit_occupancy(_data(), CONFIG, checkpoint=OccupancyCheckpoint(path))
-    checkpoint = OccupancyCheckpoint(path)
+    first = fit_occupancy(_data(), CONFIG, checkpoint=FitCheckpoint(path))
+    checkpoint = FitCheckpoint(path)
     reports: list[dict] = []
     again = fit_occupancy(_data(), CONFIG, checkpoint=checkpoint, progress=reports.append)
     assert checkpoint.resumed_from == CONFIG.iters and reports == []
@@ -164,9 +164,9 @@ def test_a_fine_tuned_fit_resumes_with_its_frozen_layers(tmp_path):
     path = tmp_path / "occupancy.pt"
     with pytest.raises(Interrupted):
         fit_occupancy(_data(), CONFIG, start(), frozen_last_two,
-                      checkpoint=OccupancyCheckpoint(path, every=40),
+                      checkpoint=FitCheckpoint(path, every=40),
                       progress=_interrupt_after(100))  # fmt: skip
-    checkpoint = OccupancyCheckpoint(path, every=40)
+    checkpoint = FitCheckpoint(path, every=40)
     resumed = fit_occupancy(_data(), CONFIG, start(), frozen_last_two, checkpoint=checkpoint)
     assert checkpoint.resumed_from == 80  # died at update 100, saved at 40 and 80
     _same_fit(uninterrupted, resumed)
@@ -183,10 +183,10 @@ def test_a_fine_tuned_fit_resumes_with_its_frozen_layers(tmp_path):
 )
 def test_another_fits_checkpoint_is_not_resumed(tmp_path, other):
     path = tmp_path / "occupancy.pt"
-    fit_occupancy(_data(), CONFIG, checkpoint=OccupancyCheckpoint(path))
+    fit_occupancy(_data(), CONFIG, checkpoint=FitCheckpoint(path))
     data, config = other.get("data", _data()), other.get("config", CONFIG)
     trainable = other.get("trainable")
-    checkpoint = OccupancyCheckpoint(path)
+    checkpoint = FitCheckpoint(path)
     resumed = fit_occupancy(data, config, trainable=trainable, checkpoint=checkpoint)
     assert checkpoint.resumed_from is None
     _same_fit(fit_occupancy(data, config, trainable=trainable), resumed)
@@ -199,12 +199,12 @@ def test_a_damaged_or_foreign_file_is_fitted_over(tmp_path, content):
         torch.save({"format": "something-else/1", "step": 10}, path)
     else:
         path.write_bytes(content)
-    checkpoint = OccupancyCheckpoint(path)
+    checkpoint = FitCheckpoint(path)
     _same_fit(fit_occupancy(_data(), CONFIG), fit_occupancy(_data(), CONFIG, checkpoint=checkpoint))
     assert checkpoint.resumed_from is None
-    assert OccupancyCheckpoint(path).matching("x", CONFIG.iters) is None  # overwritten: ours now
+    assert FitCheckpoint(path).matching("x", CONFIG.iters) is None  # overwritten: ours now
 
 
 def test_checkpoint_refuses_a_bad_interval(tmp_path):
     with pytest.raises(UltronInputError, match="every"):
-        OccupancyCheckpoint(tmp_path / "c.pt", every=0)
+        FitCheckpoint(tmp_path / "c.pt", every=0)

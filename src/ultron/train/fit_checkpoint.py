@@ -1,20 +1,22 @@
-"""Checkpoints of a stage-2 fit (:func:`ultron.train.occupancy.fit_occupancy`): an interrupted
-``reconstruct`` resumes its occupancy fit where it stopped and ends bit for bit where an
-uninterrupted run ends.
+"""Checkpoints of a fit that runs after the field — the occupancy fit of stage 2
+(:func:`ultron.train.occupancy.fit_occupancy`) and RoCoSDF's SDF fits
+(:mod:`ultron.train.neural_pull`) — so that an interrupted ``reconstruct`` resumes each fit
+where it stopped and ends bit for bit where an uninterrupted run ends.
 
 A checkpoint is one file, a ``torch.save`` of plain data (read with ``weights_only=True``)::
 
     {"format": FORMAT, "fingerprint": hex, "step": n, "iterations": N,
-     "network": state, "optimizer": state, "generator": state,
+     "modules": [state, …], "optimizers": [state, …], "generator": state,
      "batches": [{"order": permutation or None, "cursor": c}, …], "log": [entries]}
 
 written atomically (:mod:`ultron.atomic`) every ``every`` updates and after the last one.
 ``fingerprint`` is a SHA-256 digest of everything that decides the fit
-(:func:`fit_fingerprint`): the training data's tensors, the settings, the initial network's
-parameters, which of them are trained, and the anchor. A fit resumes only a checkpoint whose
-fingerprint is its own; any other file at the path — another fit's (other labels, field, seed or
-settings), an older format, an unreadable one — is ignored and overwritten at the first save, so
-a stale checkpoint can never change a result, only fail to save time.
+(:func:`fit_fingerprint`): for the occupancy fit its training data's tensors, settings, initial
+network, trained parameters and anchor; for an SDF fit its samples, settings, initial networks
+and generator. A fit resumes only a checkpoint whose fingerprint is its own; any other file at
+the path — another fit's (other labels, field, seed or settings), an older format, an unreadable
+one — is ignored and overwritten at the first save, so a stale checkpoint can never change a
+result, only fail to save time.
 """
 
 from __future__ import annotations
@@ -22,8 +24,8 @@ from __future__ import annotations
 import hashlib
 import io
 import json
-from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -34,9 +36,11 @@ from ultron.arguments import check_integer
 from ultron.device import cpu_state
 
 #: Names the file's layout (bumped when it changes; another format is never resumed).
-FORMAT = "ultron-occupancy-checkpoint/1"
+FORMAT = "ultron-fit-checkpoint/1"
 #: Updates between two checkpoints of a fit (and one after its last update).
 CHECKPOINT_EVERY = 250
+#: The occupancy fit's checkpoint file in a method's checkpoint directory.
+OCCUPANCY_CHECKPOINT = "occupancy.pt"
 
 
 class MinibatchOrder:
@@ -94,7 +98,7 @@ def fit_fingerprint(tensors: Iterable[torch.Tensor], settings: Mapping[str, Any]
 
 
 @dataclass
-class OccupancyCheckpoint:
+class FitCheckpoint:
     """Where a fit keeps its checkpoint (``path``) and how often (``every`` updates); the fit
     sets ``resumed_from`` to the step it resumed at (None: it started afresh)."""
 
@@ -121,29 +125,19 @@ class OccupancyCheckpoint:
         step = state.get("step")
         return state if isinstance(step, int) and 0 < step <= iterations else None
 
-    def save(
-        self,
-        fingerprint: str,
-        step: int,
-        iterations: int,
-        network: torch.nn.Module,
-        optimizer: torch.optim.Optimizer,
-        generator: torch.Generator,
-        batches: Sequence[MinibatchOrder],
-        log: list[dict[str, Any]],
-    ) -> None:
-        """Write the fit's state after ``step`` of ``iterations`` updates (CPU tensors, so that
+    def save(self, fingerprint: str, step: int, iterations: int, fit: FitState) -> None:
+        """Write ``fit``'s state after ``step`` of ``iterations`` updates (CPU tensors, so that
         it resumes on any device)."""
         state = {
             "format": FORMAT,
             "fingerprint": fingerprint,
             "step": step,
             "iterations": iterations,
-            "network": cpu_state(network.state_dict()),
-            "optimizer": cpu_state(optimizer.state_dict()),
-            "generator": generator.get_state(),
-            "batches": [b.state() for b in batches],
-            "log": log,
+            "modules": [cpu_state(m.state_dict()) for m in fit.modules],
+            "optimizers": [cpu_state(o.state_dict()) for o in fit.optimizers],
+            "generator": fit.generator.get_state(),
+            "batches": [b.state() for b in fit.batches],
+            "log": fit.log,
         }
         buffer = io.BytesIO()
         torch.save(state, buffer)
@@ -151,24 +145,64 @@ class OccupancyCheckpoint:
         atomic.write_bytes(self.path, buffer.getvalue())
 
 
-def restore_fit(
-    state: Mapping[str, Any],
-    network: torch.nn.Module,
-    optimizer: torch.optim.Optimizer,
-    generator: torch.Generator,
-    batches: Sequence[MinibatchOrder],
-) -> tuple[int, list[dict[str, Any]]]:
-    """Load :meth:`OccupancyCheckpoint.save`'s state into the fit's objects; returns the step
-    to continue from and the log so far."""
-    network.load_state_dict(state["network"])
-    optimizer.load_state_dict(state["optimizer"])
-    generator.set_state(state["generator"])
-    for order, saved in zip(batches, state["batches"], strict=True):
-        order.restore(saved)
-    return int(state["step"]), list(state["log"])
+@dataclass
+class FitState:
+    """What a fit's checkpoint holds: its networks, optimisers, the CPU generator its draws
+    come from, its minibatch orders (none where each batch is drawn afresh) and its log so far
+    (the list :func:`~ultron.train.loop.run_training` appends to)."""
+
+    modules: Sequence[torch.nn.Module]
+    optimizers: Sequence[torch.optim.Optimizer]
+    generator: torch.Generator
+    batches: Sequence[MinibatchOrder] = ()
+    log: list[dict[str, Any]] = field(default_factory=list)
+
+    def restore(self, state: Mapping[str, Any]) -> int:
+        """Load :meth:`FitCheckpoint.save`'s ``state``; returns the step to continue from."""
+        pairs = ((self.modules, "modules"), (self.optimizers, "optimizers"),
+                 (self.batches, "batches"))  # fmt: skip
+        for objects, key in pairs:
+            if len(objects) != len(state[key]):
+                raise ValueError(f"{len(state[key])} {key} saved, {len(objects)} in the fit")
+        for module, saved in zip(self.modules, state["modules"], strict=True):
+            module.load_state_dict(saved)
+        for optimizer, saved in zip(self.optimizers, state["optimizers"], strict=True):
+            optimizer.load_state_dict(saved)
+        for order, saved in zip(self.batches, state["batches"], strict=True):
+            order.restore(saved)
+        self.generator.set_state(state["generator"])
+        self.log[:] = list(state["log"])
+        return int(state["step"])
 
 
-def resumed_info(step: int | None) -> dict[str, int]:
-    """run.json's record of a resumed fit: ``{"occupancy_resumed_from_step": step}``, empty
-    for a fit that ran from the start (so that its run.json is the one before checkpoints)."""
-    return {} if step is None else {"occupancy_resumed_from_step": int(step)}
+def resumable(
+    checkpoint: FitCheckpoint | None, fingerprint: str, iterations: int, fit: FitState
+) -> tuple[int, Callable[[int], None] | None]:
+    """For :func:`~ultron.train.loop.run_training`: the update to start from and its
+    ``after_update``. With a ``checkpoint`` of this fit (``fingerprint``) ``fit`` is restored
+    from it and ``checkpoint.resumed_from`` set; ``after_update`` saves every
+    ``checkpoint.every`` updates and after the last. Without one: (0, None)."""
+    if checkpoint is None:
+        return 0, None
+    start = 0
+    state = checkpoint.matching(fingerprint, iterations)
+    if state is not None:  # this fit's own: restoring it cannot fail but by a bug
+        start = checkpoint.resumed_from = fit.restore(state)
+
+    def after_update(done: int) -> None:  # the log grows in place: saved with the state
+        if done % checkpoint.every == 0 or done == iterations:
+            checkpoint.save(fingerprint, done, iterations, fit)
+
+    return start, after_update
+
+
+def resumed_steps(checkpoints: Mapping[str, FitCheckpoint | None]) -> dict[str, dict[str, int]]:
+    """run.json's record of the fits (by name) that resumed from a checkpoint:
+    ``{"resumed_from_step": {name: step}}``; empty when none did, so that such a run's
+    run.json is the one before checkpoints."""
+    steps = {
+        name: int(c.resumed_from)
+        for name, c in checkpoints.items()
+        if c is not None and c.resumed_from is not None
+    }
+    return {"resumed_from_step": steps} if steps else {}
