@@ -26,7 +26,7 @@ EXIT_INTERRUPTED = 130
 #: The line an interrupted command prints.
 INTERRUPTED = (
     "interrupted; nothing half-written. Run the same command again to resume: a field fit and"
-    " reconstruct's occupancy fit continue from their last checkpoint"
+    " reconstruct's network fits continue from their last checkpoint"
 )
 
 app = typer.Typer(
