@@ -128,12 +128,15 @@ def test_ultron_end_to_end(tiny: Path, tmp_path: Path, monkeypatch):
     _check_advance(
         events,
         {
+            "labels": "θ queries",
             "occupancy_fit": "steps",
             "mesh_evaluate": "tiles",
             "mesh_extract": "smoothing iterations",
             "mesh_observed": "frames",
         },
     )
+    # θ at the centre and at 6 neighbours on each of the 2 default radii: 13 queries
+    assert [e[0] for e in events["labels"]] == list(range(1, 14))
     assert events["occupancy_fit"][-1] == (600, 600, "steps")
     assert events["mesh_observed"][-1] == (24, 24, "frames")  # every frame's T rendered
     # the same field twice: two candidates with the same label loss, the first kept, the

@@ -28,6 +28,7 @@ occupancy fit slower for no measured gain (same section of docs/decisions.md).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -116,11 +117,14 @@ def theta_features(
     points_mm: np.ndarray | torch.Tensor,
     config: ThetaContextConfig,
     centre: torch.Tensor | None = None,
+    advance: Callable[[int, int], None] | None = None,
 ) -> torch.Tensor:
     """g(x) (module doc) at world points (M, 3) mm → float32 (M, C·(1 + 6·len(radii))).
 
     ``centre`` optionally gives the raw θ(x) (M, C) already computed (e.g. by rendering the
-    labelled frames); the neighbours are always queried from ``fitted``.
+    labelled frames); the neighbours are always queried from ``fitted``. ``advance``, when
+    given, is told (queries done, queries in all) as the M points' θ is had at the centre and
+    then at each neighbour (a long stage's progress: every labelled pixel of a long sweep).
     """
     if fitted.theta_stats is None:
         raise argument_error("fitted", "the field has no θ statistics (refit it)")
@@ -136,6 +140,11 @@ def theta_features(
             f"expected ({points.shape[0]}, {len(stats.channels)}), got {tuple(centre.shape)}",
         )
     parts = [stats.normalise(centre.float())]
-    for offset in stencil_offsets_mm(config):
+    offsets = stencil_offsets_mm(config)
+    if advance is not None:
+        advance(1, 1 + len(offsets))
+    for k, offset in enumerate(offsets, 2):
         parts.append(stats.normalise(fitted.query(points + offset).stack()))
+        if advance is not None:
+            advance(k, 1 + len(offsets))
     return torch.cat(parts, dim=-1).float()

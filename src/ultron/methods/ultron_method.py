@@ -255,6 +255,7 @@ def occupancy_training_data(
     truth: Mapping[str, np.ndarray] | None = None,
     context: ThetaContextConfig | None = None,
     outer_side_mm: float = 0.0,
+    advance: Advanced | None = None,
 ) -> OccupancyTrainingData:
     """Per labelled pixel: f's input g(x) (:func:`~ultron.fields.context.theta_features` with
     ``context``, default θ and its neighbours at 1 and 2 mm), T (detached) from ``visibility``
@@ -262,7 +263,8 @@ def occupancy_training_data(
     maps sweep names to the true T for the oracle
     (:func:`~ultron.train.visibility.load_oracle_truth`). ``outer_side_mm`` > 0 adds, as
     background, the unsure pixels directly above each band of bone labels within that distance
-    (:func:`~ultron.data.labels.gather_labelled_pixels`)."""
+    (:func:`~ultron.data.labels.gather_labelled_pixels`). ``advance`` is told how many of g(x)'s
+    θ queries are done (:func:`~ultron.fields.context.theta_features`)."""
     if fitted.theta_stats is None:
         raise UltronInputError("field", "theta_stats", "the field has no θ statistics (refit it)")
     fitted.check_probe(dataset.probe)
@@ -272,7 +274,7 @@ def occupancy_training_data(
         visibility or VisibilityConfig(), dataset, pixels, truth=truth, field_transmission=field_t
     )
     world = torch.from_numpy(pixels.world_mm(dataset))
-    inputs = theta_features(fitted, world, context or ThetaContextConfig(), centre=theta)
+    inputs = theta_features(fitted, world, context or ThetaContextConfig(), theta, advance)
     labels = torch.from_numpy(pixels.label.astype(np.uint8))
     shadow = in_labelled_shadow(dataset, pixels)
     return OccupancyTrainingData(inputs, transmission.detach().float(), labels, shadow)
@@ -436,7 +438,7 @@ def train_ultron(
         selection = select_label_frames(dataset, label_fraction, seed)
         data = occupancy_training_data(
             dataset, fitted, selection, config.visibility, truth, config.context,
-            config.label_outer_side_mm,
+            config.label_outer_side_mm, timer.counter("θ queries"),
         )  # fmt: skip
     with timer.stage("occupancy_fit"):
         device = fitted.device if device is None else device

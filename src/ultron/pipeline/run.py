@@ -230,8 +230,9 @@ def reconstruct(
     candidates, of which the run keeps the one whose trained f fits the labels best
     (:func:`run_on_fields`); ``max_memory_gib`` caps the
     grids' estimated memory (default: this machine's); ``announce`` is told as each stage
-    starts and ends and ``advance`` how far a long stage has come (the occupancy fit's steps,
-    the meshing's tiles and smoothing iterations, the observed crop's frames:
+    starts and ends and ``advance`` how far a long stage has come (UltrON's θ queries, the
+    occupancy fit's steps, the meshing's tiles and smoothing iterations, the observed crop's
+    frames:
     :class:`~ultron.timing.StageTimer`). The stage-2 fit keeps checkpoints in the run's
     resume directory (:func:`~ultron.pipeline.rundir.resume_dir`), so that the same run
     started again after an interruption resumes it (run.json ``resumed_from_step``: fit →
