@@ -48,7 +48,7 @@ def stage2_cost(dataset_dir: Path, field_dir: Path, out: Path, fraction: float, 
     from ultron.models.fitted import load_field
     from ultron.pipeline.presets import preset_request
     from ultron.timing import StageTimer
-    from ultron.train.fit_checkpoint import OCCUPANCY_CHECKPOINT
+    from ultron.train.fit_checkpoint import OCCUPANCY_FIT, checkpoint_in
 
     dataset, fitted = SweepDataset.load(dataset_dir), load_field(field_dir)
     config = preset_request("fast", "ultron", fraction, 0).method_config
@@ -63,7 +63,7 @@ def stage2_cost(dataset_dir: Path, field_dir: Path, out: Path, fraction: float, 
                                    checkpoints=directory if saved else None)  # fmt: skip
             seconds[saved].append(timer.seconds["occupancy_fit"])
             networks[saved] = trained.network.state_dict()
-    size_mib = (directory / OCCUPANCY_CHECKPOINT).stat().st_size / 2**20
+    size_mib = checkpoint_in(directory, OCCUPANCY_FIT).path.stat().st_size / 2**20
     pairs = zip(networks[False].values(), networks[True].values(), strict=True)
     same = all(torch.equal(a, b) for a, b in pairs)
     return seconds[False], seconds[True], size_mib, same

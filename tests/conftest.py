@@ -125,3 +125,24 @@ def tiny_l3(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("tiny_l3") / "dataset"
     simulate_dataset(config, out=out)
     return out
+
+
+def tiny_ultron_run(iters: int, field_iters: int, n_points: int):
+    """UltrON on half of :func:`tiny_l3`'s labels, learnt in ``iters`` steps (rate 1e-3,
+    balanced classes: enough to find the bone on so few pixels), metrics on ``n_points``, and
+    the field fit of ``field_iters`` steps it reads: (request, field config)."""
+    from ultron.methods.ultron_method import UltronConfig
+    from ultron.metrics.surface import MetricsConfig
+    from ultron.pipeline.run import ReconstructionRequest
+    from ultron.train.field_fit import FieldTrainConfig
+    from ultron.train.occupancy import OccupancyTrainConfig
+
+    occupancy = OccupancyTrainConfig(iters=iters, batch_size=1024, lr=1e-3, positive_weight=None)
+    request = ReconstructionRequest(
+        method="ultron",
+        label_fraction=0.5,
+        method_config=UltronConfig(occupancy=occupancy),
+        metrics=MetricsConfig(n_points=n_points, repeats=1),
+    )
+    fields = FieldTrainConfig(iterations=field_iters, check_every=1000, checkpoint_every=1000)
+    return request, fields

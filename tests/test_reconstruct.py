@@ -9,6 +9,7 @@ from types import SimpleNamespace
 
 import pytest
 
+from conftest import tiny_ultron_run
 from ultron.mesh.export import load_mesh
 from ultron.methods.ultron_method import UltronConfig
 from ultron.metrics.surface import MetricsConfig
@@ -88,20 +89,8 @@ def test_a_sweep_without_labelled_frames_is_warned_of(tiny: Path, tmp_path: Path
 def test_ultron_end_to_end(tiny: Path, tmp_path: Path, monkeypatch):
     from dataclasses import replace
 
-    from ultron.train.field_fit import FieldTrainConfig
-
     monkeypatch.setenv("ULTRON_CACHE", str(tmp_path / "cache"))
-    request = ReconstructionRequest(
-        method="ultron",
-        label_fraction=0.5,
-        method_config=UltronConfig(
-            occupancy=OccupancyTrainConfig(
-                iters=600, batch_size=1024, lr=1e-3, positive_weight=None
-            )
-        ),
-        metrics=FAST_METRICS,
-    )
-    field_config = FieldTrainConfig(iterations=400, check_every=1000, checkpoint_every=1000)
+    request, field_config = tiny_ultron_run(iters=600, field_iters=400, n_points=5_000)
     summary = reconstruct(tiny, request, tmp_path / "out", field_config=field_config)
     run = _check_outputs(tmp_path / "out", with_metrics=True)
     assert run["field_cached"] is False

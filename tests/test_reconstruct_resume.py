@@ -10,15 +10,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from conftest import tiny_ultron_run
 from ultron.mesh.export import load_mesh
 from ultron.methods.on_method import ONConfig
-from ultron.methods.ultron_method import UltronConfig
 from ultron.metrics.surface import MetricsConfig
 from ultron.pipeline.run import CANDIDATE_CHECKPOINTS, ReconstructionRequest, reconstruct
 from ultron.pipeline.rundir import resume_dir
-from ultron.train.field_fit import FieldTrainConfig
-from ultron.train.fit_checkpoint import OCCUPANCY_CHECKPOINT
-from ultron.train.occupancy import OccupancyTrainConfig
+from ultron.train.fit_checkpoint import OCCUPANCY_FIT, checkpoint_in
 
 METRICS = MetricsConfig(n_points=2_000, repeats=1)
 ON = ONConfig()
@@ -73,7 +71,8 @@ def test_a_killed_run_resumes_its_fit(tiny_l3, whole_on, tmp_path: Path, stage, 
     with pytest.raises(Killed):
         reconstruct(tiny_l3, ON_REQUEST, out, report=False, advance=_killed_at(stage, step))
     assert not out.exists()
-    assert (resume_dir(out) / CANDIDATE_CHECKPOINTS.format(1) / OCCUPANCY_CHECKPOINT).is_file()
+    candidate = resume_dir(out) / CANDIDATE_CHECKPOINTS.format(1)
+    assert checkpoint_in(candidate, OCCUPANCY_FIT).path.is_file()
     again = reconstruct(tiny_l3, ON_REQUEST, out, report=False)
     assert again["resumed_from_step"] == {"occupancy": resumed}
     run = json.loads((out / "run.json").read_text())
@@ -95,17 +94,7 @@ def test_another_request_does_not_resume(tiny_l3: Path, tmp_path: Path):
 
 def test_ultron_resumes_each_field_candidates_fit(tiny_l3: Path, tmp_path: Path, monkeypatch):
     monkeypatch.setenv("ULTRON_CACHE", str(tmp_path / "cache"))
-    request = ReconstructionRequest(
-        method="ultron",
-        label_fraction=0.5,
-        method_config=UltronConfig(
-            occupancy=OccupancyTrainConfig(
-                iters=400, batch_size=1024, lr=1e-3, positive_weight=None
-            )
-        ),
-        metrics=METRICS,
-    )
-    fields = FieldTrainConfig(iterations=150, check_every=1000, checkpoint_every=1000)
+    request, fields = tiny_ultron_run(iters=400, field_iters=150, n_points=METRICS.n_points)
     reconstruct(tiny_l3, request, tmp_path / "whole", field_config=fields, report=False)
     field_dir = json.loads((tmp_path / "whole" / "run.json").read_text())["field_dir"]
     out = tmp_path / "run"
@@ -113,7 +102,7 @@ def test_ultron_resumes_each_field_candidates_fit(tiny_l3: Path, tmp_path: Path,
         reconstruct(tiny_l3, request, out, [field_dir, field_dir], report=False,
                     advance=_killed_at("mesh_evaluate", 1))  # fmt: skip
     saved = sorted(str(p.relative_to(resume_dir(out))) for p in resume_dir(out).glob("*/*"))
-    assert saved == [f"{CANDIDATE_CHECKPOINTS.format(k)}/{OCCUPANCY_CHECKPOINT}" for k in (1, 2)]
+    assert saved == [f"{CANDIDATE_CHECKPOINTS.format(k)}/{OCCUPANCY_FIT}.pt" for k in (1, 2)]
     again = reconstruct(tiny_l3, request, out, [field_dir, field_dir], report=False)
     assert again["resumed_from_step"] == {"occupancy": 400}
     _same_outputs(tmp_path / "whole", out)

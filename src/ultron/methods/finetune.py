@@ -168,7 +168,8 @@ def prediction_anchor(
     spec: ThetaModel,
     config: FinetuneConfig,
 ) -> OccupancyAnchor:
-    """The anchor of ``config``: ``network``'s occupancy, before fine-tuning, at :func:`anchor_pixels` of ``dataset``, with its inputs from ``fitted``."""
+    """The anchor of ``config``: ``network``'s occupancy, before fine-tuning, at
+    :func:`anchor_pixels` of ``dataset``, with its inputs from ``fitted``."""
     pixels = anchor_pixels(dataset, config.anchor_points, config.seed)
     with torch.no_grad():
         world = torch.from_numpy(pixels.world_mm(dataset))

@@ -34,7 +34,7 @@ from ultron.methods.ultron_method import (
     mesh_occupancy,
 )
 from ultron.timing import StageTimer
-from ultron.train.fit_checkpoint import OCCUPANCY_CHECKPOINT, FitCheckpoint, resumed_steps
+from ultron.train.fit_checkpoint import OCCUPANCY_FIT, checkpoint_in, resumed_steps
 from ultron.train.occupancy import OccupancyTrainConfig, OccupancyTrainingData, fit_occupancy
 
 
@@ -90,7 +90,7 @@ def reconstruct_on(
         cube = scan_unit_cube(dataset)
         data = on_training_data(dataset, cube, selection)
     with timer.stage("occupancy_fit"):
-        saved = None if checkpoints is None else FitCheckpoint(checkpoints / OCCUPANCY_CHECKPOINT)
+        saved = checkpoint_in(checkpoints, OCCUPANCY_FIT)
         network, log = fit_occupancy(
             data, occupancy, progress=timer.fit_progress, device=device, checkpoint=saved
         )
@@ -108,7 +108,7 @@ def reconstruct_on(
         "unit_cube": cube.to_dict(),
         "occupancy_config": occupancy.to_dict(),
         "occupancy_log": log,
-        **resumed_steps({"occupancy": saved}),
+        **resumed_steps({OCCUPANCY_FIT: saved}),
         "grid": grid.to_dict(),
     }  # fmt: skip
     model = {"input": "unit_cube", "unit_cube": cube.to_dict()}

@@ -65,7 +65,7 @@ from ultron.methods.rocosdf_input import (
 )
 from ultron.methods.ultron_method import Reconstruction, TrainedModel
 from ultron.timing import StageTimer
-from ultron.train.fit_checkpoint import FitCheckpoint, resumed_steps
+from ultron.train.fit_checkpoint import FitCheckpoint, checkpoint_in, resumed_steps
 from ultron.train.neural_pull import (
     Progress,
     RefineConfig,
@@ -343,7 +343,7 @@ def reconstruct_rocosdf(
         normalisation = cloud_normalisation(frame_clouds.values())
         clouds_unit = {v: _to_unit(normalisation, p) for v, p in clouds_mm.items()}
         frame_unit = [_to_unit(normalisation, p) for p in frame_clouds.values()]
-    saved = {name: None if checkpoints is None else FitCheckpoint(checkpoints / f"{name}.pt")
+    saved = {name: checkpoint_in(checkpoints, name)
              for name in (*(f"stage1_{v}" for v in views), "stage3")}  # fmt: skip
     with stage("rocosdf_stage1"):
         fits, stage1 = _fit_views(clouds_unit, views, config, seed, progress, device, saved)

@@ -64,7 +64,12 @@ from ultron.mesh.label_bridges import bridged_labelled_surface_mm
 from ultron.mesh.observed import ObservedSurfaceConfig, SurfaceObservation, observe_surface
 from ultron.mesh.tiles import evaluate_tiles, field_of_view_tiles, tile_for_factor
 from ultron.timing import Advanced, StageTimer
-from ultron.train.fit_checkpoint import OCCUPANCY_CHECKPOINT, FitCheckpoint, resumed_steps
+from ultron.train.fit_checkpoint import (
+    OCCUPANCY_FIT,
+    FitCheckpoint,
+    checkpoint_in,
+    resumed_steps,
+)
 from ultron.train.occupancy import (
     LOSSES,
     OccupancyTrainConfig,
@@ -442,7 +447,7 @@ def train_ultron(
         )  # fmt: skip
     with timer.stage("occupancy_fit"):
         device = fitted.device if device is None else device
-        saved = None if checkpoints is None else FitCheckpoint(checkpoints / OCCUPANCY_CHECKPOINT)
+        saved = checkpoint_in(checkpoints, OCCUPANCY_FIT)
         network, log = fit_occupancy(
             data, occupancy_config, progress=timer.fit_progress, device=device, checkpoint=saved
         )
@@ -483,7 +488,7 @@ def mesh_ultron(
         "transmission_stats": trained.data_info["transmission_stats"],
         "occupancy_config": occupancy_config.to_dict(),
         "occupancy_log": trained.log,
-        **resumed_steps({"occupancy": trained.checkpoint}),
+        **resumed_steps({OCCUPANCY_FIT: trained.checkpoint}),
         "occupancy_label_loss": trained.label_loss,
         "grid": grid.to_dict(),
     }

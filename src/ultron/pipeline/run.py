@@ -232,11 +232,10 @@ def reconstruct(
     grids' estimated memory (default: this machine's); ``announce`` is told as each stage
     starts and ends and ``advance`` how far a long stage has come (UltrON's θ queries, the
     occupancy fit's steps, the meshing's tiles and smoothing iterations, the observed crop's
-    frames:
-    :class:`~ultron.timing.StageTimer`). The stage-2 fit keeps checkpoints in the run's
-    resume directory (:func:`~ultron.pipeline.rundir.resume_dir`), so that the same run
-    started again after an interruption resumes it (run.json ``resumed_from_step``: fit →
-    update, also in the summary); the directory is removed once the run is in place."""
+    frames: :class:`~ultron.timing.StageTimer`). The method's network fits keep checkpoints in
+    the run's resume directory (:func:`~ultron.pipeline.rundir.resume_dir`), so that the same
+    run started again after an interruption resumes them (run.json ``resumed_from_step``: fit
+    → update, also in the summary); the directory is removed once the run is in place."""
     timer = StageTimer(announce=announce, advance=advance)
     resume = resume_dir(out_dir)
     method = get_method(request.method)

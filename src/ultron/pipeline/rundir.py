@@ -15,7 +15,7 @@ holds an ``flock`` on ``.lock`` in its staging directory; the next run into the 
 removes the staging directories of dead runs and, should a run have died between the two
 renames, puts the previous run back first.
 
-What a run's stages save to resume from (:func:`resume_dir`: the stage-2 fit's checkpoints)
+What a run's stages save to resume from (:func:`resume_dir`: its network fits' checkpoints)
 lives in a third hidden sibling, ``.<name>.resume``, which survives a failed or killed run and
 is removed once a run has been swapped in.
 """

@@ -39,8 +39,9 @@ from ultron.device import cpu_state
 FORMAT = "ultron-fit-checkpoint/1"
 #: Updates between two checkpoints of a fit (and one after its last update).
 CHECKPOINT_EVERY = 250
-#: The occupancy fit's checkpoint file in a method's checkpoint directory.
-OCCUPANCY_CHECKPOINT = "occupancy.pt"
+#: The occupancy fit's name: its checkpoint file in a method's checkpoint directory
+#: (:func:`checkpoint_in`) and its key in run.json's ``resumed_from_step``.
+OCCUPANCY_FIT = "occupancy"
 
 
 class MinibatchOrder:
@@ -143,6 +144,12 @@ class FitCheckpoint:
         torch.save(state, buffer)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         atomic.write_bytes(self.path, buffer.getvalue())
+
+
+def checkpoint_in(directory: Path | None, name: str) -> FitCheckpoint | None:
+    """The checkpoint of the fit called ``name`` in a method's checkpoint ``directory``
+    (``directory/name.pt``); None without a directory (a fit that keeps none)."""
+    return None if directory is None else FitCheckpoint(Path(directory) / f"{name}.pt")
 
 
 @dataclass
