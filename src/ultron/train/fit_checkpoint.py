@@ -183,15 +183,19 @@ class FitState:
 
 
 def resumable(
-    checkpoint: FitCheckpoint | None, fingerprint: str, iterations: int, fit: FitState
+    checkpoint: FitCheckpoint | None,
+    fingerprint: Callable[[], str],
+    iterations: int,
+    fit: FitState,
 ) -> tuple[int, Callable[[int], None] | None]:
     """For :func:`~ultron.train.loop.run_training`: the update to start from and its
-    ``after_update``. With a ``checkpoint`` of this fit (``fingerprint``) ``fit`` is restored
-    from it and ``checkpoint.resumed_from`` set; ``after_update`` saves every
-    ``checkpoint.every`` updates and after the last. Without one: (0, None)."""
+    ``after_update``. With a ``checkpoint`` of this fit (``fingerprint()``, computed only when
+    there is a checkpoint: it hashes the fit's data) ``fit`` is restored from it and
+    ``checkpoint.resumed_from`` set; ``after_update`` saves every ``checkpoint.every`` updates
+    and after the last. Without one: (0, None)."""
     if checkpoint is None:
         return 0, None
-    start = 0
+    start, fingerprint = 0, fingerprint()
     state = checkpoint.matching(fingerprint, iterations)
     if state is not None:  # this fit's own: restoring it cannot fail but by a bug
         start = checkpoint.resumed_from = fit.restore(state)

@@ -368,11 +368,12 @@ def _resumable(
 ) -> tuple[int, Callable[[int], None] | None]:
     """:func:`~ultron.train.fit_checkpoint.resumable` for an SDF fit, fingerprinted by its
     ``data``, ``settings``, initial networks and generator."""
-    if checkpoint is None:
-        return 0, None
-    modules = [t for m in fit.modules for t in m.state_dict().values()]
-    tensors = [*data, *modules, fit.generator.get_state()]
-    return resumable(checkpoint, fit_fingerprint(tensors, settings), iterations, fit)
+
+    def fingerprint() -> str:
+        modules = [t for m in fit.modules for t in m.state_dict().values()]
+        return fit_fingerprint([*data, *modules, fit.generator.get_state()], settings)
+
+    return resumable(checkpoint, fingerprint, iterations, fit)
 
 
 def _final_losses(entries: list[dict[str, Any]]) -> dict[str, float]:

@@ -342,9 +342,12 @@ def fit_occupancy(
         return loss + anchor.weight * kept, {"loss": loss.detach(), "anchor": kept.detach()}
 
     fit = FitState([network], [optimiser], generator, orders)
-    fingerprint = "" if checkpoint is None else _fingerprint(data, config, network, parameters,
-                                                             anchor)  # fmt: skip
-    start, after_update = resumable(checkpoint, fingerprint, config.iters, fit)
+    start, after_update = resumable(
+        checkpoint,
+        lambda: _fingerprint(data, config, network, parameters, anchor),
+        config.iters,
+        fit,
+    )
     network.train()
     run_training(
         objective, config.iters, name="occupancy", log_every=LOG_EVERY, progress=progress,
