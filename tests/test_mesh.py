@@ -99,6 +99,28 @@ def test_small_components_are_dropped(sphere_grid):
     assert len(everything.split(only_watertight=False)) == 2
 
 
+def test_the_observed_surface_meshes_every_piece(sphere_grid):
+    """Before an observed crop every piece is meshed, however small against the largest (a
+    long bone's segment beside the shadow-filled blob); the whole iso-surface, which has no
+    crop, still drops the pieces under 5 % of the largest."""
+    from ultron.mesh.observed import OBSERVED_EXTRACTION, surface_extraction
+
+    def with_piece(points):  # a piece of 1.2 % of the sphere's volume
+        piece = ((points - CENTER - torch.tensor([6.0, 6.0, 6.0])).norm(dim=-1) < 1.8).float()
+        return sphere_occupancy(points) + piece
+
+    volume = evaluate_on_grid(with_piece, sphere_grid)
+    assert surface_extraction("observed") == OBSERVED_EXTRACTION
+    observed = extract_surface(volume, sphere_grid, surface_extraction("observed"))
+    parts = observed.split(only_watertight=False)
+    assert len(parts) == 2
+    assert min(p.area for p in parts) == pytest.approx(4 * np.pi * 1.8**2, rel=0.15)
+    whole = extract_surface(volume, sphere_grid, surface_extraction("all"))
+    assert len(whole.split(only_watertight=False)) == 1
+    with pytest.raises(UltronInputError, match="surface"):
+        surface_extraction("visible")
+
+
 def test_no_surface_is_a_clear_error(sphere_grid):
     with pytest.raises(NoSurfaceError, match="no surface"):
         extract_surface(np.zeros(sphere_grid.shape, np.float32), sphere_grid)

@@ -53,6 +53,22 @@ def test_paper_preset_is_the_papers_configuration():
     assert preset.on.occupancy.iters == 50_000 and preset.rocosdf_preset == "paper"
 
 
+def test_the_extraction_follows_the_surface():
+    """The observed crop decides what UltrON and compounding keep, so their extraction meshes
+    every piece; the whole iso-surface (the paper's, or --surface all) drops small pieces."""
+    fast, paper = pipeline_preset("fast"), pipeline_preset("paper")
+    assert fast.ultron.extraction.min_component_fraction == 0
+    assert paper.ultron.extraction.min_component_fraction == 0.05
+    for method in ("ultron", "ultron-noloss", "compounding"):
+        config = preset_request("fast", method).method_config
+        assert config.extraction.min_component_fraction == 0
+        config = preset_request("fast", method, surface="all").method_config
+        assert config.extraction.min_component_fraction == 0.05
+        config = preset_request("paper", method, surface="observed").method_config
+        assert config.extraction.min_component_fraction == 0
+    assert preset_request("fast", "on").method_config.meshing.extraction.min_component_fraction
+
+
 def test_presets_are_built_anew():
     assert pipeline_preset("paper") == pipeline_preset("paper")
     assert pipeline_preset("paper") is not pipeline_preset("paper")

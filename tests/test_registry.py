@@ -12,6 +12,8 @@ from typer.testing import CliRunner
 from ultron.cli.main import app
 from ultron.errors import UltronInputError
 from ultron.mesh.compounding import CompoundingConfig
+from ultron.mesh.extract import ExtractionConfig
+from ultron.mesh.observed import OBSERVED_EXTRACTION
 from ultron.methods.catalog import FIELD_METHODS, METHOD_NAMES
 from ultron.methods.compounding_method import CompoundingMethodConfig
 from ultron.methods.on_method import ONConfig
@@ -88,7 +90,8 @@ class _Stages:
 def test_on_records_only_the_meshing_it_uses():
     """ON's meshing settings are a MeshingConfig — the four fields mesh_occupancy reads — not
     an UltronConfig whose loss, crop and echo settings ON never uses; UltrON's mirror its own
-    fields, so both mesh the same way by default."""
+    fields, so both mesh the same way by default — except that UltrON, which the observed crop
+    trims, meshes every piece, and ON, which has no crop, drops the small ones."""
     on = ONConfig()
     assert isinstance(on.meshing, MeshingConfig)
     assert {f for f in vars(on.meshing)} == {
@@ -99,7 +102,9 @@ def test_on_records_only_the_meshing_it_uses():
     }
     ultron = UltronConfig(voxel_mm=0.7, coarse_factor=4, chunk_points=1000)
     assert ultron.meshing == MeshingConfig(0.7, 4, 1000, ultron.extraction)
-    assert UltronConfig().meshing == on.meshing
+    assert UltronConfig().meshing == replace(on.meshing, extraction=OBSERVED_EXTRACTION)
+    assert on.meshing.extraction == ExtractionConfig()
+    assert OBSERVED_EXTRACTION.min_component_fraction < ExtractionConfig().min_component_fraction
 
 
 @pytest.mark.parametrize(

@@ -47,6 +47,7 @@ from ultron.data.dataset import ProbeGeometry
 from ultron.data.geometry import as_pose_tensor, probe_mm_to_pixel
 from ultron.errors import argument_error
 from ultron.mesh.evidence import nearest_distance_mm
+from ultron.mesh.extract import ExtractionConfig
 
 _FRAMES_PER_CHUNK = 8
 
@@ -57,6 +58,23 @@ DEFAULT_MIN_TRANSMISSION = 0.3
 DEFAULT_LABEL_SUPPORT_MM = 1.0
 #: What a reconstruction keeps of its surface: only the observed part, or all of it.
 SURFACES = ("observed", "all")
+
+#: The extraction of a surface the observed crop then trims (UltrON, its ablation, label
+#: compounding): every connected piece is meshed, however small. What is kept is decided by
+#: what some frame observed (this module), not by a piece's size against the
+#: largest one — which, for an occupancy that fills the shadow or a long bone, drops labelled
+#: bone (docs/decisions.md#meshing-every-piece-then-the-observed-crop-meshobservedpy).
+OBSERVED_EXTRACTION = ExtractionConfig(min_component_fraction=0.0)
+
+
+def surface_extraction(surface: str) -> ExtractionConfig:
+    """The extraction that goes with ``surface`` (:class:`ObservedSurfaceConfig`): ``observed``
+    meshes every piece and lets the crop decide (:data:`OBSERVED_EXTRACTION`); ``all``, the
+    whole iso-surface without a crop, drops the pieces under
+    :class:`~ultron.mesh.extract.ExtractionConfig`'s share of the largest."""
+    if surface not in SURFACES:
+        raise argument_error("surface", f"expected one of {SURFACES}, got {surface!r}")
+    return OBSERVED_EXTRACTION if surface == "observed" else ExtractionConfig()
 
 
 @dataclass(frozen=True)

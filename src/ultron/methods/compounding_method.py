@@ -15,7 +15,7 @@ from ultron.data.dataset import SweepDataset
 from ultron.data.labels import select_label_frames
 from ultron.mesh.compounding import CompoundingConfig, compound_labels
 from ultron.mesh.extract import ExtractionConfig, extract_surface
-from ultron.mesh.observed import ObservedSurfaceConfig
+from ultron.mesh.observed import OBSERVED_EXTRACTION, ObservedSurfaceConfig
 from ultron.methods.evidence import faced_observation
 from ultron.methods.ultron_method import Reconstruction
 from ultron.timing import StageTimer
@@ -28,7 +28,7 @@ class CompoundingMethodConfig:
     UltrON's, so that both methods mesh alike; a preset hands it UltrON's)."""
 
     volume: CompoundingConfig = field(default_factory=CompoundingConfig)
-    extraction: ExtractionConfig = field(default_factory=ExtractionConfig)
+    extraction: ExtractionConfig = OBSERVED_EXTRACTION
     observed: ObservedSurfaceConfig = field(default_factory=ObservedSurfaceConfig)
 
 

@@ -7,7 +7,8 @@
   Ultra-NeRF field as published (8 × 128 MLP, 75k iterations,
   :func:`~ultron.train.field_config.field_preset` ``"paper"``); f_ω on θ(x) alone
   (no neighbourhood), 50k iterations of the paper's BCE(T·f, y) with background labels scaled
-  by T and unweighted classes; the whole extracted iso-surface (no observed-surface crop);
+  by T and unweighted classes; the whole extracted iso-surface (no observed-surface crop;
+  pieces under 5 % of the largest dropped);
   ON with 50k iterations; RoCoSDF's ``paper`` preset. The paper does not give its batch sizes:
   the field renders four whole frames per step (the batching a GPU wants; a patch wider than
   the frame is the whole frame) and f_ω keeps 4096 labelled pixels per step. Days on a CPU,
@@ -23,7 +24,7 @@ from dataclasses import dataclass, replace
 from ultron.errors import argument_error
 from ultron.fields.context import ThetaContextConfig
 from ultron.mesh.echo_support import EchoSupportConfig
-from ultron.mesh.observed import ObservedSurfaceConfig
+from ultron.mesh.observed import ObservedSurfaceConfig, surface_extraction
 from ultron.methods.catalog import FIELD_METHODS
 from ultron.methods.on_method import ONConfig
 from ultron.methods.registry import get_method
@@ -72,6 +73,7 @@ def pipeline_preset(name: str = "fast", seed: int = 0) -> PipelinePreset:
         occupancy=occupancy,
         context=ThetaContextConfig(radii_mm=()),
         observed=ObservedSurfaceConfig(surface="all", label_support_mm=0.0, label_bridges=False),
+        extraction=surface_extraction("all"),
         label_outer_side_mm=0.0,
         echo_support=None,
     )
@@ -138,7 +140,8 @@ def preset_request(
         on = replace(on, occupancy=replace(on.occupancy, iters=occupancy_iters))
     ultron = replace(base.ultron, occupancy=occupancy, visibility=source)
     if surface is not None:
-        ultron = replace(ultron, observed=replace(ultron.observed, surface=surface))
+        observed = replace(ultron.observed, surface=surface)
+        ultron = replace(ultron, observed=observed, extraction=surface_extraction(surface))
     if theta_context is not None:
         ultron = replace(ultron, context=ThetaContextConfig.parse(theta_context))
     if echo_support is not None:
