@@ -103,7 +103,10 @@ def test_the_observed_surface_meshes_every_piece(sphere_grid):
     """Before an observed crop every piece is meshed, however small against the largest (a
     long bone's segment beside the shadow-filled blob); the whole iso-surface, which has no
     crop, still drops the pieces under 5 % of the largest."""
-    from ultron.mesh.observed import OBSERVED_EXTRACTION, surface_extraction
+    from ultron.mesh.observed import OBSERVED_EXTRACTION, ObservedSurfaceConfig
+
+    def surface_extraction(surface):
+        return ObservedSurfaceConfig(surface=surface).extraction
 
     def with_piece(points):  # a piece of 1.2 % of the sphere's volume
         piece = ((points - CENTER - torch.tensor([6.0, 6.0, 6.0])).norm(dim=-1) < 1.8).float()

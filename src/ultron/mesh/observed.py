@@ -67,16 +67,6 @@ SURFACES = ("observed", "all")
 OBSERVED_EXTRACTION = ExtractionConfig(min_component_fraction=0.0)
 
 
-def surface_extraction(surface: str) -> ExtractionConfig:
-    """The extraction that goes with ``surface`` (:class:`ObservedSurfaceConfig`): ``observed``
-    meshes every piece and lets the crop decide (:data:`OBSERVED_EXTRACTION`); ``all``, the
-    whole iso-surface without a crop, drops the pieces under
-    :class:`~ultron.mesh.extract.ExtractionConfig`'s share of the largest."""
-    if surface not in SURFACES:
-        raise argument_error("surface", f"expected one of {SURFACES}, got {surface!r}")
-    return OBSERVED_EXTRACTION if surface == "observed" else ExtractionConfig()
-
-
 @dataclass(frozen=True)
 class ObservedSurfaceConfig:
     """Which part of a reconstructed surface is kept: ``observed`` (the faces whose vertices
@@ -108,6 +98,14 @@ class ObservedSurfaceConfig:
             raise argument_error(
                 "label_bridges", f"expected true or false, got {self.label_bridges!r}"
             )
+
+    @property
+    def extraction(self) -> ExtractionConfig:
+        """The extraction that goes with :attr:`surface`: ``observed`` meshes every piece and
+        lets the crop decide (:data:`OBSERVED_EXTRACTION`); ``all``, the whole iso-surface
+        without a crop, drops the pieces under :class:`~ultron.mesh.extract.ExtractionConfig`'s
+        share of the largest."""
+        return OBSERVED_EXTRACTION if self.surface == "observed" else ExtractionConfig()
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)

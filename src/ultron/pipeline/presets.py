@@ -24,7 +24,7 @@ from dataclasses import dataclass, replace
 from ultron.errors import argument_error
 from ultron.fields.context import ThetaContextConfig
 from ultron.mesh.echo_support import EchoSupportConfig
-from ultron.mesh.observed import ObservedSurfaceConfig, surface_extraction
+from ultron.mesh.observed import ObservedSurfaceConfig
 from ultron.methods.catalog import FIELD_METHODS
 from ultron.methods.on_method import ONConfig
 from ultron.methods.registry import get_method
@@ -69,11 +69,12 @@ def pipeline_preset(name: str = "fast", seed: int = 0) -> PipelinePreset:
     occupancy = OccupancyTrainConfig(
         iters=PAPER_OCCUPANCY_ITERS, negatives="weighted", positive_weight=1.0, seed=seed
     )
+    whole = ObservedSurfaceConfig(surface="all", label_support_mm=0.0, label_bridges=False)
     ultron = UltronConfig(
         occupancy=occupancy,
         context=ThetaContextConfig(radii_mm=()),
-        observed=ObservedSurfaceConfig(surface="all", label_support_mm=0.0, label_bridges=False),
-        extraction=surface_extraction("all"),
+        observed=whole,
+        extraction=whole.extraction,
         label_outer_side_mm=0.0,
         echo_support=None,
     )
@@ -141,7 +142,7 @@ def preset_request(
     ultron = replace(base.ultron, occupancy=occupancy, visibility=source)
     if surface is not None:
         observed = replace(ultron.observed, surface=surface)
-        ultron = replace(ultron, observed=observed, extraction=surface_extraction(surface))
+        ultron = replace(ultron, observed=observed, extraction=observed.extraction)
     if theta_context is not None:
         ultron = replace(ultron, context=ThetaContextConfig.parse(theta_context))
     if echo_support is not None:
