@@ -12,6 +12,9 @@ from ultron.benchmark.config import BenchmarkConfig, benchmark_config, quick_con
 from ultron.cli.main import app
 from ultron.device import ACCELERATOR_CHUNK_FACTOR, evaluation_chunk
 from ultron.errors import UltronInputError
+from ultron.mesh.extract import ExtractionConfig
+from ultron.mesh.observed import OBSERVED_EXTRACTION, ObservedSurfaceConfig
+from ultron.methods.compounding_method import CompoundingMethodConfig
 from ultron.methods.on_method import ONConfig
 from ultron.methods.rocosdf import RoCoSDFConfig
 from ultron.methods.ultron_method import UltronConfig
@@ -57,16 +60,28 @@ def test_the_extraction_follows_the_surface():
     """The observed crop decides what UltrON and compounding keep, so their extraction meshes
     every piece; the whole iso-surface (the paper's, or --surface all) drops small pieces."""
     fast, paper = pipeline_preset("fast"), pipeline_preset("paper")
-    assert fast.ultron.extraction.min_component_fraction == 0
-    assert paper.ultron.extraction.min_component_fraction == 0.05
+    assert fast.ultron.surface_extraction.min_component_fraction == 0
+    assert paper.ultron.surface_extraction.min_component_fraction == 0.05
     for method in ("ultron", "ultron-noloss", "compounding"):
         config = preset_request("fast", method).method_config
-        assert config.extraction.min_component_fraction == 0
+        assert config.surface_extraction.min_component_fraction == 0
         config = preset_request("fast", method, surface="all").method_config
-        assert config.extraction.min_component_fraction == 0.05
+        assert config.surface_extraction.min_component_fraction == 0.05
         config = preset_request("paper", method, surface="observed").method_config
-        assert config.extraction.min_component_fraction == 0
+        assert config.surface_extraction.min_component_fraction == 0
     assert preset_request("fast", "on").method_config.meshing.extraction.min_component_fraction
+
+
+def test_a_config_built_by_hand_extracts_as_its_surface_says():
+    """Without an explicit extraction, a config keeping the whole surface drops small pieces
+    and one keeping the observed part meshes every piece; an explicit extraction wins."""
+    whole = ObservedSurfaceConfig(surface="all")
+    for config_class in (UltronConfig, CompoundingMethodConfig):
+        assert config_class().surface_extraction == OBSERVED_EXTRACTION
+        assert config_class(observed=whole).surface_extraction == ExtractionConfig()
+        chosen = ExtractionConfig(min_component_fraction=0.2)
+        assert config_class(observed=whole, extraction=chosen).surface_extraction == chosen
+    assert UltronConfig(observed=whole).meshing.extraction == ExtractionConfig()
 
 
 def test_presets_are_built_anew():

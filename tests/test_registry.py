@@ -101,7 +101,7 @@ def test_on_records_only_the_meshing_it_uses():
         "extraction",
     }
     ultron = UltronConfig(voxel_mm=0.7, coarse_factor=4, chunk_points=1000)
-    assert ultron.meshing == MeshingConfig(0.7, 4, 1000, ultron.extraction)
+    assert ultron.meshing == MeshingConfig(0.7, 4, 1000, ultron.surface_extraction)
     assert UltronConfig().meshing == replace(on.meshing, extraction=OBSERVED_EXTRACTION)
     assert on.meshing.extraction == ExtractionConfig()
     assert OBSERVED_EXTRACTION.min_component_fraction < ExtractionConfig().min_component_fraction

@@ -15,7 +15,7 @@ from ultron.data.dataset import SweepDataset
 from ultron.data.labels import select_label_frames
 from ultron.mesh.compounding import CompoundingConfig, compound_labels
 from ultron.mesh.extract import ExtractionConfig, extract_surface
-from ultron.mesh.observed import OBSERVED_EXTRACTION, ObservedSurfaceConfig
+from ultron.mesh.observed import ObservedSurfaceConfig
 from ultron.methods.evidence import faced_observation
 from ultron.methods.ultron_method import Reconstruction
 from ultron.timing import StageTimer
@@ -25,11 +25,17 @@ from ultron.timing import StageTimer
 class CompoundingMethodConfig:
     """Settings of a compounding run: the volume (:class:`~ultron.mesh.compounding.
     CompoundingConfig`), its surface extraction and the observed-surface crop (by default
-    UltrON's, so that both methods mesh alike; a preset hands it UltrON's)."""
+    UltrON's, so that both methods mesh alike; a preset hands it UltrON's; ``extraction`` None:
+    the one that goes with ``observed.surface``)."""
 
     volume: CompoundingConfig = field(default_factory=CompoundingConfig)
-    extraction: ExtractionConfig = OBSERVED_EXTRACTION
+    extraction: ExtractionConfig | None = None
     observed: ObservedSurfaceConfig = field(default_factory=ObservedSurfaceConfig)
+
+    @property
+    def surface_extraction(self) -> ExtractionConfig:
+        """``extraction`` where given, else the one that goes with ``observed.surface``."""
+        return self.observed.extraction if self.extraction is None else self.extraction
 
 
 def reconstruct_compounding(
@@ -40,12 +46,12 @@ def reconstruct_compounding(
     timer: StageTimer,
 ) -> Reconstruction:
     """Compound ``label_fraction`` of the annotated frames (chosen with ``seed``), mesh the
-    volume with ``config.extraction`` and keep its ``config.observed`` part."""
+    volume with ``config.surface_extraction`` and keep its ``config.observed`` part."""
     with timer.stage("labels"):
         selection = select_label_frames(dataset, label_fraction, seed)
     with timer.stage("mesh"):
         compounded = compound_labels(dataset, selection, config.volume)
-        mesh = extract_surface(compounded.volume, compounded.grid, config.extraction,
+        mesh = extract_surface(compounded.volume, compounded.grid, config.surface_extraction,
                                advance=timer.counter("smoothing iterations"))  # fmt: skip
     with timer.stage("mesh_observed"):
         observation = faced_observation(mesh, dataset, compounded.grid.voxel_mm, config.observed)

@@ -62,7 +62,6 @@ from ultron.mesh.extract import ExtractionConfig, extract_surface_tiles
 from ultron.mesh.grid import GridSpec, field_of_view_volume_mm3, meshing_voxel_mm
 from ultron.mesh.label_bridges import bridged_labelled_surface_mm
 from ultron.mesh.observed import (
-    OBSERVED_EXTRACTION,
     ObservedSurfaceConfig,
     SurfaceObservation,
     observe_surface,
@@ -133,13 +132,14 @@ class UltronConfig:
     above a band of bone labels unsure pixels are read as background,
     :func:`~ultron.data.labels.surface_outer_side`; 0: the labels as stored;
     ``echo_support``: a frame observes only the surface it shows as bone,
-    :mod:`ultron.mesh.echo_support`; None: T alone decides)."""
+    :mod:`ultron.mesh.echo_support`; None: T alone decides; ``extraction``: None, the one that
+    goes with ``observed.surface``, :attr:`surface_extraction`)."""
 
     occupancy: OccupancyTrainConfig = field(default_factory=OccupancyTrainConfig)
     voxel_mm: float | None = None
     coarse_factor: int = 2
     chunk_points: int = 65_536
-    extraction: ExtractionConfig = OBSERVED_EXTRACTION
+    extraction: ExtractionConfig | None = None
     visibility: VisibilityConfig = field(default_factory=VisibilityConfig)
     observed: ObservedSurfaceConfig = field(default_factory=ObservedSurfaceConfig)
     context: ThetaContextConfig = field(default_factory=ThetaContextConfig)
@@ -156,9 +156,18 @@ class UltronConfig:
         _ = self.meshing  # its checks (MeshingConfig)
 
     @property
+    def surface_extraction(self) -> ExtractionConfig:
+        """``extraction`` where given, else the one that goes with the kept surface
+        (:attr:`~ultron.mesh.observed.ObservedSurfaceConfig.extraction`): a config built with
+        ``observed.surface`` ``all`` drops small pieces without being told twice."""
+        return self.observed.extraction if self.extraction is None else self.extraction
+
+    @property
     def meshing(self) -> MeshingConfig:
         """The meshing part of these settings (:func:`mesh_occupancy`)."""
-        return MeshingConfig(self.voxel_mm, self.coarse_factor, self.chunk_points, self.extraction)
+        return MeshingConfig(
+            self.voxel_mm, self.coarse_factor, self.chunk_points, self.surface_extraction
+        )
 
 
 @dataclass(frozen=True)

@@ -74,7 +74,6 @@ def pipeline_preset(name: str = "fast", seed: int = 0) -> PipelinePreset:
         occupancy=occupancy,
         context=ThetaContextConfig(radii_mm=()),
         observed=whole,
-        extraction=whole.extraction,
         label_outer_side_mm=0.0,
         echo_support=None,
     )
@@ -142,7 +141,7 @@ def preset_request(
     ultron = replace(base.ultron, occupancy=occupancy, visibility=source)
     if surface is not None:
         observed = replace(ultron.observed, surface=surface)
-        ultron = replace(ultron, observed=observed, extraction=observed.extraction)
+        ultron = replace(ultron, observed=observed)
     if theta_context is not None:
         ultron = replace(ultron, context=ThetaContextConfig.parse(theta_context))
     if echo_support is not None:
