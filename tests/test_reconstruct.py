@@ -148,8 +148,9 @@ def test_ultron_end_to_end(tiny: Path, tmp_path: Path, monkeypatch):
         others[method] = result["metrics"]["mean"]["cd_visible"]
     _check_advance(events, {"mesh": "smoothing iterations"})  # compounding's
     # both networks infer surface between the labelled frames that compounding 10 % cannot;
-    # UltrON against its ablation is no ordering to assert: with every piece meshed the two
-    # are level on the benchmark's L3 seed 0 (docs/real-sweeps.md, "Meshing every piece")
+    # UltrON against its ablation is no ordering to assert on this tiny phantom: with every
+    # piece meshed the two are level here and on some draws of L3 seed 0 (docs/real-sweeps.md,
+    # "Meshing every piece"), though the benchmark's own cells keep a lead (docs/benchmark.md)
     network_cd = max(ours["cd_visible"], others["ultron-noloss"])
     assert network_cd <= others["compounding"], (ours["cd_visible"], others)
 
