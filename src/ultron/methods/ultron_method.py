@@ -61,11 +61,7 @@ from ultron.mesh.echo_support import EchoSupportConfig, echo_support_maps
 from ultron.mesh.extract import ExtractionConfig, extract_surface_tiles
 from ultron.mesh.grid import GridSpec, field_of_view_volume_mm3, meshing_voxel_mm
 from ultron.mesh.label_bridges import bridged_labelled_surface_mm
-from ultron.mesh.observed import (
-    ObservedSurfaceConfig,
-    SurfaceObservation,
-    observe_surface,
-)
+from ultron.mesh.observed import ObservedSurfaceConfig, SurfaceObservation, observe_surface
 from ultron.mesh.tiles import evaluate_tiles, field_of_view_tiles, tile_for_factor
 from ultron.timing import Advanced, StageTimer
 from ultron.train.fit_checkpoint import (

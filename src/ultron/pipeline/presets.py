@@ -69,11 +69,10 @@ def pipeline_preset(name: str = "fast", seed: int = 0) -> PipelinePreset:
     occupancy = OccupancyTrainConfig(
         iters=PAPER_OCCUPANCY_ITERS, negatives="weighted", positive_weight=1.0, seed=seed
     )
-    whole = ObservedSurfaceConfig(surface="all", label_support_mm=0.0, label_bridges=False)
     ultron = UltronConfig(
         occupancy=occupancy,
         context=ThetaContextConfig(radii_mm=()),
-        observed=whole,
+        observed=ObservedSurfaceConfig(surface="all", label_support_mm=0.0, label_bridges=False),
         label_outer_side_mm=0.0,
         echo_support=None,
     )
@@ -140,8 +139,7 @@ def preset_request(
         on = replace(on, occupancy=replace(on.occupancy, iters=occupancy_iters))
     ultron = replace(base.ultron, occupancy=occupancy, visibility=source)
     if surface is not None:
-        observed = replace(ultron.observed, surface=surface)
-        ultron = replace(ultron, observed=observed)
+        ultron = replace(ultron, observed=replace(ultron.observed, surface=surface))
     if theta_context is not None:
         ultron = replace(ultron, context=ThetaContextConfig.parse(theta_context))
     if echo_support is not None:
