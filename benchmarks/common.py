@@ -16,7 +16,7 @@ def imaged_share_of_reference(dataset_dir: Path, n_points: int = 50_000) -> floa
     from ultron.data.dataset import SweepDataset
     from ultron.mesh.export import load_mesh
     from ultron.mesh.grid import field_of_view_mask
-    from ultron.methods.ultron_method import elevation_half_thickness_mm, scan_grid
+    from ultron.mesh.occupancy_mesh import elevation_half_thickness_mm, scan_grid
     from ultron.metrics.surface import sample_surface
 
     dataset = SweepDataset.load(dataset_dir)

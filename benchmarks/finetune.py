@@ -40,17 +40,14 @@ def main() -> None:
     from ultron.data.dataset import SweepDataset
     from ultron.data.labels import select_label_frames
     from ultron.fields.occupancy import OccupancyNetwork, OccupancyNetworkConfig
+    from ultron.mesh.occupancy_mesh import mesh_occupancy
     from ultron.methods.finetune import (
         FinetuneConfig,
         ThetaModel,
         freeze_last_layers,
         prediction_anchor,
     )
-    from ultron.methods.ultron_method import (
-        mesh_occupancy,
-        occupancy_function,
-        occupancy_training_data,
-    )
+    from ultron.methods.ultron_method import occupancy_function, occupancy_training_data
     from ultron.models.fitted import load_field
     from ultron.pipeline.model_io import load_network
     from ultron.timing import StageTimer

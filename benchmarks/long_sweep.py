@@ -169,8 +169,8 @@ def run_all(args: argparse.Namespace) -> list[dict]:
 
 def meshing_lines(dataset, voxel_mm: float | None) -> list[str]:
     """The meshing grid at ``voxel_mm`` and the tiles of it the field of view reaches."""
+    from ultron.mesh.occupancy_mesh import MeshingConfig, elevation_half_thickness_mm, scan_grid
     from ultron.mesh.tiles import field_of_view_tiles, tile_for_factor
-    from ultron.methods.ultron_method import MeshingConfig, elevation_half_thickness_mm, scan_grid
     from ultron.pipeline.resources import meshing_memory
 
     grid = scan_grid(dataset, voxel_mm)

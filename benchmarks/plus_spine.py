@@ -86,7 +86,7 @@ def far_surface_places(dataset, run: dict, run_dir: Path, beyond_mm: float = 2.0
 
     from ultron.mesh.evidence import SURFACE_PLACES, surface_places
     from ultron.mesh.export import load_mesh, load_vertex_properties
-    from ultron.methods.ultron_method import elevation_half_thickness_mm
+    from ultron.mesh.occupancy_mesh import elevation_half_thickness_mm
 
     if run["mesh"]["coordinates"] != "lps":
         raise SystemExit(f"{run_dir}: expected a mesh in world (lps) coordinates")

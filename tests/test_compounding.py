@@ -11,7 +11,13 @@ from ultron.data.geometry import frame_pixels_world
 from ultron.data.labels import select_label_frames
 from ultron.errors import UltronInputError
 from ultron.mesh import extract_surface
-from ultron.mesh.compounding import CompoundingConfig, compound_labels
+from ultron.mesh.compounding import (
+    CompoundedVolume,
+    CompoundingConfig,
+    compound_labels,
+    fuse_with_labels,
+)
+from ultron.mesh.grid import GridSpec
 
 RADIUS = 6.0
 CENTER = np.array([0.0, 10.0, 0.0])
@@ -254,3 +260,45 @@ def test_unsure_gap_above_the_band_keeps_the_surface_at_its_top(band_dataset, in
     # without it the gap is a hole: filled from the band on the frames (the surface moves
     # out), interpolated between them, so the surface ripples from frame to frame
     assert errors[False].max() >= 0.2
+
+
+def _linear_volume() -> CompoundedVolume:
+    """C(i, j, k) = (i + 2j + 3k) / 40 on a 5 × 6 × 7 grid of 0.5 mm at (1, 2, 3) mm: linear,
+    so trilinear reading is exact inside the grid."""
+    i, j, k = np.meshgrid(np.arange(5), np.arange(6), np.arange(7), indexing="ij")
+    grid = GridSpec((1.0, 2.0, 3.0), 0.5, (5, 6, 7))
+    volume = ((i + 2 * j + 3 * k) / 40).astype(np.float32)
+    return CompoundedVolume(volume, np.ones(volume.shape, bool), grid, 0.0)
+
+
+def test_fusion_is_the_larger_of_f_and_the_trilinear_labels():
+    compounded = _linear_volume()
+    fused = fuse_with_labels(lambda p: torch.full((len(p),), 0.3), compounded)
+    index = torch.tensor([[0.0, 0.0, 0.0], [4.0, 5.0, 6.0], [1.5, 2.25, 3.75], [2.0, 1.0, 0.5]])
+    points_mm = torch.tensor(compounded.grid.origin_mm) + 0.5 * index
+    by_hand = (index[:, 0] + 2 * index[:, 1] + 3 * index[:, 2]) / 40  # 0, 0.8, 0.4, 0.1625
+    expected = torch.maximum(by_hand, torch.tensor(0.3))
+    torch.testing.assert_close(fused(points_mm), expected)
+    # outside the compounded grid f alone decides, and f's dtype is kept
+    far = torch.tensor([[100.0, 100.0, 100.0], [-50.0, 2.0, 3.0]], dtype=torch.float64)
+    result = fuse_with_labels(
+        lambda p: torch.full((len(p),), 0.7, dtype=torch.float64), compounded
+    )(far)
+    assert result.dtype == torch.float64 and torch.equal(
+        result, torch.full((2,), 0.7, dtype=torch.float64)
+    )
+
+
+def test_fusion_keeps_the_labelled_sphere_inside_an_empty_f(sphere_dataset):
+    compounded = compound_labels(sphere_dataset, select_label_frames(sphere_dataset, 1.0, seed=0))
+    fused = fuse_with_labels(lambda p: torch.zeros(len(p)), compounded)
+    radius = torch.tensor([0.0, 0.5 * RADIUS, 1.5 * RADIUS])
+    points_mm = torch.tensor(CENTER, dtype=torch.float32) + radius[:, None] * torch.tensor(
+        [1.0, 0, 0]
+    )
+    assert fused(points_mm).tolist()[:2] == [1.0, 1.0] and fused(points_mm)[2] == 0.0
+
+
+def test_fusion_refuses_anything_but_a_compounded_volume():
+    with pytest.raises(UltronInputError, match="compounded"):
+        fuse_with_labels(lambda p: p[:, 0], np.zeros((3, 3, 3)))

@@ -15,6 +15,7 @@ from ultron.data.dataset import SweepDataset
 from ultron.errors import UltronInputError
 from ultron.fields.occupancy import OccupancyNetwork, OccupancyNetworkConfig
 from ultron.fields.sdf import SDFNetwork, SDFNetworkConfig
+from ultron.mesh.occupancy_mesh import mesh_occupancy
 from ultron.methods.finetune import (
     FinetuneConfig,
     ThetaModel,
@@ -23,7 +24,7 @@ from ultron.methods.finetune import (
     finetune_ultron,
     freeze_last_layers,
 )
-from ultron.methods.ultron_method import UltronConfig, mesh_occupancy, occupancy_function
+from ultron.methods.ultron_method import UltronConfig, occupancy_function
 from ultron.metrics.surface import MetricsConfig
 from ultron.models.fitted import load_field
 from ultron.phantom import SimulationConfig, simulate_dataset

@@ -10,13 +10,13 @@ import torch
 from ultron.data.dataset import ProbeGeometry, Sweep, SweepDataset
 from ultron.errors import UltronInputError
 from ultron.mesh.extract import extract_surface_tiles
-from ultron.mesh.tiles import evaluate_tiles, field_of_view_tiles
-from ultron.methods.ultron_method import (
+from ultron.mesh.occupancy_mesh import (
     MeshingConfig,
     elevation_half_thickness_mm,
     mesh_occupancy,
     scan_grid,
 )
+from ultron.mesh.tiles import evaluate_tiles, field_of_view_tiles
 from ultron.phantom import (
     PHANTOMS,
     ScanConfig,

@@ -12,6 +12,7 @@ from ultron.benchmark.config import BenchmarkConfig, benchmark_config, quick_con
 from ultron.cli.main import app
 from ultron.device import ACCELERATOR_CHUNK_FACTOR, evaluation_chunk
 from ultron.errors import UltronInputError
+from ultron.mesh.compounding import CompoundingConfig
 from ultron.mesh.extract import ExtractionConfig
 from ultron.mesh.observed import OBSERVED_EXTRACTION, ObservedSurfaceConfig
 from ultron.methods.compounding_method import CompoundingMethodConfig
@@ -124,6 +125,10 @@ def test_request_takes_the_preset_and_options_win():
     assert preset_request().method_config.observed.label_bridges
     assert not preset_request(label_bridges=False).method_config.observed.label_bridges
     assert not preset_request("paper").method_config.observed.label_bridges
+    assert preset_request("paper", label_fusion=True).method_config.label_fusion == (
+        CompoundingConfig()
+    )
+    assert preset_request(label_fusion=False).method_config.label_fusion is None
     on_again = preset_request("paper", "ultron", echo_support=True).method_config.echo_support
     assert on_again is not None and on_again == pipeline_preset("fast").ultron.echo_support
     fast = preset_request()
@@ -213,3 +218,26 @@ def test_cli_label_support_reaches_the_request_or_exits_2(
     else:
         assert result.exit_code == 0, result.output
         assert seen["request"].method_config.observed.label_support_mm == expected
+
+
+@pytest.mark.parametrize("name", ["echo_support", "label_fusion"])
+def test_ultron_config_refuses_a_wrong_optional_part(name):
+    with pytest.raises(UltronInputError, match=name):
+        UltronConfig(**{name: "on"})
+
+
+def test_cli_label_fusion_flag_reaches_the_request(tmp_path: Path, monkeypatch):
+    import ultron.pipeline.run
+
+    seen = []
+
+    def fake_run(dataset, request, out, *args, **kwargs):
+        seen.append(request.method_config.label_fusion)
+        return {"metrics": None, "timings_s": {}}
+
+    monkeypatch.setattr(ultron.pipeline.run, "reconstruct", fake_run)
+    for flag in ("--label-fusion", "--no-label-fusion"):
+        args = ["reconstruct", str(tmp_path), "--out", str(tmp_path / "o"), flag]
+        result = CliRunner().invoke(app, args)
+        assert result.exit_code == 0, result.output
+    assert seen == [CompoundingConfig(), None]

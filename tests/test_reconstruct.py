@@ -7,9 +7,12 @@ import shutil
 from pathlib import Path
 from types import SimpleNamespace
 
+import nibabel as nib
+import numpy as np
 import pytest
 
 from conftest import tiny_ultron_run
+from ultron.mesh.compounding import CompoundingConfig
 from ultron.mesh.export import load_mesh
 from ultron.methods.ultron_method import UltronConfig
 from ultron.metrics.surface import MetricsConfig
@@ -137,6 +140,24 @@ def test_ultron_end_to_end(tiny: Path, tmp_path: Path, monkeypatch):
     assert [c["field_dir"] for c in two["field_candidates"]] == [field_dir, field_dir]
     assert losses[0] == losses[1] == run["occupancy_label_loss"] > 0
     assert two["metrics"]["mean"]["mad"] == pytest.approx(ours["mad"])
+    # with the labels fused in: the same f (same seed and labels), meshed as max(f, C)
+    fusion = replace(request.method_config, label_fusion=CompoundingConfig())
+    fused = replace(request, method_config=fusion)
+    reconstruct(tiny, fused, tmp_path / "fused", field_config=field_config, report=False)
+    run = json.loads((tmp_path / "fused" / "run.json").read_text())
+    assert (
+        run["label_fusion"]["hole_fill_radius_mm"] > 0 and "mesh_label_fusion" in run["timings_s"]
+    )
+    assert json.loads((tmp_path / "again" / "run.json").read_text())["label_fusion"] is None
+    plain, with_labels = (
+        np.asarray(nib.load(tmp_path / name / "occupancy.nii.gz").dataobj)
+        for name in ("again", "fused")
+    )
+    assert plain.shape == with_labels.shape
+    # f's bone stays bone and the labels add some (values may differ by rounding where one
+    # run evaluated a voxel exactly and the other interpolated it, mesh.grid's coarse-to-fine)
+    assert ((plain >= 0.5) <= (with_labels >= 0.5)).all()
+    assert (with_labels >= 0.5).sum() > (plain >= 0.5).sum()
     others = {}
     for method in ("ultron-noloss", "compounding"):
         config = None if method == "compounding" else request.method_config  # its defaults

@@ -14,12 +14,13 @@ from ultron.errors import UltronInputError
 from ultron.mesh.compounding import CompoundingConfig
 from ultron.mesh.extract import ExtractionConfig
 from ultron.mesh.observed import OBSERVED_EXTRACTION
+from ultron.mesh.occupancy_mesh import MeshingConfig
 from ultron.methods.catalog import FIELD_METHODS, METHOD_NAMES
 from ultron.methods.compounding_method import CompoundingMethodConfig
 from ultron.methods.on_method import ONConfig
 from ultron.methods.registry import METHODS, MethodInputs, get_method
 from ultron.methods.rocosdf import RoCoSDFConfig
-from ultron.methods.ultron_method import MeshingConfig, UltronConfig
+from ultron.methods.ultron_method import UltronConfig
 from ultron.pipeline.run import ReconstructionRequest, run_method
 from ultron.timing import StageTimer
 

@@ -20,8 +20,8 @@ from ultron.data.outliers import (
 )
 from ultron.errors import UltronInputError
 from ultron.mesh.compounding import CompoundingConfig, compound_labels
+from ultron.mesh.occupancy_mesh import scan_grid
 from ultron.methods.registry import get_method
-from ultron.methods.ultron_method import scan_grid
 from ultron.pipeline.resources import (
     COMPOUNDING_BYTES_PER_PIXEL,
     COMPOUNDING_BYTES_PER_VOXEL,

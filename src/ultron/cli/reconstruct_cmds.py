@@ -78,6 +78,7 @@ def reconstruct(
     echo_support: bool | None = None,
     label_support: float | None = None,
     label_bridges: bool | None = None,
+    label_fusion: bool | None = None,
     allow_other_field: bool = False,
     max_memory: float | None = None,
     mesh_coordinates: str = "lps",
@@ -127,6 +128,8 @@ def reconstruct(
         label_bridges: ultron*: with --label-support, the labelled surface also runs between
             consecutive labelled frames whose labelled cross-sections agree to within MM
             (default: on).
+        label_fusion: ultron*: mesh max(f, C), C the labels f trained on compounded as
+            --method compounding does: the annotated bone stays bone (default: off).
     """
     apply_threads(threads)
     _check_common(seed, field_iters, points, max_memory)
@@ -147,6 +150,7 @@ def reconstruct(
         visibility=visibility, oracle=oracle_transmission, surface=surface,
         theta_context=theta_context, positive_weight=positive_weight, negatives=negatives,
         echo_support=echo_support, label_support_mm=label_support, label_bridges=label_bridges,
+        label_fusion=label_fusion,
         mesh_coordinates=mesh_coordinates, device=device,
     )  # fmt: skip
     lines = StageLines()

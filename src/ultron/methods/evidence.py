@@ -18,7 +18,8 @@ from ultron.data.dataset import SweepDataset
 from ultron.data.labels import bone_points_mm
 from ultron.mesh.evidence import SurfaceEvidence, surface_evidence
 from ultron.mesh.observed import ObservedSurfaceConfig, SurfaceObservation, observe_surface
-from ultron.methods.ultron_method import Reconstruction, elevation_half_thickness_mm
+from ultron.mesh.occupancy_mesh import elevation_half_thickness_mm
+from ultron.methods.ultron_method import Reconstruction
 
 #: ``observation_transmission`` of the T ≡ 1 criterion.
 NO_TRANSMISSION = "none (T = 1)"

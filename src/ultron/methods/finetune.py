@@ -47,13 +47,13 @@ from ultron.errors import UltronInputError, argument_error
 from ultron.fields.context import theta_features
 from ultron.fields.occupancy import OccupancyNetwork
 from ultron.mesh.export import check_mesh_coordinates
+from ultron.mesh.occupancy_mesh import mesh_occupancy
 from ultron.methods.ultron_method import (
     Reconstruction,
     ThetaModel,
     TrainedModel,
     UltronConfig,
     keep_observed_surface,
-    mesh_occupancy,
     occupancy_function,
     occupancy_training_data,
 )

@@ -27,12 +27,8 @@ from ultron.data.labels import gather_labelled_pixels, select_label_frames
 from ultron.device import module_device
 from ultron.errors import argument_error
 from ultron.fields.occupancy import OccupancyNetworkConfig
-from ultron.methods.ultron_method import (
-    MeshingConfig,
-    Reconstruction,
-    TrainedModel,
-    mesh_occupancy,
-)
+from ultron.mesh.occupancy_mesh import MeshingConfig, mesh_occupancy
+from ultron.methods.ultron_method import Reconstruction, TrainedModel
 from ultron.timing import StageTimer
 from ultron.train.fit_checkpoint import OCCUPANCY_FIT, checkpoint_in, resumed_steps
 from ultron.train.occupancy import OccupancyTrainConfig, OccupancyTrainingData, fit_occupancy

@@ -44,7 +44,6 @@ import numpy as np
 import torch
 
 from ultron.data.dataset import SweepDataset
-from ultron.data.geometry import field_of_view_bounds_mm, median_frame_gap_mm
 from ultron.data.labels import (
     OUTER_SIDE_MM,
     FrameSelection,
@@ -52,17 +51,17 @@ from ultron.data.labels import (
     labelled_surface_points_mm,
     select_label_frames,
 )
-from ultron.data.resolution import resolved_spacing_mm
-from ultron.device import evaluation_chunk, module_device
+from ultron.device import module_device
 from ultron.errors import UltronInputError, argument_error
 from ultron.fields.context import ThetaContextConfig, theta_features
 from ultron.fields.occupancy import OccupancyNetwork
+from ultron.mesh.compounding import CompoundingConfig, compound_labels, fuse_with_labels
 from ultron.mesh.echo_support import EchoSupportConfig, echo_support_maps
-from ultron.mesh.extract import ExtractionConfig, extract_surface_tiles
-from ultron.mesh.grid import GridSpec, field_of_view_volume_mm3, meshing_voxel_mm
+from ultron.mesh.extract import ExtractionConfig
+from ultron.mesh.grid import GridSpec
 from ultron.mesh.label_bridges import bridged_labelled_surface_mm
 from ultron.mesh.observed import ObservedSurfaceConfig, SurfaceObservation, observe_surface
-from ultron.mesh.tiles import evaluate_tiles, field_of_view_tiles, tile_for_factor
+from ultron.mesh.occupancy_mesh import MeshingConfig, elevation_half_thickness_mm, mesh_occupancy
 from ultron.timing import Advanced, StageTimer
 from ultron.train.fit_checkpoint import (
     OCCUPANCY_FIT,
@@ -97,31 +96,6 @@ def check_outer_side_mm(value: object) -> None:
 
 
 @dataclass(frozen=True)
-class MeshingConfig:
-    """How an occupancy function is meshed (:func:`mesh_occupancy`): the voxel (None: the
-    scan grid's, :func:`scan_grid`), the coarse-to-fine evaluation's factor, the points per
-    evaluation chunk on a CPU and the iso-surface extraction. UltrON's, its ablation's,
-    fine-tuning's and ON's."""
-
-    voxel_mm: float | None = None
-    coarse_factor: int = 2
-    chunk_points: int = 65_536
-    extraction: ExtractionConfig = field(default_factory=ExtractionConfig)
-
-    def __post_init__(self) -> None:
-        if self.voxel_mm is not None and not self.voxel_mm > 0:
-            raise argument_error("voxel_mm", f"expected > 0, got {self.voxel_mm}")
-        if not isinstance(self.coarse_factor, int) or self.coarse_factor < 1:
-            raise argument_error(
-                "coarse_factor", f"expected a positive integer, got {self.coarse_factor!r}"
-            )
-        if isinstance(self.chunk_points, bool) or not isinstance(self.chunk_points, int):
-            raise argument_error("chunk_points", f"expected an integer, got {self.chunk_points!r}")
-        if self.chunk_points < 1:
-            raise argument_error("chunk_points", f"expected ≥ 1, got {self.chunk_points}")
-
-
-@dataclass(frozen=True)
 class UltronConfig:
     """Settings of an UltrON reconstruction (``visibility``: the source of the loss's T,
     ``context``: the neighbourhood f_ω reads besides θ(x), ``label_outer_side_mm``: how far
@@ -129,7 +103,9 @@ class UltronConfig:
     :func:`~ultron.data.labels.surface_outer_side`; 0: the labels as stored;
     ``echo_support``: a frame observes only the surface it shows as bone,
     :mod:`ultron.mesh.echo_support`; None: T alone decides; ``extraction``: None, the one that
-    goes with ``observed.surface``, :attr:`surface_extraction`)."""
+    goes with ``observed.surface``, :attr:`surface_extraction`; ``label_fusion``: mesh
+    max(f, C), C the labels f trained on compounded so, :func:`~ultron.mesh.compounding.
+    fuse_with_labels`; None: f alone)."""
 
     occupancy: OccupancyTrainConfig = field(default_factory=OccupancyTrainConfig)
     voxel_mm: float | None = None
@@ -141,13 +117,18 @@ class UltronConfig:
     context: ThetaContextConfig = field(default_factory=ThetaContextConfig)
     label_outer_side_mm: float = OUTER_SIDE_MM
     echo_support: EchoSupportConfig | None = field(default_factory=EchoSupportConfig)
+    label_fusion: CompoundingConfig | None = None
 
     def __post_init__(self) -> None:
-        if self.echo_support is not None and not isinstance(self.echo_support, EchoSupportConfig):
-            raise argument_error(
-                "echo_support",
-                f"expected an EchoSupportConfig or None, got {type(self.echo_support).__name__}",
-            )
+        for name, kind in (
+            ("echo_support", EchoSupportConfig),
+            ("label_fusion", CompoundingConfig),
+        ):
+            value = getattr(self, name)
+            if value is not None and not isinstance(value, kind):
+                raise argument_error(
+                    name, f"expected a {kind.__name__} or None, got {type(value).__name__}"
+                )
         check_outer_side_mm(self.label_outer_side_mm)
         _ = self.meshing  # its checks (MeshingConfig)
 
@@ -236,32 +217,6 @@ class Reconstruction:
     selection: FrameSelection | None = None
 
 
-def elevation_half_thickness_mm(dataset: SweepDataset, voxel_mm: float) -> float:
-    """Half-thickness of the slab each frame is taken to image: 0.75 × the largest median gap
-    between consecutive frames of a sweep (so that neighbouring slabs overlap), ≥ one voxel."""
-    gaps = [median_frame_gap_mm(s.probe_to_world) for s in dataset.sweeps if s.n_frames > 1]
-    return max(0.75 * max(gaps, default=0.0), voxel_mm)
-
-
-def scan_voxel_mm(dataset: SweepDataset, voxel_mm: float | None) -> float:
-    """The meshing voxel of :func:`scan_grid`: ``voxel_mm`` when given, else the finer pixel
-    spacing, grown where the field of view (:func:`~ultron.mesh.grid.field_of_view_volume_mm3`)
-    would hold more than :data:`~ultron.mesh.grid.MAX_REGION_VOXELS` voxels of it
-    (:func:`~ultron.mesh.grid.meshing_voxel_mm`)."""
-    if voxel_mm:
-        return voxel_mm
-    half = elevation_half_thickness_mm(dataset, 0.0)
-    region = field_of_view_volume_mm3(dataset.all_poses(), dataset.probe, half)
-    return meshing_voxel_mm(dataset.probe, None, region, finest_mm=resolved_spacing_mm(dataset))
-
-
-def scan_grid(dataset: SweepDataset, voxel_mm: float | None) -> GridSpec:
-    """The meshing grid over everything the probe saw, voxel :func:`scan_voxel_mm`. Only its
-    tiles that the field of view reaches are evaluated (:func:`mesh_occupancy`)."""
-    bounds = field_of_view_bounds_mm(dataset.all_poses(), dataset.probe).numpy()
-    return GridSpec.from_bounds(bounds, scan_voxel_mm(dataset, voxel_mm))
-
-
 def occupancy_training_data(
     dataset: SweepDataset,
     fitted,
@@ -304,48 +259,6 @@ def occupancy_function(fitted, network: OccupancyNetwork, context: ThetaContextC
         return network.occupancy(features.to(module_device(network))).cpu()
 
     return fn
-
-
-def mesh_occupancy(
-    fn, dataset: SweepDataset, config: MeshingConfig, timer: StageTimer, device=None
-) -> tuple:
-    """Evaluate ``fn`` on the scan grid inside the field of view and extract the surface;
-    returns (mesh, occupancy volume, the volume's grid). ``device``: where ``fn`` computes,
-    which sets the evaluation chunk (:func:`~ultron.device.evaluation_chunk` of
-    ``config.chunk_points``).
-
-    The grid is worked in tiles (:mod:`ultron.mesh.tiles`): the field-of-view mask is
-    rasterised on the coarse grid of the coarse-to-fine evaluation
-    (:func:`~ultron.mesh.grid.evaluate_coarse_to_fine`, so it is exact to one coarse voxel),
-    kept only in the tiles some frame reaches, and only those tiles (with a one-tile rim) are
-    evaluated and binarised; the surface is extracted from the tiles
-    (:func:`~ultron.mesh.extract.extract_surface_tiles`). Mesh and volume equal those of the
-    dense grid (for a power-of-two coarse factor, bit for bit), in memory that grows with the
-    field of view, not its bounding box. The volume is the occupancy at the meshing voxel up to
-    :data:`~ultron.mesh.tiles.MAX_VOLUME_VOXELS` voxels, beyond that at a power-of-two
-    multiple of it (block means; its grid says which), zero outside the field of view.
-    """
-    grid = scan_grid(dataset, config.voxel_mm)
-    factor = config.coarse_factor
-    tile = tile_for_factor(factor)
-    with timer.stage("mesh_fov_mask"):
-        mask = field_of_view_tiles(
-            grid.coarsened(factor),
-            dataset.all_poses(),
-            dataset.probe,
-            elevation_half_thickness_mm(dataset, grid.voxel_mm),
-            tile // factor,
-        )
-    with timer.stage("mesh_evaluate"):
-        evaluated = evaluate_tiles(
-            fn, grid, config.extraction.threshold, factor, mask, tile,
-            evaluation_chunk(device, config.chunk_points), advance=timer.counter("tiles"),
-        )  # fmt: skip
-    with timer.stage("mesh_extract"):
-        mesh = extract_surface_tiles(
-            evaluated.tiles, grid, config.extraction, timer.counter("smoothing iterations")
-        )
-    return mesh, evaluated.volume.values, evaluated.volume.grid
 
 
 def labelled_support_points_mm(
@@ -479,6 +392,13 @@ def mesh_ultron(
     same ``config`` and ``truth``) and keep its observed surface."""
     fitted, network, selection = trained.fitted, trained.network, trained.selection
     fn = occupancy_function(fitted, network, config.context)
+    fusion = None
+    if config.label_fusion is not None:
+        with timer.stage("mesh_label_fusion"):
+            compounded = compound_labels(dataset, selection, config.label_fusion)
+        fn = fuse_with_labels(fn, compounded)
+        fusion = {"grid": compounded.grid.to_dict(),
+                  "hole_fill_radius_mm": compounded.hole_fill_radius_mm}  # fmt: skip
     mesh, volume, grid = mesh_occupancy(fn, dataset, config.meshing, timer, module_device(network))
     with timer.stage("mesh_observed"):
         observation = keep_observed_surface(
@@ -501,6 +421,7 @@ def mesh_ultron(
         **resumed_steps({OCCUPANCY_FIT: trained.checkpoint}),
         "occupancy_label_loss": trained.label_loss,
         "grid": grid.to_dict(),
+        "label_fusion": fusion,
     }
     model = ThetaModel(
         occupancy_config.loss,

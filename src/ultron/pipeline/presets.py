@@ -23,6 +23,7 @@ from dataclasses import dataclass, replace
 
 from ultron.errors import argument_error
 from ultron.fields.context import ThetaContextConfig
+from ultron.mesh.compounding import CompoundingConfig
 from ultron.mesh.echo_support import EchoSupportConfig
 from ultron.mesh.observed import ObservedSurfaceConfig
 from ultron.methods.catalog import FIELD_METHODS
@@ -106,6 +107,7 @@ def preset_request(
     echo_support: bool | None = None,
     label_support_mm: float | None = None,
     label_bridges: bool | None = None,
+    label_fusion: bool | None = None,
     mesh_coordinates: str = "lps",
     device: str = "cpu",
 ) -> ReconstructionRequest:
@@ -117,7 +119,8 @@ def preset_request(
     observed crop asks some frame to show bone, :mod:`ultron.mesh.echo_support`),
     ``label_support_mm`` (surface that near the labelled surface counts as observed,
     :mod:`ultron.mesh.observed`), ``label_bridges`` (and near the bridges between agreeing
-    labelled frames, :mod:`ultron.mesh.label_bridges`); metrics on
+    labelled frames, :mod:`ultron.mesh.label_bridges`), ``label_fusion`` (mesh max(f, the
+    compounded labels), :func:`~ultron.mesh.compounding.fuse_with_labels`); metrics on
     ``points``
     points per surface. The request carries ``method``'s settings alone
     (:meth:`~ultron.methods.registry.Method.config_of`)."""
@@ -144,6 +147,8 @@ def preset_request(
         ultron = replace(ultron, context=ThetaContextConfig.parse(theta_context))
     if echo_support is not None:
         ultron = replace(ultron, echo_support=EchoSupportConfig() if echo_support else None)
+    if label_fusion is not None:
+        ultron = replace(ultron, label_fusion=CompoundingConfig() if label_fusion else None)
     for name, value in (("label_support_mm", label_support_mm), ("label_bridges", label_bridges)):
         if value is not None:
             ultron = replace(ultron, observed=replace(ultron.observed, **{name: value}))

@@ -7,7 +7,7 @@ the acoustic field's finest planes for millions of nodes per side. :func:`check_
 refuses such a run at once with a one-line error saying which input made it so:
 
 1. outlier poses (:func:`ultron.data.outliers.check_pose_outliers`), named by frame;
-2. the meshing grid (:func:`ultron.methods.ultron_method.scan_grid`'s rule: the field of
+2. the meshing grid (:func:`ultron.mesh.occupancy_mesh.scan_grid`'s rule: the field of
    view's bounding box, padded by 2 voxels, at ``voxel_mm`` or the finer pixel spacing) at
    :data:`MESH_BYTES_PER_FOV_VOXEL` bytes per voxel of the tiles the field of view reaches,
    :data:`VOLUME_BYTES_PER_VOXEL` per voxel of the occupancy volume and
@@ -51,13 +51,13 @@ from ultron.errors import UltronInputError
 from ultron.memory import memory_limit
 from ultron.mesh.compounding import CHUNK_PIXELS, CompoundingConfig, compounding_grid
 from ultron.mesh.grid import GridSpec, grid_shape
-from ultron.mesh.tiles import MAX_VOLUME_VOXELS, reached_tiles, tile_for_factor, volume_factor
-from ultron.methods.ultron_method import (
+from ultron.mesh.occupancy_mesh import (
     MeshingConfig,
     elevation_half_thickness_mm,
     scan_grid,
     scan_voxel_mm,
 )
+from ultron.mesh.tiles import MAX_VOLUME_VOXELS, reached_tiles, tile_for_factor, volume_factor
 from ultron.models.fitted import RENDER_CHUNK_FRAMES
 from ultron.train.field_fit import check_fit_frames
 from ultron.train.fit_shape import resolve_fit_shape
