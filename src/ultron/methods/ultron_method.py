@@ -13,7 +13,8 @@
    (``OccupancyTrainConfig.negatives="observed"``: only observed free space is evidence);
    ``negatives="weighted"`` scales it by T, the paper's BCE(T·f, y). 4. Evaluate
    f(g(x)) on a grid over the scanned region (voxel = the finer pixel spacing), zero outside
-   every frame's field of view, and mesh it. 5. Keep the observed surface
+   every frame's field of view, and mesh it (with ``label_fusion``, max(f, the compounded
+   labels): the annotated bone stays bone; off by default). 5. Keep the observed surface
    (:mod:`ultron.mesh.observed`, ``surface="observed"``, the default): the faces that some frame
    saw facing the probe with a transmission ≥ 0.3 above them and, with ``echo_support`` (the
    default), that some frame shows as bone — an echo ``label --auto``'s detector scores as bone
@@ -104,8 +105,8 @@ class UltronConfig:
     ``echo_support``: a frame observes only the surface it shows as bone,
     :mod:`ultron.mesh.echo_support`; None: T alone decides; ``extraction``: None, the one that
     goes with ``observed.surface``, :attr:`surface_extraction`; ``label_fusion``: mesh
-    max(f, C), C the labels f trained on compounded so, :func:`~ultron.mesh.compounding.
-    fuse_with_labels`; None: f alone)."""
+    max(f, C), C the labels f trained on compounded with these settings,
+    :func:`~ultron.mesh.compounding.fuse_with_labels`; None, the default: f alone)."""
 
     occupancy: OccupancyTrainConfig = field(default_factory=OccupancyTrainConfig)
     voxel_mm: float | None = None
