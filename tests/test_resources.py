@@ -22,6 +22,7 @@ from ultron.errors import UltronInputError
 from ultron.mesh.compounding import CompoundingConfig, compound_labels
 from ultron.mesh.occupancy_mesh import scan_grid
 from ultron.methods.registry import get_method
+from ultron.methods.ultron_method import UltronConfig
 from ultron.pipeline.resources import (
     COMPOUNDING_BYTES_PER_PIXEL,
     COMPOUNDING_BYTES_PER_VOXEL,
@@ -145,6 +146,13 @@ def test_compounding_estimate_is_compound_labels_grid(tiny_dataset: SweepDataset
         check_compounding_grid(tiny_dataset, selection, config, "ds", 0.99 * gib)
     # the run refuses before any work, without the field of view's (larger) estimate
     assert not get_method("compounding").scan_grid
+    # UltrON with --label-fusion builds the same grid, and checks it the same way
+    ultron = get_method("ultron")
+    fused = UltronConfig(label_fusion=config)
+    ultron.check_resources(tiny_dataset, UltronConfig(), selection, "ds", 0.99 * gib)
+    ultron.check_resources(tiny_dataset, fused, selection, "ds", 1.01 * gib)
+    with pytest.raises(UltronInputError, match=pattern):
+        ultron.check_resources(tiny_dataset, fused, selection, "ds", 0.99 * gib)
 
 
 def test_tiny_pixels_get_a_voxel_from_the_region_not_a_petabyte_grid(tiny_dataset: SweepDataset):

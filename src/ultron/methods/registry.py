@@ -178,6 +178,19 @@ class UltronMethod(MethodBase):
     def visibility(self, config: UltronConfig) -> VisibilityConfig | None:
         return config.visibility
 
+    def check_resources(
+        self,
+        dataset: SweepDataset,
+        config: UltronConfig,
+        selection: FrameSelection,
+        root: str | Path,
+        max_memory_gib: float | None,
+    ) -> None:
+        """With ``config.label_fusion``, the compounded labels' grid as compounding checks it
+        (an upper bound: fusion reads that grid and does not mesh it)."""
+        if config.label_fusion is not None:
+            check_compounding_grid(dataset, selection, config.label_fusion, root, max_memory_gib)
+
     def fit(self, dataset: SweepDataset, inputs: MethodInputs) -> Reconstruction:
         return self.finish(dataset, inputs, self.train(dataset, inputs))
 
