@@ -11,13 +11,9 @@ from ultron.data.geometry import frame_pixels_world
 from ultron.data.labels import select_label_frames
 from ultron.errors import UltronInputError
 from ultron.mesh import extract_surface
-from ultron.mesh.compounding import (
-    CompoundedVolume,
-    CompoundingConfig,
-    compound_labels,
-    fuse_with_labels,
-)
+from ultron.mesh.compounding import CompoundedVolume, CompoundingConfig, compound_labels
 from ultron.mesh.grid import GridSpec
+from ultron.mesh.label_fusion import LabelFusionConfig, fuse_with_labels, labelled_frame_share
 
 RADIUS = 6.0
 CENTER = np.array([0.0, 10.0, 0.0])
@@ -302,3 +298,25 @@ def test_fusion_keeps_the_labelled_sphere_inside_an_empty_f(sphere_dataset):
 def test_fusion_refuses_anything_but_a_compounded_volume():
     with pytest.raises(UltronInputError, match="compounded"):
         fuse_with_labels(lambda p: p[:, 0], np.zeros((3, 3, 3)))
+
+
+def test_fusion_applies_when_nearly_every_frame_is_labelled(sphere_dataset):
+    """33 frames: the default fuses from ⌈0.9 × 33⌉ = 30 labelled frames up; a share of 0
+    fuses at any label fraction."""
+    n_frames = sphere_dataset.n_frames
+    assert n_frames == 33
+    default, always = LabelFusionConfig(), LabelFusionConfig(min_frame_share=0.0)
+    for fraction, n_labelled in ((1.0, 33), (30 / 33, 30), (29 / 33, 29), (0.1, 4)):
+        selection = select_label_frames(sphere_dataset, fraction, seed=0)
+        assert selection.n_frames == n_labelled
+        assert labelled_frame_share(sphere_dataset, selection) == n_labelled / 33
+        assert default.applies(sphere_dataset, selection) == (n_labelled >= 30)
+        assert always.applies(sphere_dataset, selection)
+
+
+@pytest.mark.parametrize("share", [-0.1, 1.5, float("nan")])
+def test_fusion_config_refuses_a_share_outside_0_1(share):
+    with pytest.raises(UltronInputError, match="min_frame_share"):
+        LabelFusionConfig(min_frame_share=share)
+    with pytest.raises(UltronInputError, match="volume"):
+        LabelFusionConfig(volume=None)

@@ -12,8 +12,8 @@ from ultron.benchmark.config import BenchmarkConfig, benchmark_config, quick_con
 from ultron.cli.main import app
 from ultron.device import ACCELERATOR_CHUNK_FACTOR, evaluation_chunk
 from ultron.errors import UltronInputError
-from ultron.mesh.compounding import CompoundingConfig
 from ultron.mesh.extract import ExtractionConfig
+from ultron.mesh.label_fusion import LabelFusionConfig
 from ultron.mesh.observed import OBSERVED_EXTRACTION, ObservedSurfaceConfig
 from ultron.methods.compounding_method import CompoundingMethodConfig
 from ultron.methods.on_method import ONConfig
@@ -126,9 +126,11 @@ def test_request_takes_the_preset_and_options_win():
     assert not preset_request(label_bridges=False).method_config.observed.label_bridges
     assert not preset_request("paper").method_config.observed.label_bridges
     assert preset_request("paper", label_fusion=True).method_config.label_fusion == (
-        CompoundingConfig()
+        LabelFusionConfig(min_frame_share=0.0)
     )
     assert preset_request(label_fusion=False).method_config.label_fusion is None
+    assert preset_request().method_config.label_fusion == LabelFusionConfig()
+    assert preset_request("paper").method_config.label_fusion is None
     on_again = preset_request("paper", "ultron", echo_support=True).method_config.echo_support
     assert on_again is not None and on_again == pipeline_preset("fast").ultron.echo_support
     fast = preset_request()
@@ -236,8 +238,9 @@ def test_cli_label_fusion_flag_reaches_the_request(tmp_path: Path, monkeypatch):
         return {"metrics": None, "timings_s": {}}
 
     monkeypatch.setattr(ultron.pipeline.run, "reconstruct", fake_run)
-    for flag in ("--label-fusion", "--no-label-fusion"):
-        args = ["reconstruct", str(tmp_path), "--out", str(tmp_path / "o"), flag]
+    for flags in (["--label-fusion"], ["--no-label-fusion"], [], ["--preset", "paper"]):
+        args = ["reconstruct", str(tmp_path), "--out", str(tmp_path / "o"), *flags]
         result = CliRunner().invoke(app, args)
         assert result.exit_code == 0, result.output
-    assert seen == [CompoundingConfig(), None]
+    # given: at any label fraction, or never; not given: the preset's (fast: nearly every frame)
+    assert seen == [LabelFusionConfig(min_frame_share=0.0), None, LabelFusionConfig(), None]

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 from conftest import tiny_ultron_run
-from ultron.mesh.compounding import CompoundingConfig
 from ultron.mesh.export import load_mesh
+from ultron.mesh.label_fusion import LabelFusionConfig
 from ultron.methods.ultron_method import UltronConfig
 from ultron.metrics.surface import MetricsConfig
 from ultron.pipeline.run import ReconstructionRequest, reconstruct
@@ -141,14 +141,18 @@ def test_ultron_end_to_end(tiny: Path, tmp_path: Path, monkeypatch):
     assert losses[0] == losses[1] == run["occupancy_label_loss"] > 0
     assert two["metrics"]["mean"]["mad"] == pytest.approx(ours["mad"])
     # with the labels fused in: the same f (same seed and labels), meshed as max(f, C)
-    fusion = replace(request.method_config, label_fusion=CompoundingConfig())
+    fusion = replace(request.method_config, label_fusion=LabelFusionConfig(min_frame_share=0))
     fused = replace(request, method_config=fusion)
     reconstruct(tiny, fused, tmp_path / "fused", field_config=field_config, report=False)
     run = json.loads((tmp_path / "fused" / "run.json").read_text())
     assert (
         run["label_fusion"]["hole_fill_radius_mm"] > 0 and "mesh_label_fusion" in run["timings_s"]
     )
-    assert json.loads((tmp_path / "again" / "run.json").read_text())["label_fusion"] is None
+    # by default half the labelled frames are too few to fuse: recorded, not applied
+    plain_run = json.loads((tmp_path / "again" / "run.json").read_text())
+    assert plain_run["label_fusion"]["applied"] is False and run["label_fusion"]["applied"]
+    assert plain_run["label_fusion"]["labelled_frame_share"] < 0.9
+    assert "mesh_label_fusion" not in plain_run["timings_s"]
     plain, with_labels = (
         np.asarray(nib.load(tmp_path / name / "occupancy.nii.gz").dataobj)
         for name in ("again", "fused")

@@ -20,6 +20,7 @@ from ultron.data.outliers import (
 )
 from ultron.errors import UltronInputError
 from ultron.mesh.compounding import CompoundingConfig, compound_labels
+from ultron.mesh.label_fusion import DENSE_FRAME_SHARE, LabelFusionConfig
 from ultron.mesh.occupancy_mesh import scan_grid
 from ultron.methods.registry import get_method
 from ultron.methods.ultron_method import UltronConfig
@@ -146,10 +147,16 @@ def test_compounding_estimate_is_compound_labels_grid(tiny_dataset: SweepDataset
         check_compounding_grid(tiny_dataset, selection, config, "ds", 0.99 * gib)
     # the run refuses before any work, without the field of view's (larger) estimate
     assert not get_method("compounding").scan_grid
-    # UltrON with --label-fusion builds the same grid, and checks it the same way
+    # UltrON fusing the labels builds the same grid, and checks it the same way where the
+    # fusion applies; not without fusion, nor by default where 5 of 7 frames are labelled
     ultron = get_method("ultron")
-    fused = UltronConfig(label_fusion=config)
-    ultron.check_resources(tiny_dataset, UltronConfig(), selection, "ds", 0.99 * gib)
+    fused = UltronConfig(label_fusion=LabelFusionConfig(min_frame_share=0.0, volume=config))
+    assert selection.n_frames < DENSE_FRAME_SHARE * tiny_dataset.n_frames
+    for unfused in (
+        UltronConfig(label_fusion=None),
+        UltronConfig(label_fusion=replace(fused.label_fusion, min_frame_share=DENSE_FRAME_SHARE)),
+    ):
+        ultron.check_resources(tiny_dataset, unfused, selection, "ds", 1e-6 * gib)
     ultron.check_resources(tiny_dataset, fused, selection, "ds", 1.01 * gib)
     with pytest.raises(UltronInputError, match=pattern):
         ultron.check_resources(tiny_dataset, fused, selection, "ds", 0.99 * gib)

@@ -129,7 +129,9 @@ def reconstruct(
             consecutive labelled frames whose labelled cross-sections agree to within MM
             (default: on).
         label_fusion: ultron*: mesh max(f, C), C the labels f trained on compounded as
-            --method compounding does: the annotated bone stays bone (default: off).
+            --method compounding does: the annotated bone stays bone; --label-fusion at any
+            label fraction (default: the preset's: when the labelled frames are ≥ 90 % of the
+            dataset's, e.g. label --auto's labels with --label-fraction 1; paper: off).
     """
     apply_threads(threads)
     _check_common(seed, field_iters, points, max_memory)

@@ -40,12 +40,9 @@ frame faces (:func:`ultron.methods.evidence.faced_observation`).
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-import torch
-from scipy import ndimage
 
 from ultron.data.dataset import SweepDataset
 from ultron.data.geometry import median_frame_gap_mm
@@ -240,27 +237,3 @@ def compound_labels(
         grid=grid,
         hole_fill_radius_mm=float(radius),
     )
-
-
-def fuse_with_labels(
-    occupancy_fn: Callable[[torch.Tensor], torch.Tensor], compounded: CompoundedVolume
-) -> Callable[[torch.Tensor], torch.Tensor]:
-    """An occupancy function (points (M, 3) world mm → (M,) in [0, 1] on the CPU) fused with
-    the compounded labels: x ↦ max(f(x), C(x)), C the ``compounded`` volume read trilinearly
-    on its grid (0 outside it). The annotated bone is bone whatever f made of it; f decides
-    everywhere else, so its 0.5 level is the union of both surfaces' solids."""
-    if not isinstance(compounded, CompoundedVolume):
-        raise argument_error(
-            "compounded", f"expected a CompoundedVolume, got {type(compounded).__name__}"
-        )
-    volume = np.ascontiguousarray(compounded.volume, dtype=np.float32)
-    origin_mm = np.asarray(compounded.grid.origin_mm, dtype=np.float64)
-    voxel_mm = compounded.grid.voxel_mm
-
-    def fused(points_mm: torch.Tensor) -> torch.Tensor:
-        occupancy = occupancy_fn(points_mm)
-        index = (points_mm.detach().cpu().double().numpy() - origin_mm) / voxel_mm
-        labelled = ndimage.map_coordinates(volume, index.T, order=1, mode="constant", cval=0.0)
-        return torch.maximum(occupancy, torch.from_numpy(labelled).to(occupancy.dtype))
-
-    return fused

@@ -186,10 +186,11 @@ class UltronMethod(MethodBase):
         root: str | Path,
         max_memory_gib: float | None,
     ) -> None:
-        """With ``config.label_fusion``, the compounded labels' grid as compounding checks it
-        (an upper bound: fusion reads that grid and does not mesh it)."""
-        if config.label_fusion is not None:
-            check_compounding_grid(dataset, selection, config.label_fusion, root, max_memory_gib)
+        """With ``config.label_fusion`` applying to ``selection``, the compounded labels' grid
+        as compounding checks it (an upper bound: fusion reads that grid and does not mesh it)."""
+        fusion = config.label_fusion
+        if fusion is not None and fusion.applies(dataset, selection):
+            check_compounding_grid(dataset, selection, fusion.volume, root, max_memory_gib)
 
     def fit(self, dataset: SweepDataset, inputs: MethodInputs) -> Reconstruction:
         return self.finish(dataset, inputs, self.train(dataset, inputs))

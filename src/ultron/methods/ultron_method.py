@@ -13,8 +13,9 @@
    (``OccupancyTrainConfig.negatives="observed"``: only observed free space is evidence);
    ``negatives="weighted"`` scales it by T, the paper's BCE(T·f, y). 4. Evaluate
    f(g(x)) on a grid over the scanned region (voxel = the finer pixel spacing), zero outside
-   every frame's field of view, and mesh it (with ``label_fusion``, max(f, the compounded
-   labels): the annotated bone stays bone; off by default). 5. Keep the observed surface
+   every frame's field of view, and mesh it (with ``label_fusion``, by default when the run
+   labels nearly every frame, max(f, the compounded labels): the annotated bone stays bone).
+   5. Keep the observed surface
    (:mod:`ultron.mesh.observed`, ``surface="observed"``, the default): the faces that some frame
    saw facing the probe with a transmission ≥ 0.3 above them and, with ``echo_support`` (the
    default), that some frame shows as bone — an echo ``label --auto``'s detector scores as bone
@@ -56,11 +57,12 @@ from ultron.device import module_device
 from ultron.errors import UltronInputError, argument_error
 from ultron.fields.context import ThetaContextConfig, theta_features
 from ultron.fields.occupancy import OccupancyNetwork
-from ultron.mesh.compounding import CompoundingConfig, compound_labels, fuse_with_labels
+from ultron.mesh.compounding import compound_labels
 from ultron.mesh.echo_support import EchoSupportConfig, echo_support_maps
 from ultron.mesh.extract import ExtractionConfig
 from ultron.mesh.grid import GridSpec
 from ultron.mesh.label_bridges import bridged_labelled_surface_mm
+from ultron.mesh.label_fusion import LabelFusionConfig, fuse_with_labels, labelled_frame_share
 from ultron.mesh.observed import ObservedSurfaceConfig, SurfaceObservation, observe_surface
 from ultron.mesh.occupancy_mesh import MeshingConfig, elevation_half_thickness_mm, mesh_occupancy
 from ultron.timing import Advanced, StageTimer
@@ -105,8 +107,8 @@ class UltronConfig:
     ``echo_support``: a frame observes only the surface it shows as bone,
     :mod:`ultron.mesh.echo_support`; None: T alone decides; ``extraction``: None, the one that
     goes with ``observed.surface``, :attr:`surface_extraction`; ``label_fusion``: mesh
-    max(f, C), C the labels f trained on compounded with these settings,
-    :func:`~ultron.mesh.compounding.fuse_with_labels`; None, the default: f alone)."""
+    max(f, C), C the labels f trained on compounded, when the run labels nearly every frame
+    (:mod:`ultron.mesh.label_fusion`); None: f alone)."""
 
     occupancy: OccupancyTrainConfig = field(default_factory=OccupancyTrainConfig)
     voxel_mm: float | None = None
@@ -118,12 +120,12 @@ class UltronConfig:
     context: ThetaContextConfig = field(default_factory=ThetaContextConfig)
     label_outer_side_mm: float = OUTER_SIDE_MM
     echo_support: EchoSupportConfig | None = field(default_factory=EchoSupportConfig)
-    label_fusion: CompoundingConfig | None = None
+    label_fusion: LabelFusionConfig | None = field(default_factory=LabelFusionConfig)
 
     def __post_init__(self) -> None:
         for name, kind in (
             ("echo_support", EchoSupportConfig),
-            ("label_fusion", CompoundingConfig),
+            ("label_fusion", LabelFusionConfig),
         ):
             value = getattr(self, name)
             if value is not None and not isinstance(value, kind):
@@ -395,11 +397,15 @@ def mesh_ultron(
     fn = occupancy_function(fitted, network, config.context)
     fusion = None
     if config.label_fusion is not None:
+        fusion = {"min_frame_share": config.label_fusion.min_frame_share,
+                  "labelled_frame_share": labelled_frame_share(dataset, selection),
+                  "applied": config.label_fusion.applies(dataset, selection)}  # fmt: skip
+    if fusion is not None and fusion["applied"]:
         with timer.stage("mesh_label_fusion"):
-            compounded = compound_labels(dataset, selection, config.label_fusion)
+            compounded = compound_labels(dataset, selection, config.label_fusion.volume)
         fn = fuse_with_labels(fn, compounded)
-        fusion = {"grid": compounded.grid.to_dict(),
-                  "hole_fill_radius_mm": compounded.hole_fill_radius_mm}  # fmt: skip
+        fusion.update(grid=compounded.grid.to_dict(),
+                      hole_fill_radius_mm=compounded.hole_fill_radius_mm)  # fmt: skip
     mesh, volume, grid = mesh_occupancy(fn, dataset, config.meshing, timer, module_device(network))
     with timer.stage("mesh_observed"):
         observation = keep_observed_surface(

@@ -8,7 +8,7 @@
   :func:`~ultron.train.field_config.field_preset` ``"paper"``); f_ω on θ(x) alone
   (no neighbourhood), 50k iterations of the paper's BCE(T·f, y) with background labels scaled
   by T and unweighted classes; the whole extracted iso-surface (no observed-surface crop;
-  pieces under 5 % of the largest dropped);
+  pieces under 5 % of the largest dropped; no label fusion);
   ON with 50k iterations; RoCoSDF's ``paper`` preset. The paper does not give its batch sizes:
   the field renders four whole frames per step (the batching a GPU wants; a patch wider than
   the frame is the whole frame) and f_ω keeps 4096 labelled pixels per step. Days on a CPU,
@@ -23,8 +23,8 @@ from dataclasses import dataclass, replace
 
 from ultron.errors import argument_error
 from ultron.fields.context import ThetaContextConfig
-from ultron.mesh.compounding import CompoundingConfig
 from ultron.mesh.echo_support import EchoSupportConfig
+from ultron.mesh.label_fusion import LabelFusionConfig
 from ultron.mesh.observed import ObservedSurfaceConfig
 from ultron.methods.catalog import FIELD_METHODS
 from ultron.methods.on_method import ONConfig
@@ -76,6 +76,7 @@ def pipeline_preset(name: str = "fast", seed: int = 0) -> PipelinePreset:
         observed=ObservedSurfaceConfig(surface="all", label_support_mm=0.0, label_bridges=False),
         label_outer_side_mm=0.0,
         echo_support=None,
+        label_fusion=None,
     )
     on = ONConfig()
     on = replace(on, occupancy=replace(on.occupancy, iters=PAPER_OCCUPANCY_ITERS))
@@ -119,8 +120,8 @@ def preset_request(
     observed crop asks some frame to show bone, :mod:`ultron.mesh.echo_support`),
     ``label_support_mm`` (surface that near the labelled surface counts as observed,
     :mod:`ultron.mesh.observed`), ``label_bridges`` (and near the bridges between agreeing
-    labelled frames, :mod:`ultron.mesh.label_bridges`), ``label_fusion`` (mesh max(f, the
-    compounded labels), :func:`~ultron.mesh.compounding.fuse_with_labels`); metrics on
+    labelled frames, :mod:`ultron.mesh.label_bridges`), ``label_fusion`` (True: mesh max(f, the
+    compounded labels) at any label fraction, :mod:`ultron.mesh.label_fusion`); metrics on
     ``points``
     points per surface. The request carries ``method``'s settings alone
     (:meth:`~ultron.methods.registry.Method.config_of`)."""
@@ -148,7 +149,8 @@ def preset_request(
     if echo_support is not None:
         ultron = replace(ultron, echo_support=EchoSupportConfig() if echo_support else None)
     if label_fusion is not None:
-        ultron = replace(ultron, label_fusion=CompoundingConfig() if label_fusion else None)
+        fusion = LabelFusionConfig(min_frame_share=0.0) if label_fusion else None
+        ultron = replace(ultron, label_fusion=fusion)
     for name, value in (("label_support_mm", label_support_mm), ("label_bridges", label_bridges)):
         if value is not None:
             ultron = replace(ultron, observed=replace(ultron.observed, **{name: value}))

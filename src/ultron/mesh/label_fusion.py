@@ -1,0 +1,90 @@
+"""Label fusion: UltrON's occupancy and the compounded labels it trained on, meshed as one.
+
+The meshed occupancy is
+
+    F(x) = max(f(x), C(x)),
+
+f the trained occupancy network and C the labels of the frames f trained on, compounded as
+``--method compounding`` does (:func:`~ultron.mesh.compounding.compound_labels`) and read
+trilinearly (0 outside C's grid). The annotated bone is bone whatever f made of it; f decides
+everywhere else. Its 0.5 level is the union of the two solids, so the surface keeps every
+labelled bone f lost and the bone f found beyond the labels.
+
+When it applies (:attr:`LabelFusionConfig.min_frame_share`): C between two labelled frames is
+the hole filling's interpolation across their gap. With nearly every frame labelled the gap is
+one step of the sweep and C is the labels themselves; with sparse frames (10 % of them lie
+about ten steps apart) the fill adds surface off the bone where the cross-sections differ. Measured on
+tuning data, both ways: docs/decisions.md#label-fusion-when-nearly-every-frame-is-labelled-meshlabel_fusionpy.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+from scipy import ndimage
+
+from ultron.data.dataset import SweepDataset
+from ultron.data.labels import FrameSelection
+from ultron.errors import argument_error
+from ultron.mesh.compounding import CompoundedVolume, CompoundingConfig
+
+#: The share of a dataset's frames a run must label for the default fusion to apply: nearly
+#: every frame, which admits a few unannotated ones (the benchmark leaves 5 % unannotated).
+DENSE_FRAME_SHARE = 0.9
+
+
+@dataclass(frozen=True)
+class LabelFusionConfig:
+    """When and how UltrON meshes max(f, C) (module doc): ``min_frame_share``, fuse only when
+    the run's labelled frames are at least this share of the dataset's frames (0: at every
+    label fraction); ``volume``, how C is compounded."""
+
+    min_frame_share: float = DENSE_FRAME_SHARE
+    volume: CompoundingConfig = field(default_factory=CompoundingConfig)
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.min_frame_share <= 1.0:
+            raise argument_error(
+                "min_frame_share", f"expected a share in [0, 1], got {self.min_frame_share}"
+            )
+        if not isinstance(self.volume, CompoundingConfig):
+            raise argument_error(
+                "volume", f"expected a CompoundingConfig, got {type(self.volume).__name__}"
+            )
+
+    def applies(self, dataset: SweepDataset, selection: FrameSelection) -> bool:
+        """Whether ``selection``'s frames are at least :attr:`min_frame_share` of
+        ``dataset``'s frames (every sweep's, labelled or not)."""
+        return selection.n_frames >= self.min_frame_share * dataset.n_frames
+
+
+def labelled_frame_share(dataset: SweepDataset, selection: FrameSelection) -> float:
+    """The share of ``dataset``'s frames that ``selection`` labels (0 for an empty dataset)."""
+    return selection.n_frames / dataset.n_frames if dataset.n_frames else 0.0
+
+
+def fuse_with_labels(
+    occupancy_fn: Callable[[torch.Tensor], torch.Tensor], compounded: CompoundedVolume
+) -> Callable[[torch.Tensor], torch.Tensor]:
+    """An occupancy function (points (M, 3) world mm → (M,) in [0, 1] on the CPU) fused with
+    the compounded labels: x ↦ max(f(x), C(x)), C the ``compounded`` volume read trilinearly
+    on its grid (0 outside it). The annotated bone is bone whatever f made of it; f decides
+    everywhere else, so its 0.5 level is the union of both surfaces' solids."""
+    if not isinstance(compounded, CompoundedVolume):
+        raise argument_error(
+            "compounded", f"expected a CompoundedVolume, got {type(compounded).__name__}"
+        )
+    volume = np.ascontiguousarray(compounded.volume, dtype=np.float32)
+    origin_mm = np.asarray(compounded.grid.origin_mm, dtype=np.float64)
+    voxel_mm = compounded.grid.voxel_mm
+
+    def fused(points_mm: torch.Tensor) -> torch.Tensor:
+        occupancy = occupancy_fn(points_mm)
+        index = (points_mm.detach().cpu().double().numpy() - origin_mm) / voxel_mm
+        labelled = ndimage.map_coordinates(volume, index.T, order=1, mode="constant", cval=0.0)
+        return torch.maximum(occupancy, torch.from_numpy(labelled).to(occupancy.dtype))
+
+    return fused
