@@ -111,6 +111,22 @@ class ObservedSurfaceConfig:
         return asdict(self)
 
 
+class CroppedExtraction:
+    """What a method's config gains from holding an ``extraction`` (an
+    :class:`~ultron.mesh.extract.ExtractionConfig` or None) and an ``observed``
+    (:class:`ObservedSurfaceConfig`): :attr:`surface_extraction`."""
+
+    extraction: ExtractionConfig | None
+    observed: ObservedSurfaceConfig
+
+    @property
+    def surface_extraction(self) -> ExtractionConfig:
+        """``extraction`` where given, else the one that goes with the kept surface
+        (:attr:`ObservedSurfaceConfig.extraction`): a config built with ``observed.surface``
+        ``all`` drops small pieces without being told twice."""
+        return self.observed.extraction if self.extraction is None else self.extraction
+
+
 def observed_points(
     points_mm: np.ndarray,
     normals: np.ndarray,

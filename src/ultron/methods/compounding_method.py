@@ -15,14 +15,14 @@ from ultron.data.dataset import SweepDataset
 from ultron.data.labels import select_label_frames
 from ultron.mesh.compounding import CompoundingConfig, compound_labels
 from ultron.mesh.extract import ExtractionConfig, extract_surface
-from ultron.mesh.observed import ObservedSurfaceConfig
+from ultron.mesh.observed import CroppedExtraction, ObservedSurfaceConfig
 from ultron.methods.evidence import faced_observation
 from ultron.methods.ultron_method import Reconstruction
 from ultron.timing import StageTimer
 
 
 @dataclass(frozen=True)
-class CompoundingMethodConfig:
+class CompoundingMethodConfig(CroppedExtraction):
     """Settings of a compounding run: the volume (:class:`~ultron.mesh.compounding.
     CompoundingConfig`), its surface extraction and the observed-surface crop (by default
     UltrON's, so that both methods mesh alike; a preset hands it UltrON's; ``extraction`` None:
@@ -31,11 +31,6 @@ class CompoundingMethodConfig:
     volume: CompoundingConfig = field(default_factory=CompoundingConfig)
     extraction: ExtractionConfig | None = None
     observed: ObservedSurfaceConfig = field(default_factory=ObservedSurfaceConfig)
-
-    @property
-    def surface_extraction(self) -> ExtractionConfig:
-        """``extraction`` where given, else the one that goes with ``observed.surface``."""
-        return self.observed.extraction if self.extraction is None else self.extraction
 
 
 def reconstruct_compounding(

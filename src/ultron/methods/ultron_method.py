@@ -63,7 +63,12 @@ from ultron.mesh.extract import ExtractionConfig
 from ultron.mesh.grid import GridSpec
 from ultron.mesh.label_bridges import bridged_labelled_surface_mm
 from ultron.mesh.label_fusion import LabelFusionConfig, fuse_with_labels, labelled_frame_share
-from ultron.mesh.observed import ObservedSurfaceConfig, SurfaceObservation, observe_surface
+from ultron.mesh.observed import (
+    CroppedExtraction,
+    ObservedSurfaceConfig,
+    SurfaceObservation,
+    observe_surface,
+)
 from ultron.mesh.occupancy_mesh import MeshingConfig, elevation_half_thickness_mm, mesh_occupancy
 from ultron.timing import Advanced, StageTimer
 from ultron.train.fit_checkpoint import (
@@ -99,7 +104,7 @@ def check_outer_side_mm(value: object) -> None:
 
 
 @dataclass(frozen=True)
-class UltronConfig:
+class UltronConfig(CroppedExtraction):
     """Settings of an UltrON reconstruction (``visibility``: the source of the loss's T,
     ``context``: the neighbourhood f_ω reads besides θ(x), ``label_outer_side_mm``: how far
     above a band of bone labels unsure pixels are read as background,
@@ -134,13 +139,6 @@ class UltronConfig:
                 )
         check_outer_side_mm(self.label_outer_side_mm)
         _ = self.meshing  # its checks (MeshingConfig)
-
-    @property
-    def surface_extraction(self) -> ExtractionConfig:
-        """``extraction`` where given, else the one that goes with the kept surface
-        (:attr:`~ultron.mesh.observed.ObservedSurfaceConfig.extraction`): a config built with
-        ``observed.surface`` ``all`` drops small pieces without being told twice."""
-        return self.observed.extraction if self.extraction is None else self.extraction
 
     @property
     def meshing(self) -> MeshingConfig:
