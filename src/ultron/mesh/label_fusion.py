@@ -13,7 +13,9 @@ labelled bone f lost and the bone f found beyond the labels.
 When it applies (:attr:`LabelFusionConfig.min_frame_share`): C between two labelled frames is
 the hole filling's interpolation across their gap. With nearly every frame labelled the gap is
 one step of the sweep and C is the labels themselves; with sparse frames (10 % of them lie
-about ten steps apart) the fill adds surface off the bone where the cross-sections differ. Measured on
+about ten steps apart) the fill adds surface off the bone where the cross-sections differ.
+Not a law: with an annotator's labels on every frame of a rounded bone (a condyle) the labels'
+own slabs added surface off the bone too. Measured on
 tuning data, both ways: docs/decisions.md#label-fusion-when-nearly-every-frame-is-labelled-meshlabel_fusionpy.
 """
 
