@@ -59,8 +59,8 @@ class LabelFusionConfig:
 
     def applies(self, dataset: SweepDataset, selection: FrameSelection) -> bool:
         """Whether ``selection``'s frames are at least :attr:`min_frame_share` of
-        ``dataset``'s frames (every sweep's, labelled or not)."""
-        return selection.n_frames >= self.min_frame_share * dataset.n_frames
+        ``dataset``'s frames (every sweep's, labelled or not; :func:`labelled_frame_share`)."""
+        return labelled_frame_share(dataset, selection) >= self.min_frame_share
 
 
 def labelled_frame_share(dataset: SweepDataset, selection: FrameSelection) -> float:

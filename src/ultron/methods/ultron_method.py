@@ -395,15 +395,16 @@ def mesh_ultron(
     fn = occupancy_function(fitted, network, config.context)
     fusion = None
     if config.label_fusion is not None:
+        applied = config.label_fusion.applies(dataset, selection)
         fusion = {"min_frame_share": config.label_fusion.min_frame_share,
                   "labelled_frame_share": labelled_frame_share(dataset, selection),
-                  "applied": config.label_fusion.applies(dataset, selection)}  # fmt: skip
-    if fusion is not None and fusion["applied"]:
-        with timer.stage("mesh_label_fusion"):
-            compounded = compound_labels(dataset, selection, config.label_fusion.volume)
-        fn = fuse_with_labels(fn, compounded)
-        fusion.update(grid=compounded.grid.to_dict(),
-                      hole_fill_radius_mm=compounded.hole_fill_radius_mm)  # fmt: skip
+                  "applied": applied}  # fmt: skip
+        if applied:
+            with timer.stage("mesh_label_fusion"):
+                compounded = compound_labels(dataset, selection, config.label_fusion.volume)
+            fn = fuse_with_labels(fn, compounded)
+            fusion.update(grid=compounded.grid.to_dict(),
+                          hole_fill_radius_mm=compounded.hole_fill_radius_mm)  # fmt: skip
     mesh, volume, grid = mesh_occupancy(fn, dataset, config.meshing, timer, module_device(network))
     with timer.stage("mesh_observed"):
         observation = keep_observed_surface(
