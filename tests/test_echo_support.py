@@ -96,11 +96,37 @@ def test_speckle_without_bone_and_a_blank_frame_are_unsupported():
     assert not echo_support_map(np.zeros(PROBE.image_shape, np.uint8), PROBE).any()
 
 
-def test_the_frames_last_millimetres_give_no_evidence_against_bone():
-    support = echo_support_map(_frame(line=False, shadow=False), PROBE)
-    # within the onset of the last row no frame can show whether a shadow follows
-    assert support[PROBE.height_px - ONSET_ROWS :].all()
-    assert not support[: PROBE.height_px - ONSET_ROWS - 2 - 1].any()
+def test_the_frames_last_millimetres_show_an_echo_not_plain_speckle():
+    end = PROBE.height_px - ONSET_ROWS  # within the onset of the last row
+    speckle = _frame(line=False, shadow=False)
+    # plain speckle over the frame's end shows no bone …
+    assert echo_support_map(speckle, PROBE)[end:].mean() < 0.02
+    # … but did while the frame's end counted as an onset for any lit pixel
+    old = echo_support_map(speckle, PROBE, EchoSupportConfig(frame_end_echo=None))
+    assert old[end:].all()
+    assert not old[: end - 2 - 1].any()
+    # a deep wall's echo at the bottom of the frame, 2.5 × the speckle's median once smoothed
+    image = speckle.copy()
+    image[end + 1 : end + 3, 20:40] = 250
+    config = EchoSupportConfig(depth_window_mm=0.0, frame_end_echo=2.0)
+    support = echo_support_map(image, PROBE, config)
+    assert support[end + 1 : end + 3, 22:38].all()  # no frame can show whether a shadow follows
+    assert support[end:, 45:].mean() < 0.02
+    assert not support[: end - 1].any()
+
+
+def test_the_frame_end_echo_is_relative_to_its_rows_level():
+    # a deep wall in a frame whose echoes fade with depth: dimmer than the speckle near the
+    # probe, bright against the speckle at its own depth — bone by default (m = 3); a factor
+    # above its contrast drops it
+    image = _faded_frame(scale_rows=60.0)
+    end = PROBE.height_px - ONSET_ROWS
+    wall = 3 * image[end + 1 : end + 3].max()
+    assert wall < image[:10].max()
+    image[end + 1 : end + 3, 20:40] = wall
+    for m, shown in ((EchoSupportConfig().frame_end_echo, True), (20.0, False)):
+        config = EchoSupportConfig(depth_window_mm=0.0, frame_end_echo=m)
+        assert echo_support_map(image, PROBE, config)[end + 1 : end + 3, 22:38].all() == shown
 
 
 def test_bad_inputs_name_the_argument():
@@ -119,6 +145,9 @@ def test_bad_inputs_name_the_argument():
             EchoSupportConfig(shadow_depth_ratio=ratio)
     with pytest.raises(UltronInputError, match="detector"):
         EchoSupportConfig(detector={"gap_mm": 1.0})  # type: ignore[arg-type]
+    for factor in (-0.5, math.inf, math.nan, True, "1"):
+        with pytest.raises(UltronInputError, match="frame_end_echo"):
+            EchoSupportConfig(frame_end_echo=factor)  # type: ignore[arg-type]
 
 
 def _plate_seen_from_above(depth_mm: float):

@@ -32,8 +32,17 @@ its echo still shows bone through the shadow directly beneath it, the lit tissue
 not.
 
 The frame's end counts as an onset (the minimum over no rows is H): within ``shadow_onset_mm``
-of its last row a frame cannot show whether a shadow follows, so it gives no evidence against
-bone there, and the deep walls at the bottom of the frames keep their support. A pixel is
+of its last row a frame cannot show whether a shadow follows. An echo there keeps its support,
+and so does lit tissue that is an echo by its brightness alone — with ``frame_end_echo`` = m,
+
+    S(r, c) ≥ m · M(r),   M(r) = the median of S(r, c') over the image columns c'
+
+(m = 3: three times the speckle at its depth, a median that an echo narrower than half the
+frame does not move): the deep walls at the bottom of the frames
+keep their support, while plain speckle over the frame's end — where an occupancy fitted on few
+labels runs on as a slab along the bottom of the field of view — no longer shows bone (None:
+every lit pixel there does, as before; docs/decisions.md, "Echo support at the frame's end").
+A pixel is
 *supported* when some pixel of its column within ±``depth_window_mm`` shows bone (a maximum
 filter along the scanline: the tracked pose and the surface's depth each err by about a
 millimetre). A blank frame (S_ref = 0) supports nothing.
@@ -72,11 +81,13 @@ class EchoSupportConfig:
     above a shadow (docs/decisions.md, "Echo support: the shadow's onset").
     ``shadow_depth_ratio``: how dark against the tissue at its depth a shadow must be (ρ in the
     module docstring; ``math.inf`` drops the test; docs/decisions.md, "Echo support: a shadow
-    against its depth")."""
+    against its depth"). ``frame_end_echo``: how bright against its row lit tissue over the
+    frame's end must be to show bone (m in the module docstring; None: any lit pixel)."""
 
     depth_window_mm: float = 1.0
     shadow_onset_mm: float = 2.0
     shadow_depth_ratio: float = 0.3
+    frame_end_echo: float | None = 3.0
     detector: AutoLabelConfig = field(default_factory=AutoLabelConfig)
 
     def __post_init__(self) -> None:
@@ -88,6 +99,13 @@ class EchoSupportConfig:
         if not (isinstance(ratio, int | float) and not math.isnan(ratio) and ratio > 0):
             raise argument_error(
                 "shadow_depth_ratio", f"expected a ratio > 0 (inf: no test), got {ratio!r}"
+            )
+        end = self.frame_end_echo
+        if end is not None and (
+            isinstance(end, bool) or not isinstance(end, int | float) or not 0 <= end < math.inf
+        ):
+            raise argument_error(
+                "frame_end_echo", f"expected a finite factor ≥ 0 or None, got {end!r}"
             )
         if not isinstance(self.detector, AutoLabelConfig):
             raise argument_error(
@@ -118,11 +136,27 @@ def depth_relative_shadow(
     if math.isinf(config.shadow_depth_ratio):
         return evidence.dark
     mean = evidence.shadow_mean
-    image = evidence.smoothed.max(axis=0) > config.detector.shadow_level * evidence.ref
+    image = _image_columns(evidence, config)
     if not image.any():
         return np.zeros_like(evidence.dark)
     level = np.percentile(mean[:, image], DEPTH_LEVEL_PERCENTILE, axis=1, keepdims=True)
     return evidence.dark & (mean <= config.shadow_depth_ratio * level)
+
+
+def _image_columns(evidence: FrameEvidence, config: EchoSupportConfig) -> np.ndarray:
+    """Bool (W,): the columns that hold image (S exceeds the shadow level somewhere in them)."""
+    return evidence.smoothed.max(axis=0) > config.detector.shadow_level * evidence.ref
+
+
+def _echo_at_frame_end(evidence: FrameEvidence, config: EchoSupportConfig) -> np.ndarray:
+    """Bool (H, W): S(r, c) ≥ ``frame_end_echo`` · M(r) (module docstring); all true with
+    ``frame_end_echo`` None or in a frame without image columns."""
+    image = _image_columns(evidence, config)
+    if config.frame_end_echo is None or not image.any():
+        return np.ones(evidence.smoothed.shape, dtype=bool)
+    smoothed = evidence.smoothed
+    level = np.median(smoothed[:, image], axis=1, keepdims=True)
+    return smoothed >= config.frame_end_echo * level
 
 
 def echo_support_map(
@@ -150,8 +184,11 @@ def echo_support_map(
     casts = (onset[tail] - rows) * axial <= cfg.detector.shadow_max_mm
     casts |= (next_rows(evidence.dark)[tail] - rows) * axial <= cfg.shadow_onset_mm
     shows = (evidence.score > 0) & casts
-    # lit (not in the shadow, the window clipped at the frame's end) over a near onset
-    shows |= ~evidence.shadowed & ((onset - rows) * axial <= cfg.shadow_onset_mm)
+    # lit (not in the shadow, the window clipped at the frame's end) over a near onset; over
+    # the frame's end (no onset in the frame) only where it is an echo by its brightness
+    lit = ~evidence.shadowed & ((onset - rows) * axial <= cfg.shadow_onset_mm)
+    lit &= (onset < height) | _echo_at_frame_end(evidence, cfg)
+    shows |= lit
     reach = round(cfg.depth_window_mm / axial)
     if reach == 0:
         return shows
