@@ -121,7 +121,7 @@ def test_the_frame_end_echo_is_relative_to_its_rows_level():
     # above its contrast drops it
     image = _faded_frame(scale_rows=60.0)
     end = PROBE.height_px - ONSET_ROWS
-    wall = 3 * image[end + 1 : end + 3].max()
+    wall = 3 * int(image[end + 1 : end + 3].max())
     assert wall < image[:10].max()
     image[end + 1 : end + 3, 20:40] = wall
     for m, shown in ((EchoSupportConfig().frame_end_echo, True), (20.0, False)):

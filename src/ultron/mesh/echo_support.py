@@ -38,13 +38,13 @@ and so does lit tissue that is an echo by its brightness alone — with ``frame_
     S(r, c) ≥ m · M(r),   M(r) = the median of S(r, c') over the image columns c'
 
 (m = 3: three times the speckle at its depth, a median that an echo narrower than half the
-frame does not move): the deep walls at the bottom of the frames
-keep their support, while plain speckle over the frame's end — where an occupancy fitted on few
-labels runs on as a slab along the bottom of the field of view — no longer shows bone (None:
-every lit pixel there does, as before; docs/decisions.md, "Echo support at the frame's end").
-A pixel is
-*supported* when some pixel of its column within ±``depth_window_mm`` shows bone (a maximum
-filter along the scanline: the tracked pose and the surface's depth each err by about a
+frame does not move): the deep walls at the bottom of the frames keep their support, while
+plain speckle over the frame's end — where an occupancy fitted on few labels runs on as a slab
+along the bottom of the field of view — no longer shows bone (None: every lit pixel there does,
+as before; docs/decisions.md, "Echo support at the frame's end").
+
+A pixel is *supported* when some pixel of its column within ±``depth_window_mm`` shows bone (a
+maximum filter along the scanline: the tracked pose and the surface's depth each err by about a
 millimetre). A blank frame (S_ref = 0) supports nothing.
 
 UltrON keeps the part of its iso-surface that some frame observed (:mod:`ultron.mesh.observed`)
