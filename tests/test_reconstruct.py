@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from conftest import tiny_ultron_run
+from ultron.mesh.echo_support import EchoSupportConfig
 from ultron.mesh.export import load_mesh
 from ultron.mesh.label_fusion import LabelFusionConfig
 from ultron.methods.ultron_method import UltronConfig
@@ -101,6 +102,7 @@ def test_ultron_end_to_end(tiny: Path, tmp_path: Path, monkeypatch):
     assert run["transmission_source"] == "field" and run["diagnostic"] is False
     assert 0 <= run["transmission_stats"]["background_mean"] <= 1
     assert run["echo_support"] is True and run["faces_kept"] <= run["faces_extracted"]
+    assert run["echo_support_config"] == EchoSupportConfig().to_dict()  # what decided the crop
     mesh = load_mesh(tmp_path / "out" / "mesh.ply")
     assert len(mesh.faces) > 100
     # on this 64 × 48-pixel, 24-frame phantom (measured: UltrON CD vis. 1.52, MAD 1.48 mm; w/o
@@ -162,6 +164,14 @@ def test_ultron_end_to_end(tiny: Path, tmp_path: Path, monkeypatch):
     # run evaluated a voxel exactly and the other interpolated it, mesh.grid's coarse-to-fine)
     assert ((plain >= 0.5) <= (with_labels >= 0.5)).all()
     assert (with_labels >= 0.5).sum() > (plain >= 0.5).sum()
+    # without echo support: no settings recorded, and the same f keeps every face it kept
+    no_echo = replace(request.method_config, echo_support=None)
+    reconstruct(tiny, replace(request, method_config=no_echo), tmp_path / "no-echo",
+                field_config=field_config, report=False)  # fmt: skip
+    run = json.loads((tmp_path / "no-echo" / "run.json").read_text())
+    assert run["echo_support"] is False and "echo_support_config" not in run
+    assert run["faces_extracted"] == plain_run["faces_extracted"]
+    assert run["faces_kept"] >= plain_run["faces_kept"]
     others = {}
     for method in ("ultron-noloss", "compounding"):
         config = None if method == "compounding" else request.method_config  # its defaults

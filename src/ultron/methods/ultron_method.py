@@ -308,7 +308,7 @@ def keep_observed_surface(
             support = echo_support_maps(dataset, config.echo_support)
         if selection is not None and config.observed.label_support_mm > 0:
             labelled = labelled_support_points_mm(dataset, selection, config.observed)
-    return observe_surface(
+    observation = observe_surface(
         mesh,
         dataset.all_poses(),
         dataset.probe,
@@ -319,6 +319,11 @@ def keep_observed_surface(
         support,
         labelled,
     )
+    if support is None:
+        return observation
+    # run.json: the echo support's settings beside its flag (they decide what was kept)
+    settings = {"echo_support_config": config.echo_support.to_dict()}
+    return replace(observation, info=observation.info | settings)
 
 
 @dataclass(frozen=True)
