@@ -30,7 +30,8 @@ def _example(
 ) -> None:
     """Do the example.
 
-    A second paragraph.
+    A second paragraph, written
+    over two lines.
 
     Args:
         source: Where the input
@@ -70,8 +71,8 @@ def test_parameters_are_declared_from_the_docstring():
     assert params["smooth"].opts == ["--smooth"]
     assert params["smooth"].secondary_opts == ["--no-smooth"]
     assert params["names"].multiple
-    # the command's help is the text above Args:, its paragraphs kept
-    assert click_command.help == "Do the example.\n\nA second paragraph."
+    # the command's help is the text above Args:, its paragraphs kept, each on one line
+    assert click_command.help == "Do the example.\n\nA second paragraph, written over two lines."
 
 
 def test_a_declared_command_parses_and_refuses_bad_input(tmp_path: Path):
@@ -124,6 +125,8 @@ def test_every_ultron_option_has_help_and_no_command_help_shows_its_args_section
     assert len(commands) == 13
     for name, click_command in commands.items():
         assert "Args:" not in (click_command.help or ""), name
+        for paragraph in (click_command.help or "").split("\n\n"):  # a sentence is not broken
+            assert paragraph and "\n" not in paragraph and "  " not in paragraph, name
         for param in click_command.params:
             assert param.help and "\n" not in param.help, (name, param.name)
             assert "  " not in param.help, (name, param.name)  # continuation lines joined

@@ -74,10 +74,10 @@ def command(
     shown in upper case as help texts name them (``DATASET``), the others options named after
     them (``label_fraction`` → ``--label-fraction``), a bool that defaults to False a plain
     flag and an optional bool a ``--x/--no-x`` pair; ``metavars`` names the values of some.
-    The command's help is the docstring above ``Args:``. Bad input is one line and exit 2
-    (:func:`user_errors`, which names the option of a library's error about its parameter).
-    A parameter left without help, or help or an argument naming no parameter, is a TypeError
-    when the command is declared."""
+    The command's help is the docstring above ``Args:``, each paragraph on one line. Bad input
+    is one line and exit 2 (:func:`user_errors`, which names the option of a library's error
+    about its parameter). A parameter left without help, or help or an argument naming no
+    parameter, is a TypeError when the command is declared."""
 
     def declare(func: Callable[P, R]) -> Callable[P, R]:
         text = func.__doc__ or ""
@@ -101,10 +101,17 @@ def command(
         wrapper = user_errors(func, {name: _flag(name) for name in options})
         wrapper.__signature__ = signature.replace(parameters=parameters)  # type: ignore[attr-defined]
         wrapper.__annotations__ = {p.name: p.annotation for p in parameters}
-        wrapper.__doc__ = re.split(r"\n[ \t]*Args:[ \t]*\n", text, maxsplit=1)[0]
+        wrapper.__doc__ = _paragraphs(re.split(r"\n[ \t]*Args:[ \t]*\n", text, maxsplit=1)[0])
         return wrapper
 
     return declare
+
+
+def _paragraphs(text: str) -> str:
+    """``text``'s paragraphs (split at blank lines), each on one line: typer's help keeps a
+    docstring's line breaks, which at any terminal width but the source's break a sentence."""
+    paragraphs = re.split(r"\n[ \t]*\n", text.strip())
+    return "\n\n".join(" ".join(p.split()) for p in paragraphs if p.strip())
 
 
 def _parameter_info(
