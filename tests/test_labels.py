@@ -9,6 +9,7 @@ from conftest import make_pose
 from ultron.data.dataset import ProbeGeometry, Sweep, SweepDataset
 from ultron.data.labels import (
     FrameSelection,
+    LabelledPixels,
     count_labelled_pixels,
     gather_labelled_pixels,
     labelled_surface_points_mm,
@@ -199,3 +200,43 @@ def test_labelled_surface_points_are_the_top_of_each_bone_band():
         3,
     )
     assert labelled_surface_points_mm(data, None).shape == (0, 3)
+
+
+def test_in_front_of_bone_by_hand():
+    # two frames of two sweeps; per scanline (sweep, frame, column) the rows top to bottom:
+    #   (0, 0, 0): 0 0 1 1 0 1 0  → rows 0, 1 in front; the gap and the rows under the
+    #                                first bone run are not (they may lie in its shadow)
+    #   (0, 0, 1): 0 0 0          → no bone in this scanline: none in front
+    #   (0, 1, 0): 1 0            → bone at the top: none
+    #   (1, 0, 0): 0 0 0 1        → rows 0-2 in front, though sweep 0's column 0 differs
+    #   (1, 0, 2): 0 1 (unordered) → row 0 in front
+    lines = [
+        (0, 0, 0, [0, 0, 1, 1, 0, 1, 0]),
+        (0, 0, 1, [0, 0, 0]),
+        (0, 1, 0, [1, 0]),
+        (1, 0, 0, [0, 0, 0, 1]),
+    ]
+    s, f, r, c, lab = [], [], [], [], []
+    for sweep, frame, col, column in lines:
+        for row, value in enumerate(column):
+            s.append(sweep), f.append(frame), r.append(row), c.append(col), lab.append(value)
+    s += [1, 1]
+    f += [0, 0]
+    r += [1, 0]  # the bone pixel first: the order of the pixels does not matter
+    c += [2, 2]
+    lab += [1, 0]
+    pixels = LabelledPixels(*(np.array(v, dtype=np.int64) for v in (s, f, r, c)),
+                            np.array(lab, dtype=np.uint8))  # fmt: skip
+    expected = [1, 1, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 1, 1, 1, 0, 0, 1]  # the lines in order
+    np.testing.assert_array_equal(pixels.in_front_of_bone(), np.array(expected, dtype=bool))
+    # no bone label anywhere: nothing is in front
+    none = pixels.take(pixels.label == 0)
+    assert not none.in_front_of_bone().any() and none.in_front_of_bone().shape == (len(none),)
+
+
+def test_gathered_background_above_the_fixture_bone_is_in_front(dataset):
+    # the fixture's bone pixel is row 2 of column 1 under a background pixel (row 1): that one
+    # is in front; the other columns hold no bone, and the row under the bone is not in front
+    pixels = gather_labelled_pixels(dataset, select_label_frames(dataset, 0.1, seed=1))
+    front = pixels.in_front_of_bone()
+    np.testing.assert_array_equal(front, (pixels.col == 1) & (pixels.row == 1))

@@ -87,6 +87,56 @@ def test_observed_negatives_by_hand():
     torch.testing.assert_close(observed_negatives_bce(f, t, y, 0.0), binary_cross_entropy(f, y))
 
 
+def test_observed_negatives_count_background_in_front_of_bone_whatever_t():
+    f = torch.tensor([0.8, 0.8, 0.4, 0.4], dtype=torch.float64)
+    t = torch.tensor([0.05, 1.0, 0.29, 0.3], dtype=torch.float64)
+    y = torch.tensor([1.0, 1.0, 0.0, 0.0], dtype=torch.float64)
+    # the background label at T = 0.29 lies in front of its scanline's bone: it counts
+    front = torch.tensor([False, False, True, False])
+    expected = -(2 * math.log(0.8) + 2 * math.log(0.6)) / 4
+    torch.testing.assert_close(
+        observed_negatives_bce(f, t, y, in_front=front), torch.tensor(expected).double()
+    )
+    # a bone label or a lit background label marked in front counts as it did
+    torch.testing.assert_close(
+        observed_negatives_bce(f, t, y, in_front=torch.tensor([True, True, False, True])),
+        observed_negatives_bce(f, t, y),
+    )
+    g = f.clone().requires_grad_()
+    observed_negatives_bce(g, t, y, in_front=front).backward()
+    assert g.grad[2] != 0
+    for bad in (torch.tensor([True, False]), torch.tensor([1, 0, 1, 0])):
+        with pytest.raises(UltronInputError, match="in_front"):
+            observed_negatives_bce(f, t, y, in_front=bad)
+
+
+def test_background_in_front_of_bone_trains_f_down_with_front_negatives_only():
+    # bone where x0 > 0.5; background at x0 < -0.5, all with T = 0 (the field calls it
+    # shadow) but in front of the bone: only front_negatives lets it teach f "no bone"
+    data = _separable_data()
+    x0 = data.inputs[:, 0]
+    keep = (x0 > 0.5) | (x0 < -0.5)
+    labels = (x0[keep] > 0.5).to(torch.uint8)
+    front = labels == 0
+    dark = OccupancyTrainingData(
+        data.inputs[keep], torch.zeros(int(keep.sum())), labels, in_front=front
+    )
+    probe = torch.tensor([[-0.8, 0.0, 0.0]])
+    results = {}
+    for counted in (True, False):
+        config = OccupancyTrainConfig(
+            iters=300, batch_size=512, lr=1e-3, seed=1, network=SMALL, front_negatives=counted
+        )
+        network, _ = fit_occupancy(dark, config)
+        with torch.no_grad():
+            results[counted] = float(network.occupancy(probe))
+    assert results[True] < 0.1  # taught by the background in front
+    assert results[False] > 0.5  # no negative counted: bone everywhere
+    summary = dark.summary(0.3)
+    assert summary["n_background_in_front"] == int(front.sum())
+    assert summary["n_background_in_front_below_threshold"] == int(front.sum())
+
+
 def test_observed_negatives_gradcheck_and_shadow():
     f = torch.rand(6, dtype=torch.float64).clamp(0.05, 0.95).requires_grad_()
     t = torch.tensor([0.0, 0.1, 0.5, 0.9, 0.2, 1.0], dtype=torch.float64)
@@ -107,6 +157,15 @@ def test_observed_negatives_invalid_inputs():
         OccupancyTrainConfig(negatives="some")
     with pytest.raises(UltronInputError, match="observed_transmission"):
         OccupancyTrainConfig(observed_transmission=1.5)
+    with pytest.raises(UltronInputError, match="front_negatives"):
+        OccupancyTrainConfig(front_negatives="yes")
+    inputs, labels = torch.zeros(3, 2), torch.zeros(3, dtype=torch.uint8)
+    with pytest.raises(UltronInputError, match="in_front"):
+        OccupancyTrainingData(
+            inputs, torch.ones(3), labels, in_front=torch.ones(2, dtype=torch.bool)
+        )
+    with pytest.raises(UltronInputError, match="in_front"):
+        OccupancyTrainingData(inputs, torch.ones(3), labels, in_front=torch.ones(3))
 
 
 def test_observed_negatives_train_through_shadow():

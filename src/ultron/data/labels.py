@@ -198,6 +198,24 @@ class LabelledPixels:
             out[sel] = apply_pose(poses, probe[:, None, :])[:, 0].numpy()
         return out
 
+    def in_front_of_bone(self) -> np.ndarray:
+        """(P,) bool: the pixel is background (0) and lies above its scanline's first bone
+        label — in its own frame and column, at a row r < r₁, r₁ the shallowest row labelled 1
+        there. The annotation itself says the beam crossed such a pixel to reach an echo it
+        calls bone, so it is observed free space whatever T a field assigns it. Scanlines with
+        no bone label, and background under the first bone label, are never in front."""
+        bone = self.label == 1
+        if not bone.any():
+            return np.zeros(len(self), dtype=bool)
+        width, frames = int(self.col.max()) + 1, int(self.frame.max()) + 1
+        line = (self.sweep_index * frames + self.frame) * width + self.col  # a scanline's id
+        bone_line, bone_row = line[bone], self.row[bone]
+        order = np.lexsort((bone_row, bone_line))  # by scanline, then depth
+        starts = np.flatnonzero(np.r_[True, np.diff(bone_line[order]) != 0])
+        lines, first = bone_line[order][starts], bone_row[order][starts]  # shallowest bone row
+        at = np.minimum(np.searchsorted(lines, line), len(lines) - 1)
+        return (self.label == 0) & (lines[at] == line) & (self.row < first[at])
+
 
 def surface_outer_side(labels: np.ndarray, rows: int) -> np.ndarray:
     """The unsure pixels (255) on the outer side of a labelled surface: bool, the shape of

@@ -92,6 +92,10 @@ from ultron.train.visibility import (
     pixel_transmission,
 )
 
+#: run.json's counts of the background labels in front of their scanline's first bone label,
+#: and of those whose T is below the observed negatives' threshold (counted anyway).
+FRONT_COUNTS = ("n_background_in_front", "n_background_in_front_below_threshold")
+
 
 def check_outer_side_mm(value: object) -> None:
     """``label_outer_side_mm`` (UltrON's settings, a network's recorded meta) must be a finite
@@ -235,7 +239,8 @@ def occupancy_training_data(
     (:func:`~ultron.train.visibility.load_oracle_truth`). ``outer_side_mm`` > 0 adds, as
     background, the unsure pixels directly above each band of bone labels within that distance
     (:func:`~ultron.data.labels.gather_labelled_pixels`). ``advance`` is told how many of g(x)'s
-    θ queries are done (:func:`~ultron.fields.context.theta_features`)."""
+    θ queries are done (:func:`~ultron.fields.context.theta_features`). The data marks the
+    background labels in front of their scanline's first bone label (``in_front``)."""
     if fitted.theta_stats is None:
         raise UltronInputError("field", "theta_stats", "the field has no θ statistics (refit it)")
     fitted.check_probe(dataset.probe)
@@ -248,7 +253,8 @@ def occupancy_training_data(
     inputs = theta_features(fitted, world, context or ThetaContextConfig(), theta, advance)
     labels = torch.from_numpy(pixels.label.astype(np.uint8))
     shadow = in_labelled_shadow(dataset, pixels)
-    return OccupancyTrainingData(inputs, transmission.detach().float(), labels, shadow)
+    front = torch.from_numpy(pixels.in_front_of_bone())
+    return OccupancyTrainingData(inputs, transmission.detach().float(), labels, shadow, front)
 
 
 def occupancy_function(fitted, network: OccupancyNetwork, context: ThetaContextConfig):
@@ -427,6 +433,7 @@ def mesh_ultron(
         "theta_context": config.context.to_dict(),
         "label_outer_side_mm": config.label_outer_side_mm,
         "transmission_stats": trained.data_info["transmission_stats"],
+        **{key: trained.data_info[key] for key in FRONT_COUNTS if key in trained.data_info},
         "occupancy_config": occupancy_config.to_dict(),
         "occupancy_log": trained.log,
         **resumed_steps({OCCUPANCY_FIT: trained.checkpoint}),

@@ -11,7 +11,9 @@ detached, never normalised) and y the label:
   With ``negatives="observed"`` the background labels count only where the beam reached
   them, at full weight (:func:`observed_negatives_bce`): T decides *which* negatives are
   evidence instead of scaling each by T (for a bone label the compensated loss's gradient in
-  f does not depend on T, so bone labels count as in the paper).
+  f does not depend on T, so bone labels count as in the paper). A background label in front
+  of its scanline's first bone label counts whatever T says (``front_negatives``): the
+  annotation shows the beam crossed it to reach the bone.
 * ``ultron-noloss`` (the paper's ablation) and ``on`` — plain BCE(f, y).
 
 Class balance: bone is a small share of the labelled pixels (a few percent). By default the
@@ -105,16 +107,19 @@ def observed_negatives_bce(
     min_transmission: float = OBSERVED_TRANSMISSION,
     weight: torch.Tensor | None = None,
     eps: float = EPSILON,
+    in_front: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """BCE whose background labels count only where they were observed as free space:
 
         L = mean over all labels of −w·m·[y log p + (1−y) log(1−p)],  p = clamp(f, ε, 1−ε),
-        m = 1 for y = 1,  m = 1[T ≥ τ] for y = 0     (τ = ``min_transmission``)
+        m = 1 for y = 1,  m = 1[T ≥ τ  or  F] for y = 0     (τ = ``min_transmission``)
 
     A background label in shadow (T < τ) is no evidence of free space and costs nothing, as in
     the compensated loss; one the beam reached (T ≥ τ) costs the full BCE, where the
-    compensated loss would scale it by T. The mean runs over every label (dropped ones count
-    as zeros), as the compensated loss's does.
+    compensated loss would scale it by T. F (``in_front``, bool, default none) marks labels the
+    annotation shows the beam reached whatever T says — those in front of their scanline's
+    first bone label (:meth:`~ultron.data.labels.LabelledPixels.in_front_of_bone`). The mean
+    runs over every label (dropped ones count as zeros), as the compensated loss's does.
     """
     if not (isinstance(min_transmission, int | float) and 0 <= min_transmission <= 1):
         raise argument_error(
@@ -126,6 +131,14 @@ def observed_negatives_bce(
             f"expected shape {tuple(occupancy.shape)}, got {tuple(transmission.shape)}",
         )
     observed = (target > 0.5) | (transmission >= min_transmission)
+    if in_front is not None:
+        if in_front.shape != occupancy.shape or in_front.dtype != torch.bool:
+            raise argument_error(
+                "in_front",
+                f"expected a bool tensor of shape {tuple(occupancy.shape)}, got "
+                f"{in_front.dtype} {tuple(in_front.shape)}",
+            )
+        observed = observed | in_front
     mask = observed.to(occupancy.dtype)
     return binary_cross_entropy(occupancy, target, mask if weight is None else mask * weight, eps)
 
@@ -142,7 +155,10 @@ def binary_cross_entropy(
 
 @dataclass(frozen=True)
 class OccupancyTrainConfig:
-    """Settings of :func:`fit_occupancy`."""
+    """Settings of :func:`fit_occupancy` (``front_negatives``: with ``negatives="observed"``,
+    background labels in front of their scanline's first bone label count whatever T says,
+    :func:`observed_negatives_bce`; figures in docs/decisions.md, "Background in front of the
+    bone counts")."""
 
     loss: str = "ultron"
     iters: int = 1500
@@ -153,6 +169,7 @@ class OccupancyTrainConfig:
     max_positive_weight: float = 20.0
     negatives: str = "observed"
     observed_transmission: float = OBSERVED_TRANSMISSION
+    front_negatives: bool = True
     seed: int = 0
     network: OccupancyNetworkConfig = field(default_factory=OccupancyNetworkConfig)
 
@@ -185,6 +202,10 @@ class OccupancyTrainConfig:
                 "observed_transmission",
                 f"expected a value in [0, 1], got {self.observed_transmission!r}",
             )
+        if not isinstance(self.front_negatives, bool):
+            raise argument_error(
+                "front_negatives", f"expected True or False, got {self.front_negatives!r}"
+            )
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -209,45 +230,53 @@ def parse_positive_weight(text: str) -> float | None:
 class OccupancyTrainingData:
     """Precomputed per-pixel inputs (P, D), transmission T (P,) and labels y (P,) ∈ {0, 1};
     ``labelled_shadow`` (P,) bool, when given, marks the pixels in the labels' own shadow
-    (:func:`ultron.train.visibility.in_labelled_shadow`) — a diagnostic the fit does not read."""
+    (:func:`ultron.train.visibility.in_labelled_shadow`) — a diagnostic the fit does not read;
+    ``in_front`` (P,) bool, when given, the background labels in front of their scanline's
+    first bone label (:meth:`~ultron.data.labels.LabelledPixels.in_front_of_bone`), which the
+    observed negatives count whatever T says (``OccupancyTrainConfig.front_negatives``)."""
 
     inputs: torch.Tensor
     transmission: torch.Tensor
     labels: torch.Tensor
     labelled_shadow: torch.Tensor | None = None
+    in_front: torch.Tensor | None = None
 
     def __post_init__(self) -> None:
         n = self.labels.shape[0]
-        shadow_ok = self.labelled_shadow is None or self.labelled_shadow.shape == (n,)
+        masks = {"labelled_shadow": self.labelled_shadow, "in_front": self.in_front}
+        given = {name: mask for name, mask in masks.items() if mask is not None}
         if (
             self.inputs.ndim != 2
             or self.inputs.shape[0] != n
             or self.transmission.shape != (n,)
-            or not shadow_ok
+            or any(mask.shape != (n,) for mask in given.values())
         ):
-            shadow = (
-                ""
-                if self.labelled_shadow is None
-                else (f", labelled_shadow {tuple(self.labelled_shadow.shape)}")
-            )
+            extra = "".join(f", {name} {tuple(mask.shape)}" for name, mask in given.items())
             raise argument_error(
                 "training data",
                 f"inputs {tuple(self.inputs.shape)}, transmission {tuple(self.transmission.shape)}"
-                f"{shadow} and labels {tuple(self.labels.shape)} do not match",
+                f"{extra} and labels {tuple(self.labels.shape)} do not match",
             )
+        if self.in_front is not None and self.in_front.dtype != torch.bool:
+            raise argument_error("in_front", f"expected a bool tensor, got {self.in_front.dtype}")
         if n == 0:
             raise argument_error("training data", "no labelled pixels")
 
     def summary(self, observed_transmission: float) -> dict[str, Any]:
         """run.json's account of this data: its labelled and bone pixels and its transmission
         statistics (:func:`~ultron.train.visibility.transmission_summary`)."""
-        return {
+        summary = {
             "n_labelled_pixels": len(self.labels),
             "n_bone_pixels": int(self.labels.sum()),
             "transmission_stats": transmission_summary(
                 self.transmission, self.labels, self.labelled_shadow, observed_transmission
             ),
         }
+        if self.in_front is not None:  # how many the observed negatives keep against T
+            dark = self.in_front & (self.transmission < observed_transmission)
+            summary["n_background_in_front"] = int(self.in_front.sum())
+            summary["n_background_in_front_below_threshold"] = int(dark.sum())
+        return summary
 
 
 @dataclass(frozen=True)
@@ -315,6 +344,7 @@ def fit_occupancy(
     generator = torch.Generator().manual_seed(config.seed)
     network = (network or _initial_network(config, data.inputs.shape[1])).to(device)
     inputs, transmission = data.inputs.to(device), data.transmission.to(device)
+    in_front = None if data.in_front is None else data.in_front.to(device)
     parameters = trainable(network) if trainable else list(network.parameters())
     optimiser = torch.optim.Adam(parameters, lr=config.lr)
     gamma = config.final_lr_factor ** (1.0 / max(config.iters, 1))
@@ -332,7 +362,8 @@ def fit_occupancy(
         y = labels[batch]
         weight = torch.where(y > 0.5, pos_weight, 1.0)
         f = network.occupancy(inputs[batch])
-        loss = _loss(f, transmission[batch], y, weight, config)
+        front = None if in_front is None else in_front[batch]
+        loss = _loss(f, transmission[batch], y, weight, config, front)
         if anchor is None:
             return loss, {"loss": loss.detach()}
         held = next(anchor_batches).to(device)
@@ -370,6 +401,8 @@ def _fingerprint(
     trained = {id(p) for p in parameters}
     names = [name for name, p in network.named_parameters() if id(p) in trained]
     tensors = [data.inputs, data.transmission, data.labels, *network.state_dict().values()]
+    if data.in_front is not None:
+        tensors.append(data.in_front)
     settings = {"config": config.to_dict(), "trained": names, "anchor": None}
     if anchor is not None:
         tensors += [anchor.inputs, anchor.targets]
@@ -407,7 +440,8 @@ def label_loss(
             y = labels[at].to(device)
             weight = torch.where(y > 0.5, pos_weight, 1.0)
             f = network.occupancy(data.inputs[at].to(device))
-            loss = _loss(f, data.transmission[at].to(device), y, weight, config)
+            front = None if data.in_front is None else data.in_front[at].to(device)
+            loss = _loss(f, data.transmission[at].to(device), y, weight, config, front)
             total += float(loss) * len(at)
     return total / len(pick)
 
@@ -429,10 +463,15 @@ def _loss(
     y: torch.Tensor,
     weight: torch.Tensor,
     config: OccupancyTrainConfig,
+    in_front: torch.Tensor | None = None,
 ) -> torch.Tensor:
-    """The configured loss of a batch (module doc)."""
+    """The configured loss of a batch (module doc); ``in_front`` the batch's
+    :attr:`OccupancyTrainingData.in_front`, read with ``config.front_negatives``."""
     if config.loss == "ultron" and config.negatives == "observed":
-        return observed_negatives_bce(f, transmission, y, config.observed_transmission, weight)
+        front = in_front if config.front_negatives else None
+        return observed_negatives_bce(
+            f, transmission, y, config.observed_transmission, weight, in_front=front
+        )
     if config.loss == "ultron":
         return attenuation_compensated_bce(f, transmission, y, weight)
     return binary_cross_entropy(f, y, weight)
