@@ -112,7 +112,7 @@ def test_observed_negatives_count_background_in_front_of_bone_whatever_t():
 
 def test_background_in_front_of_bone_trains_f_down_with_front_negatives_only():
     # bone where x0 > 0.5; background at x0 < -0.5, all with T = 0 (the field calls it
-    # shadow) but in front of the bone: only front_negatives lets it teach f "no bone"
+    # shadow) but in front of the bone: only the "front" negatives let it teach f "no bone"
     data = _separable_data()
     x0 = data.inputs[:, 0]
     keep = (x0 > 0.5) | (x0 < -0.5)
@@ -123,15 +123,15 @@ def test_background_in_front_of_bone_trains_f_down_with_front_negatives_only():
     )
     probe = torch.tensor([[-0.8, 0.0, 0.0]])
     results = {}
-    for counted in (True, False):
+    for negatives in ("front", "observed"):
         config = OccupancyTrainConfig(
-            iters=300, batch_size=512, lr=1e-3, seed=1, network=SMALL, front_negatives=counted
+            iters=300, batch_size=512, lr=1e-3, seed=1, network=SMALL, negatives=negatives
         )
         network, _ = fit_occupancy(dark, config)
         with torch.no_grad():
-            results[counted] = float(network.occupancy(probe))
-    assert results[True] < 0.1  # taught by the background in front
-    assert results[False] > 0.5  # no negative counted: bone everywhere
+            results[negatives] = float(network.occupancy(probe))
+    assert results["front"] < 0.1  # taught by the background in front
+    assert results["observed"] > 0.5  # no negative counted: bone everywhere
     summary = dark.summary(0.3)
     assert summary["n_background_in_front"] == int(front.sum())
     assert summary["n_background_in_front_below_threshold"] == int(front.sum())
@@ -157,8 +157,6 @@ def test_observed_negatives_invalid_inputs():
         OccupancyTrainConfig(negatives="some")
     with pytest.raises(UltronInputError, match="observed_transmission"):
         OccupancyTrainConfig(observed_transmission=1.5)
-    with pytest.raises(UltronInputError, match="front_negatives"):
-        OccupancyTrainConfig(front_negatives="yes")
     inputs, labels = torch.zeros(3, 2), torch.zeros(3, dtype=torch.uint8)
     with pytest.raises(UltronInputError, match="in_front"):
         OccupancyTrainingData(

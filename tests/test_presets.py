@@ -122,6 +122,8 @@ def test_request_takes_the_preset_and_options_win():
     assert preset_request(oracle=True).method_config.visibility.source == "oracle"
     assert preset_request(echo_support=False).method_config.echo_support is None
     assert preset_request(label_support_mm=0.5).method_config.observed.label_support_mm == 0.5
+    assert preset_request(negatives="front").method_config.occupancy.negatives == "front"
+    assert preset_request().method_config.occupancy.negatives == "observed"
     assert preset_request().method_config.observed.label_bridges
     assert not preset_request(label_bridges=False).method_config.observed.label_bridges
     assert not preset_request("paper").method_config.observed.label_bridges

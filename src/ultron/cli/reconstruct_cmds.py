@@ -118,9 +118,10 @@ def reconstruct(
             paper's), another number > 0, or 'balanced' (n_background / n_bone, at most 20:
             a fuller but less accurate surface, e.g. for very short runs) (default: 1).
         negatives: ultron: background labels in the compensated loss: 'observed' (full
-            weight where T ≥ 0.3, none below: only observed free space is evidence) or
-            'weighted' (scaled by T: the paper's BCE(T·f, y)) (default: the preset's:
-            observed; paper: weighted).
+            weight where T ≥ 0.3, none below: only observed free space is evidence), 'front'
+            (observed, and every background label in front of its scanline's first bone
+            label whatever T says) or 'weighted' (scaled by T: the paper's BCE(T·f, y))
+            (default: the preset's: observed; paper: weighted).
         echo_support: ultron*: keep only surface some frame shows as bone — a bone echo or
             the onset of a shadow within ±1 mm (default: the preset's: on; paper: off).
         label_support: ultron*: surface within MM of a labelled bone surface counts as

@@ -93,7 +93,8 @@ from ultron.train.visibility import (
 )
 
 #: run.json's counts of the background labels in front of their scanline's first bone label,
-#: and of those whose T is below the observed negatives' threshold (counted anyway).
+#: and of those whose T is below the observed negatives' threshold (which the ``front``
+#: negatives count and the ``observed`` drop).
 FRONT_COUNTS = ("n_background_in_front", "n_background_in_front_below_threshold")
 
 

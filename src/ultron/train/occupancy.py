@@ -11,9 +11,9 @@ detached, never normalised) and y the label:
   With ``negatives="observed"`` the background labels count only where the beam reached
   them, at full weight (:func:`observed_negatives_bce`): T decides *which* negatives are
   evidence instead of scaling each by T (for a bone label the compensated loss's gradient in
-  f does not depend on T, so bone labels count as in the paper). A background label in front
-  of its scanline's first bone label counts whatever T says (``front_negatives``): the
-  annotation shows the beam crossed it to reach the bone.
+  f does not depend on T, so bone labels count as in the paper). With ``negatives="front"``
+  a background label in front of its scanline's first bone label counts too, whatever T
+  says: the annotation shows the beam crossed it to reach the bone.
 * ``ultron-noloss`` (the paper's ablation) and ``on`` — plain BCE(f, y).
 
 Class balance: bone is a small share of the labelled pixels (a few percent). By default the
@@ -69,7 +69,12 @@ LOSSES = ("ultron", "bce")
 #: datasets because it lowered MAD, and HD95 and the visible CD on most runs, at a small cost
 #: in visible completeness and F-score; figures in
 #: docs/decisions.md#occupancy-observed-negatives-trainoccupancypy.
-NEGATIVES = ("weighted", "observed")
+#: ``front`` is ``observed`` with every background label in front of its scanline's first bone
+#: label counted whatever T says (:func:`observed_negatives_bce`'s ``in_front``): the annotation
+#: shows the beam reached it. Measured, an option: it makes UltrON with the real fibula's CT
+#: labels its ablation and a third of the PLUS phantom's false surface goes, and it costs the
+#: simulated benchmark; docs/decisions.md, "Occupancy: background in front of the bone".
+NEGATIVES = ("weighted", "observed", "front")
 #: T above which a background label is observed free space: the observed-surface criterion's
 #: and the simulated annotator's threshold (:mod:`ultron.mesh.observed`), not tuned.
 OBSERVED_TRANSMISSION = 0.3
@@ -155,10 +160,7 @@ def binary_cross_entropy(
 
 @dataclass(frozen=True)
 class OccupancyTrainConfig:
-    """Settings of :func:`fit_occupancy` (``front_negatives``: with ``negatives="observed"``,
-    background labels in front of their scanline's first bone label count whatever T says,
-    :func:`observed_negatives_bce`; figures in docs/decisions.md, "Background in front of the
-    bone counts")."""
+    """Settings of :func:`fit_occupancy`."""
 
     loss: str = "ultron"
     iters: int = 1500
@@ -169,7 +171,6 @@ class OccupancyTrainConfig:
     max_positive_weight: float = 20.0
     negatives: str = "observed"
     observed_transmission: float = OBSERVED_TRANSMISSION
-    front_negatives: bool = True
     seed: int = 0
     network: OccupancyNetworkConfig = field(default_factory=OccupancyNetworkConfig)
 
@@ -202,10 +203,6 @@ class OccupancyTrainConfig:
                 "observed_transmission",
                 f"expected a value in [0, 1], got {self.observed_transmission!r}",
             )
-        if not isinstance(self.front_negatives, bool):
-            raise argument_error(
-                "front_negatives", f"expected True or False, got {self.front_negatives!r}"
-            )
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -233,7 +230,7 @@ class OccupancyTrainingData:
     (:func:`ultron.train.visibility.in_labelled_shadow`) — a diagnostic the fit does not read;
     ``in_front`` (P,) bool, when given, the background labels in front of their scanline's
     first bone label (:meth:`~ultron.data.labels.LabelledPixels.in_front_of_bone`), which the
-    observed negatives count whatever T says (``OccupancyTrainConfig.front_negatives``)."""
+    ``front`` negatives count whatever T says (:data:`NEGATIVES`)."""
 
     inputs: torch.Tensor
     transmission: torch.Tensor
@@ -466,9 +463,9 @@ def _loss(
     in_front: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """The configured loss of a batch (module doc); ``in_front`` the batch's
-    :attr:`OccupancyTrainingData.in_front`, read with ``config.front_negatives``."""
-    if config.loss == "ultron" and config.negatives == "observed":
-        front = in_front if config.front_negatives else None
+    :attr:`OccupancyTrainingData.in_front`, read by the ``front`` negatives."""
+    if config.loss == "ultron" and config.negatives in ("observed", "front"):
+        front = in_front if config.negatives == "front" else None
         return observed_negatives_bce(
             f, transmission, y, config.observed_transmission, weight, in_front=front
         )
