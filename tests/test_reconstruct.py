@@ -103,6 +103,9 @@ def test_ultron_end_to_end(tiny: Path, tmp_path: Path, monkeypatch):
     assert 0 <= run["transmission_stats"]["background_mean"] <= 1
     assert run["echo_support"] is True and run["faces_kept"] <= run["faces_extracted"]
     assert run["echo_support_config"] == EchoSupportConfig().to_dict()  # what decided the crop
+    # the background labels in front of the bone, and those the field's T puts below 0.3
+    assert 0 < run["n_background_in_front"] < run["n_labelled_pixels"] - run["n_bone_pixels"]
+    assert 0 <= run["n_background_in_front_below_threshold"] <= run["n_background_in_front"]
     mesh = load_mesh(tmp_path / "out" / "mesh.ply")
     assert len(mesh.faces) > 100
     # on this 64 × 48-pixel, 24-frame phantom (measured: UltrON CD vis. 1.52, MAD 1.48 mm; w/o

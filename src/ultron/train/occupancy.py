@@ -71,9 +71,9 @@ LOSSES = ("ultron", "bce")
 #: docs/decisions.md#occupancy-observed-negatives-trainoccupancypy.
 #: ``front`` is ``observed`` with every background label in front of its scanline's first bone
 #: label counted whatever T says (:func:`observed_negatives_bce`'s ``in_front``): the annotation
-#: shows the beam reached it. Measured, an option: it makes UltrON with the real fibula's CT
-#: labels its ablation and a third of the PLUS phantom's false surface goes, and it costs the
-#: simulated benchmark; docs/decisions.md, "Occupancy: background in front of the bone".
+#: shows the beam reached it. An option, not the default: what it gains on the real recordings
+#: and costs on the simulated benchmark is in
+#: docs/decisions.md#occupancy-background-in-front-of-the-bone-counts-trainoccupancypy.
 NEGATIVES = ("weighted", "observed", "front")
 #: T above which a background label is observed free space: the observed-surface criterion's
 #: and the simulated annotator's threshold (:mod:`ultron.mesh.observed`), not tuned.
