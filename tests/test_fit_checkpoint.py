@@ -4,6 +4,7 @@ an uninterrupted one ends; a checkpoint of another fit, or a damaged one, is nev
 from __future__ import annotations
 
 from collections.abc import Iterator
+from dataclasses import replace
 
 import pytest
 import torch
@@ -190,6 +191,27 @@ def test_another_fits_checkpoint_is_not_resumed(tmp_path, other):
     resumed = fit_occupancy(data, config, trainable=trainable, checkpoint=checkpoint)
     assert checkpoint.resumed_from is None
     _same_fit(fit_occupancy(data, config, trainable=trainable), resumed)
+
+
+def test_the_in_front_mask_decides_resumption_only_where_the_fit_reads_it(tmp_path):
+    # the default negatives never read data.in_front: its checkpoint resumes with or without
+    # the mask (a run.json diagnostic); the "front" negatives read it, so a changed mask refits
+    plain = _data()
+    front = plain.labels == 0
+
+    def with_mask(mask: torch.Tensor) -> OccupancyTrainingData:
+        return OccupancyTrainingData(plain.inputs, plain.transmission, plain.labels, in_front=mask)
+
+    for config, data, resumes in (
+        (CONFIG, with_mask(front), True),
+        (replace(CONFIG, negatives="front"), with_mask(~front), False),
+    ):
+        path = tmp_path / f"{config.negatives}.pt"
+        first = with_mask(front) if config.negatives == "front" else plain
+        fit_occupancy(first, config, checkpoint=FitCheckpoint(path))
+        checkpoint = FitCheckpoint(path)
+        fit_occupancy(data, config, checkpoint=checkpoint)
+        assert (checkpoint.resumed_from is not None) is resumes, config.negatives
 
 
 @pytest.mark.parametrize("content", [b"", b"not a checkpoint", None])

@@ -341,7 +341,8 @@ def fit_occupancy(
     generator = torch.Generator().manual_seed(config.seed)
     network = (network or _initial_network(config, data.inputs.shape[1])).to(device)
     inputs, transmission = data.inputs.to(device), data.transmission.to(device)
-    in_front = None if data.in_front is None else data.in_front.to(device)
+    in_front = _front_mask(data, config)
+    in_front = None if in_front is None else in_front.to(device)
     parameters = trainable(network) if trainable else list(network.parameters())
     optimiser = torch.optim.Adam(parameters, lr=config.lr)
     gamma = config.final_lr_factor ** (1.0 / max(config.iters, 1))
@@ -398,8 +399,9 @@ def _fingerprint(
     trained = {id(p) for p in parameters}
     names = [name for name, p in network.named_parameters() if id(p) in trained]
     tensors = [data.inputs, data.transmission, data.labels, *network.state_dict().values()]
-    if data.in_front is not None:
-        tensors.append(data.in_front)
+    front = _front_mask(data, config)
+    if front is not None:  # only a fit that reads the mask depends on it
+        tensors.append(front)
     settings = {"config": config.to_dict(), "trained": names, "anchor": None}
     if anchor is not None:
         tensors += [anchor.inputs, anchor.targets]
@@ -430,6 +432,7 @@ def label_loss(
     pick = torch.arange(0, n, max(1, math.ceil(n / max_points)))
     labels = data.labels.to(torch.float32)
     pos_weight = positive_class_weight(labels, config)
+    in_front = _front_mask(data, config)
     total = 0.0
     with torch.no_grad():
         for start in range(0, len(pick), chunk):
@@ -437,7 +440,7 @@ def label_loss(
             y = labels[at].to(device)
             weight = torch.where(y > 0.5, pos_weight, 1.0)
             f = network.occupancy(data.inputs[at].to(device))
-            front = None if data.in_front is None else data.in_front[at].to(device)
+            front = None if in_front is None else in_front[at].to(device)
             loss = _loss(f, data.transmission[at].to(device), y, weight, config, front)
             total += float(loss) * len(at)
     return total / len(pick)
@@ -454,6 +457,14 @@ def _initial_network(config: OccupancyTrainConfig, in_dim: int) -> OccupancyNetw
         return OccupancyNetwork(network_config)
 
 
+def _front_mask(data: OccupancyTrainingData, config: OccupancyTrainConfig) -> torch.Tensor | None:
+    """``data.in_front`` where ``config`` reads it (the compensated loss with the ``front``
+    negatives), else None: the fit, its fingerprint and :func:`label_loss` carry it only then."""
+    if config.loss == "ultron" and config.negatives == "front":
+        return data.in_front
+    return None
+
+
 def _loss(
     f: torch.Tensor,
     transmission: torch.Tensor,
@@ -462,12 +473,11 @@ def _loss(
     config: OccupancyTrainConfig,
     in_front: torch.Tensor | None = None,
 ) -> torch.Tensor:
-    """The configured loss of a batch (module doc); ``in_front`` the batch's
-    :attr:`OccupancyTrainingData.in_front`, read by the ``front`` negatives."""
+    """The configured loss of a batch (module doc); ``in_front`` the batch's part of
+    :func:`_front_mask` (None unless the ``front`` negatives read it)."""
     if config.loss == "ultron" and config.negatives in ("observed", "front"):
-        front = in_front if config.negatives == "front" else None
         return observed_negatives_bce(
-            f, transmission, y, config.observed_transmission, weight, in_front=front
+            f, transmission, y, config.observed_transmission, weight, in_front=in_front
         )
     if config.loss == "ultron":
         return attenuation_compensated_bce(f, transmission, y, weight)
