@@ -130,3 +130,79 @@ def test_every_ultron_option_has_help_and_no_command_help_shows_its_args_section
         for param in click_command.params:
             assert param.help and "\n" not in param.help, (name, param.name)
             assert "  " not in param.help, (name, param.name)  # continuation lines joined
+            assert "``" not in param.help and ":func:" not in param.help, (name, param.name)
+
+
+@command(aliases={"depth": "depth_mm"}, documented_by=("ultron.pipeline.presets:preset_request",))
+def _at_the_boundary(
+    depth_mm: float = 1.0,
+    negatives: str | None = None,
+    device: str = "auto",
+    threads: int | None = None,
+) -> None:
+    """Report what the function receives.
+
+    Args:
+        depth_mm: Depth, mm.
+    """
+    import torch
+
+    if depth_mm < 0:  # the library's check of the value it takes as ``depth``
+        raise argument_error("depth", f"expected ≥ 0, got {depth_mm}")
+    typer.echo(f"{negatives} {device} {torch.get_num_threads()}")
+
+
+def _boundary_app():
+    app = typer.Typer()
+    app.command("example")(_at_the_boundary)
+    app.command("other")(lambda: None)
+    return app
+
+
+def test_device_and_threads_are_resolved_before_the_command_runs(one_thread):
+    result = runner.invoke(_boundary_app(), ["example", "--device", "auto", "--threads", "2"])
+    assert result.exit_code == 0, result.output
+    assert result.output.split()[1:] == ["cpu", "2"]  # auto → cpu here; torch given 2 threads
+    result = runner.invoke(_boundary_app(), ["example", "--device", "tpu"])
+    assert result.exit_code == 2 and result.output.startswith("error: argument: --device: ")
+
+
+def test_an_aliased_library_error_names_the_option():
+    result = runner.invoke(_boundary_app(), ["example", "--depth-mm", "-1"])
+    assert result.exit_code == 2
+    assert result.output.strip() == "error: argument: --depth-mm: expected ≥ 0, got -1.0"
+
+
+def test_help_comes_from_the_library_function_that_takes_the_option():
+    """An option's help is the library's own ``Args:`` entry, read without importing it, under
+    the option's name or an alias; reconstruct's method options read preset_request's."""
+    import docstring_parser
+
+    from ultron.pipeline.presets import preset_request
+
+    documented = docstring_parser.parse(preset_request.__doc__ or "")
+    library = {p.arg_name: " ".join(p.description.split()) for p in documented.params}
+    commands = typer.main.get_command(ultron_app).commands
+    example = typer.main.get_command(_boundary_app()).commands["example"]
+    assert {p.name: p.help for p in example.params}["negatives"] == library["negatives"]
+    reconstruct = {p.name: p.help for p in commands["reconstruct"].params}
+    assert reconstruct["negatives"] == library["negatives"]
+    assert reconstruct["label_support"] == library["label_support_mm"]  # through its alias
+    assert reconstruct["oracle_transmission"] == library["oracle"]
+    with pytest.raises(TypeError, match="no such function or class"):
+        command(documented_by=("ultron.pipeline.presets:no_such_function",))(lambda: None)
+
+
+def test_declaring_the_commands_loads_no_torch():
+    """The help read from library docstrings is read from their source: ``ultron --help`` and
+    a bad option answer without loading torch (a second of start-up)."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, typer.main, ultron.cli.main as m; typer.main.get_command(m.app);"
+        " print(sorted(n for n in ('torch', 'ultron.phantom', 'ultron.pipeline.presets')"
+        " if n in sys.modules))"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert done.stdout.strip() == "[]"

@@ -177,3 +177,56 @@ def test_an_interrupted_command_says_how_to_resume(
     lines = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
     assert len(lines) == 1 and lines[0].startswith("error: interrupted"), lines
     assert "run the same command again to resume" in lines[0].lower()
+
+
+def _field_config(**changes):
+    from ultron.train.field_config import FieldTrainConfig
+
+    return FieldTrainConfig(**changes)
+
+
+def _request(**changes):
+    from ultron.methods.request import ReconstructionRequest
+
+    return ReconstructionRequest(**changes)
+
+
+def _memory(gib):
+    from ultron.memory import memory_limit
+
+    return memory_limit(gib)
+
+
+def _metrics(**changes):
+    from ultron.metrics.surface import MetricsConfig
+
+    return MetricsConfig(**changes)
+
+
+def _read_ultranerf(tolerance):
+    from ultron.data.importers import read_ultranerf
+
+    return read_ultranerf("/nonexistent", 80.0, 140.0, orthonormalize_tolerance=tolerance)
+
+
+@pytest.mark.parametrize(
+    ("make", "name"),
+    [
+        (lambda: _field_config(holdout_every=1), "holdout_every"),
+        (lambda: _field_config(seed=MAX_SEED + 1), "seed"),
+        (lambda: _field_config(iterations=10**9 + 1), "iterations"),
+        (lambda: _field_config(check_every=True), "check_every"),
+        (lambda: _request(seed=-1), "seed"),
+        (lambda: _request(seed=MAX_SEED + 1), "seed"),
+        (lambda: _memory(0.0), "max_memory_gib"),
+        (lambda: _memory(float("nan")), "max_memory_gib"),
+        (lambda: _metrics(seed=-1), "seed"),
+        (lambda: _metrics(n_points=0), "n_points"),
+        (lambda: _read_ultranerf(float("nan")), "orthonormalize_tolerance"),  # before the files
+    ],
+)
+def test_the_library_checks_what_the_cli_hands_on(make, name: str) -> None:
+    """The commands pass these values on unchecked: the library refuses them, naming its
+    parameter (which the CLI maps onto the option)."""
+    with pytest.raises(UltronInputError, match=rf"^argument: {name}: expected "):
+        make()

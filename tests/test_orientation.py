@@ -145,11 +145,21 @@ def test_field_config_orientation():
     assert FieldTrainConfig.from_dict(oriented.to_dict()) == oriented
 
 
-def test_cli_choices_are_the_library_s():
-    from ultron.cli.field_cmds import ORIENTATIONS as CLI_ORIENTATIONS
+def test_the_cli_refuses_what_the_library_refuses(tmp_path):
+    """fit-field hands --orientation to the library, whose check names the option and lists
+    the library's choices."""
+    from typer.testing import CliRunner
+
+    from ultron.cli.main import app
     from ultron.data.orientation import ORIENTATIONS
 
-    assert CLI_ORIENTATIONS == ORIENTATIONS
+    args = ["fit-field", str(tmp_path), "--out", str(tmp_path / "f"), "--orientation", "tilted"]
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 2
+    assert result.stderr.startswith(
+        f"error: argument: --orientation: expected one of {ORIENTATIONS}"
+    )
+    assert not (tmp_path / "f").exists()
 
 
 def test_a_field_fitted_along_a_turned_sweep_is_the_unturned_fit(tmp_path):

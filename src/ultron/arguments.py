@@ -1,7 +1,9 @@
 """Checks of numeric and choice arguments, each refused with a one-line error naming the
 argument (a CLI option such as ``--seed``, or a function's parameter), so that a negative seed,
 ``nan`` or ``inf`` never reaches the code: it could crash there, or pass comparisons that NaN
-always fails (a NaN tolerance that "repairs" any pose)."""
+always fails (a NaN tolerance that "repairs" any pose). The library's configs and entry points
+check what they take, once; the CLI passes values on and its :func:`~ultron.cli.common.command`
+names the option of an error about a parameter."""
 
 from __future__ import annotations
 
@@ -43,8 +45,7 @@ def check_range(
 ) -> None:
     """Refuse a numeric option's value with a one-line error naming ``option`` (the CLI exits
     2) unless it is finite and within ``low``/``high`` (inclusive, or exclusive with
-    ``low_open``/``high_open``); ``None`` (option not given) passes. Commands call this for
-    every numeric option before reading or writing anything."""
+    ``low_open``/``high_open``); ``None`` (option not given) passes."""
     if value is None:
         return
     ok = math.isfinite(value)
@@ -67,10 +68,13 @@ def check_seed(option: str, value: int | None) -> None:
 MAX_COUNT = 10**9
 
 
-def check_integer(name: str, value: object, low: int = 0) -> None:
-    """A one-line error naming ``name`` unless ``value`` is an integer (not a bool) ≥ ``low``."""
-    if isinstance(value, bool) or not isinstance(value, int) or value < low:
-        raise argument_error(name, f"expected an integer ≥ {low}, got {value!r}")
+def check_integer(name: str, value: object, low: int = 0, high: int | None = None) -> None:
+    """A one-line error naming ``name`` unless ``value`` is an integer (not a bool) ≥ ``low``
+    (and ≤ ``high`` when given: :data:`MAX_COUNT` for a count, :data:`MAX_SEED` for a seed)."""
+    integer = isinstance(value, int) and not isinstance(value, bool)
+    if not integer or value < low or (high is not None and value > high):  # type: ignore[operator]
+        expected = f"≥ {low}" if high is None else f"in [{low}, {high}]"
+        raise argument_error(name, f"expected an integer {expected}, got {value!r}")
 
 
 def check_count(option: str, value: int | None, minimum: int = 1) -> None:

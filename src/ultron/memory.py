@@ -13,6 +13,8 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
+from ultron.arguments import check_range
+
 _GIB = 1024**3
 
 
@@ -58,7 +60,10 @@ def address_space_left_bytes() -> int | None:
 def memory_limit(max_memory_gib: float | None = None) -> tuple[float, str]:
     """The memory a run may plan for, bytes (inf if unknown), and how to name it: the
     ``--max-memory`` given, else the least of the machine's memory, the cgroup's limit and what
-    the address-space limit leaves (:func:`address_space_left_bytes`)."""
+    the address-space limit leaves (:func:`address_space_left_bytes`). A given
+    ``max_memory_gib`` must be a finite number > 0 (every run plans against this limit before
+    any work, so that is where it is checked)."""
+    check_range("max_memory_gib", max_memory_gib, 0.0, low_open=True)
     if max_memory_gib is not None:
         return max_memory_gib * _GIB, f"--max-memory {max_memory_gib:g} GiB"
     machine = machine_memory_bytes()

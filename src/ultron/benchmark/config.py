@@ -265,7 +265,7 @@ def benchmark_config(preset: str = "fast", quick: bool = False, **changes: Any) 
     field."""
     if quick and preset != "fast":
         raise argument_error(
-            "preset", f"a quick benchmark runs the fast preset only, got {preset!r}"
+            "preset", f"a quick benchmark (--quick) runs the fast preset only, got {preset!r}"
         )
     stages = pipeline_preset(preset)
     settings: dict[str, Any] = {"rocosdf_preset": stages.rocosdf_preset}

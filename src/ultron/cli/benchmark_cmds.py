@@ -6,9 +6,7 @@ from pathlib import Path
 
 import typer
 
-from ultron.arguments import check_choice, check_count
-from ultron.cli.common import check_device, command, console
-from ultron.errors import argument_error
+from ultron.cli.common import command, console
 
 #: Exit code when the benchmark ran but some cells failed.
 EXIT_CELLS_FAILED = 1
@@ -18,7 +16,7 @@ def _phantom_list(text: str) -> tuple[str, ...]:
     return tuple(name.strip() for name in text.split(",") if name.strip())
 
 
-@command()
+@command(torch_threads=False)
 def benchmark(
     out: Path,
     quick: bool = False,
@@ -58,31 +56,21 @@ def benchmark(
         address: With --executor ray: the Ray cluster to join (auto, ray://host:10001);
             default: start a local one.
     """
-    check_count("--seeds", seeds)
-    check_count("--jobs", jobs)
-    check_count("--threads", threads)
-    device = check_device(device)
-
     from ultron.benchmark import run_benchmark
     from ultron.benchmark.config import benchmark_config
-    from ultron.pipeline.presets import PIPELINE_PRESETS
 
-    check_choice("--preset", preset, PIPELINE_PRESETS)
-    if quick and preset != "fast":
-        raise argument_error("--preset", "--quick runs the fast preset only")
-    changes: dict = {
-        "jobs": jobs,
-        "threads": threads,
-        "robustness": robustness,
-        "generalisation": not no_generalisation,
-        "cell_reports": not no_cell_reports,
-        "device": device,
-    }
-    if seeds is not None:
-        changes["seeds"] = seeds
-    if phantoms is not None:
-        changes["phantoms"] = _phantom_list(phantoms)
-    config = benchmark_config(preset, quick, **changes)
+    given = {"seeds": seeds, "phantoms": None if phantoms is None else _phantom_list(phantoms)}
+    config = benchmark_config(  # checks every setting
+        preset,
+        quick,
+        **{name: value for name, value in given.items() if value is not None},
+        jobs=jobs,
+        threads=threads,
+        robustness=robustness,
+        generalisation=not no_generalisation,
+        cell_reports=not no_cell_reports,
+        device=device,
+    )
 
     def log(line: str) -> None:
         console.print(line, markup=False, highlight=False, soft_wrap=True)

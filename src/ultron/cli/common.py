@@ -3,18 +3,21 @@ code 2, the consoles, progress lines."""
 
 from __future__ import annotations
 
+import ast
 import functools
 import inspect
 import re
 import time
 from collections.abc import Callable, Iterable, Iterator, Mapping
 from contextlib import contextmanager
+from pathlib import Path
 from typing import Annotated, ParamSpec, TypeVar
 
 import docstring_parser
 import typer
 from rich.console import Console
 
+import ultron
 from ultron.arguments import check_count
 from ultron.errors import UltronError, UltronInputError, resource_error
 
@@ -55,11 +58,14 @@ def user_errors(func: Callable[P, R], flags: Mapping[str, str] | None = None) ->
     return wrapper
 
 
-#: The help of options that mean the same in every command, where its docstring is silent.
+#: The help of options that mean the same in every command, unless the command says otherwise:
+#: what the command line resolves itself (a library function documents what it then receives).
 COMMON_HELP = {
     "device": "Where networks compute: auto (CUDA when available, else the CPU), cpu, cuda,"
     " cuda:N or mps. cpu reproduces the CPU figures exactly.",
     "threads": "torch CPU threads (default: torch's choice).",
+    "max_memory": "GiB the command's data and working memory may take, estimated before any"
+    " work (default: the machine's memory, or the cgroup's or ulimit -v's limit).",
 }
 
 
@@ -67,26 +73,43 @@ def command(
     *arguments: str,
     shared: Mapping[str, str] | None = None,
     metavars: Mapping[str, str] | None = None,
+    aliases: Mapping[str, str] | None = None,
+    documented_by: Iterable[str] = (),
+    torch_threads: bool = True,
 ) -> Callable[[Callable[P, R]], Callable[P, R]]:
-    """A typer command from a documented function, as tyro (nerfstudio's CLI) reads one: each
-    parameter's help is its entry in the docstring's Google-style ``Args:`` section, else in
-    ``shared`` or :data:`COMMON_HELP`; the parameters named in ``arguments`` are positional,
-    shown in upper case as help texts name them (``DATASET``), the others options named after
-    them (``label_fraction`` → ``--label-fraction``), a bool that defaults to False a plain
-    flag and an optional bool a ``--x/--no-x`` pair; ``metavars`` names the values of some.
-    The command's help is the docstring above ``Args:``, each paragraph on one line. Bad input
-    is one line and exit 2 (:func:`user_errors`, which names the option of a library's error
-    about its parameter). A parameter left without help, or help or an argument naming no
-    parameter, is a TypeError when the command is declared."""
+    """A typer command from a documented function, as tyro (nerfstudio's CLI) reads one.
+
+    Each parameter's help is its entry in the docstring's Google-style ``Args:`` section, else
+    in ``shared``, else in :data:`COMMON_HELP`, else in the ``Args:`` of a library function or
+    the ``Attributes:`` of a config class in ``documented_by`` (``"module:name"``) that takes
+    it, under its name or, through ``aliases``, another: an option the library documents is
+    documented once. The parameters named in ``arguments`` are positional, shown in upper case
+    as help texts name them (``DATASET``), the others options named after them
+    (``label_fraction`` → ``--label-fraction``), a bool that defaults to False a plain flag and
+    an optional bool a ``--x/--no-x`` pair; ``metavars`` names the values of some. The
+    command's help is the docstring above ``Args:``, each paragraph on one line.
+
+    At the boundary, before the function runs: ``device`` is resolved (:func:`check_device`)
+    and ``threads`` sets torch's CPU threads (:func:`apply_threads`; not with
+    ``torch_threads=False``, where the command hands its threads on). Bad input is one line and
+    exit 2 (:func:`user_errors`): the library checks the values, and its error about a
+    parameter names the option, the parameter's own or, through ``aliases`` (the library's
+    name → the parameter), one the command passes on under another name. A parameter left
+    without help, or help or an argument naming no parameter, is a TypeError when the command
+    is declared."""
 
     def declare(func: Callable[P, R]) -> Callable[P, R]:
         text = func.__doc__ or ""
-        documented = docstring_parser.parse(text, docstring_parser.DocstringStyle.GOOGLE)
-        helps = {**COMMON_HELP, **(shared or {})}
-        helps.update((p.arg_name, " ".join(p.description.split())) for p in documented.params)
+        helps: dict[str, str] = {}
+        for library in documented_by:
+            for name, entry in _library_args(library).items():
+                helps[(aliases or {}).get(name, name)] = entry
+        helps.update(COMMON_HELP)  # what the command line resolves itself
+        helps.update(shared or {})
+        own = _documented(text)
+        helps.update(own)
         signature = inspect.signature(func, eval_str=True)
-        unknown = {p.arg_name for p in documented.params} | set(arguments)
-        unknown -= set(signature.parameters)
+        unknown = (set(own) | set(arguments)) - set(signature.parameters)
         if unknown:
             raise TypeError(f"{func.__name__}: no parameter named {', '.join(sorted(unknown))}")
         parameters = []
@@ -98,13 +121,50 @@ def command(
             )
             parameters.append(parameter.replace(annotation=Annotated[parameter.annotation, info]))
         options = [p.name for p in signature.parameters.values() if p.name not in arguments]
-        wrapper = user_errors(func, {name: _flag(name) for name in options})
+        flags = {name: _flag(name) for name in options}
+        flags.update((name, _flag(parameter)) for name, parameter in (aliases or {}).items())
+        wrapper = user_errors(_at_boundary(func, torch_threads), flags)
         wrapper.__signature__ = signature.replace(parameters=parameters)  # type: ignore[attr-defined]
         wrapper.__annotations__ = {p.name: p.annotation for p in parameters}
         wrapper.__doc__ = _paragraphs(re.split(r"\n[ \t]*Args:[ \t]*\n", text, maxsplit=1)[0])
         return wrapper
 
     return declare
+
+
+def _documented(text: str) -> dict[str, str]:
+    """The ``Args:`` entries of a Google-style docstring, each on one line."""
+    documented = docstring_parser.parse(text, docstring_parser.DocstringStyle.GOOGLE)
+    return {p.arg_name: " ".join(p.description.split()) for p in documented.params}
+
+
+def _library_args(target: str) -> dict[str, str]:
+    """The ``Args:`` (or a class's ``Attributes:``) entries of ``"module:name"``, read from the
+    module's source without importing it: a command is declared at start-up, before torch
+    loads."""
+    module, name = target.split(":")
+    package, *parts = module.split(".")  # not find_spec: it would import the parent packages
+    if package != "ultron":
+        raise TypeError(f"{target}: not an ultron module")
+    source = Path(ultron.__file__).parent.joinpath(*parts).with_suffix(".py").read_text("utf-8")
+    for node in ast.parse(source).body:
+        if isinstance(node, ast.FunctionDef | ast.ClassDef) and node.name == name:
+            return _documented(ast.get_docstring(node) or "")
+    raise TypeError(f"{target}: no such function or class")
+
+
+def _at_boundary(func: Callable[P, R], torch_threads: bool) -> Callable[P, R]:
+    """``func`` with its ``device`` resolved and its ``threads`` applied (:func:`command`)."""
+
+    @functools.wraps(func)
+    def resolved(*args: P.args, **kwargs: P.kwargs) -> R:
+        if torch_threads and "threads" in kwargs:
+            apply_threads(kwargs["threads"])  # type: ignore[arg-type]
+        if "device" in kwargs:
+            kwargs["device"] = check_device(kwargs["device"])  # type: ignore[arg-type]
+        return func(*args, **kwargs)
+
+    return resolved
 
 
 def _paragraphs(text: str) -> str:

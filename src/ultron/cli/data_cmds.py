@@ -6,18 +6,14 @@ from pathlib import Path
 
 import typer
 
-from ultron.arguments import check_range
 from ultron.cli.common import command, console, print_lines
 
-#: The help of the options both importers take.
-IMPORT_HELP = {
-    "out": "Dataset directory (created, or extended by a new sweep).",
-    "kind": "Sweep kind: row, column, tilted or other.",
-    "replace": "Replace an existing sweep of the same name.",
-}
 
-
-@command("src", shared=IMPORT_HELP)
+@command(
+    "src",
+    aliases={"orthonormalize_tolerance": "orthonormalize_tol"},
+    documented_by=("ultron.pipeline.sweep_import:import_ultranerf_sweep",),
+)
 def import_ultranerf(
     src: Path,
     width_mm: float,
@@ -28,23 +24,9 @@ def import_ultranerf(
     orthonormalize_tol: float = 0.05,
     replace: bool = False,
 ) -> None:
-    """Import an Ultra-NeRF sweep into an ultron-sweeps/1 dataset (repeat to add sweeps).
-
-    Args:
-        src: Ultra-NeRF folder: images/0.png… or images.npy, and poses.npy.
-        width_mm: Probe width (lateral field of view), mm.
-        depth_mm: Imaging depth, mm.
-        sweep_name: Name of the new sweep (default: SRC's folder name).
-        orthonormalize_tol: Largest rotation-block deviation from orthonormal that is
-            repaired (nearest rotation), in [0, 1).
-    """
-    from ultron.data.importers import MAX_ORTHONORMALIZE_TOLERANCE
+    """Import an Ultra-NeRF sweep into an ultron-sweeps/1 dataset (repeat to add sweeps)."""
     from ultron.pipeline.sweep_import import import_ultranerf_sweep
 
-    check_range("--width-mm", width_mm, 0.0, low_open=True)
-    check_range("--depth-mm", depth_mm, 0.0, low_open=True)
-    tolerance_max = MAX_ORTHONORMALIZE_TOLERANCE
-    check_range("--orthonormalize-tol", orthonormalize_tol, 0.0, tolerance_max, high_open=True)
     imported = import_ultranerf_sweep(
         src, out, width_mm, depth_mm, sweep_name=sweep_name, kind=kind,
         orthonormalize_tolerance=orthonormalize_tol, replace=replace,
@@ -52,7 +34,7 @@ def import_ultranerf(
     print_lines(imported.lines(out, kind))
 
 
-@command("sequence", shared=IMPORT_HELP)
+@command("sequence", documented_by=("ultron.pipeline.sweep_import:import_plus_sweep",))
 def import_plus(
     sequence: Path,
     config: Path,
@@ -64,21 +46,9 @@ def import_plus(
     replace: bool = False,
     keep_blank_columns: bool = False,
 ) -> None:
-    """Import a tracked PLUS / 3D Slicer recording as a sweep (repeat to add sweeps).
-
-    Args:
-        sequence: PLUS / 3D Slicer sequence: .igs.mha, .seq.mha, .mha, .igs.nrrd, .seq.nrrd
-            (raw or compressed).
-        config: PLUS configuration XML holding the Image → Probe matrix.
-        to: World frame: Reference (moves with the patient) or Tracker.
-        sweep_name: Name of the new sweep (default: the file's stem).
-        downsample: Shrink frames by this factor ≥ 1 (area-averaged; spacings updated).
-        keep_blank_columns: Keep the columns that are 0 in every frame (default: drop them,
-            as outside the probe's aperture).
-    """
+    """Import a tracked PLUS / 3D Slicer recording as a sweep (repeat to add sweeps)."""
     from ultron.pipeline.sweep_import import import_plus_sweep
 
-    check_range("--downsample", downsample, 1.0)
     imported = import_plus_sweep(
         sequence, config, out, to=to, sweep_name=sweep_name, kind=kind, downsample=downsample,
         replace=replace, keep_blank_columns=keep_blank_columns,

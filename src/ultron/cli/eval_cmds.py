@@ -6,12 +6,15 @@ from pathlib import Path
 
 import typer
 
-from ultron.arguments import check_count, check_seed
 from ultron.cli.common import command, console, warning_line
-from ultron.errors import argument_error
 
 
-@command("mesh", "reference")
+@command(
+    "mesh",
+    "reference",
+    aliases={"n_points": "points"},
+    documented_by=("ultron.metrics.surface:MetricsConfig",),
+)
 def evaluate(
     mesh: Path,
     reference: Path,
@@ -31,20 +34,8 @@ def evaluate(
         reference: Reference mesh, world mm.
         reference_visible: The part of the reference the sweeps could see (e.g. a simulated
             dataset's reference_visible.ply): adds CD vis. and Comp. vis. (default: n/a).
-        crop_mm: Keep only the mesh's faces within this distance (mm) of --reference-visible
-            before measuring (a real sweep images more than its reference holds, e.g. the
-            tibia beside a CT fibula); the area left outside is reported (default: no crop).
-        points: Points sampled per surface.
-        repeats: Repeats with different seeds.
-        seed: First sampling seed.
         out: JSON output (default: MESH with .metrics.json).
     """
-    check_count("--points", points)
-    check_count("--repeats", repeats)
-    check_seed("--seed", seed)
-    if crop_mm is not None and not 0 < crop_mm < float("inf"):
-        raise argument_error("--crop-mm", f"expected a positive distance in mm, got {crop_mm}")
-
     from ultron.metrics.surface import MetricsConfig
     from ultron.pipeline.evaluate import evaluate_files
     from ultron.report.tables import metrics_column_table

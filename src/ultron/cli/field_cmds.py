@@ -6,8 +6,7 @@ from pathlib import Path
 
 import typer
 
-from ultron.arguments import check_choice, check_count, check_range, check_seed
-from ultron.cli.common import apply_threads, check_device, command, fit_progress, print_lines
+from ultron.cli.common import command, fit_progress, print_lines
 from ultron.errors import argument_error
 
 
@@ -22,10 +21,23 @@ def _parse_shape(text: str) -> tuple[int, int] | str:
     return int(parts[0]), int(parts[1])
 
 
-ORIENTATIONS = ("auto", "world")  # ultron.data.orientation.ORIENTATIONS (lazy import)
+#: The library's names of what fit-field passes on under another name (its checks and help).
+FIT_ALIASES = {
+    "iterations": "iters",
+    "heads.scattering_floor": "scattering_floor",
+    "scattering_warmup_iters": "scattering_warmup",
+    "confidence_prior_weight": "confidence_prior",
+    "grid.volume_cell_mm": "volume_cell",
+    "max_memory_gib": "max_memory",
+}
 
 
-@command("dataset", metavars={"volume_cell": "MM"})
+@command(
+    "dataset",
+    metavars={"volume_cell": "MM"},
+    aliases=FIT_ALIASES,
+    documented_by=("ultron.train.field_config:FieldTrainConfig",),
+)
 def fit_field_command(
     dataset: Path,
     out: Path,
@@ -53,7 +65,7 @@ def fit_field_command(
     An existing checkpoint in --out is resumed if it was fitted on the same dataset (content
     hash in field.json) with the same settings; a larger --iters continues on the learning-rate
     schedule of the new total, one below the checkpoint's step is an error (--no-resume starts
-    afresh).
+    afresh). An option left unset takes the preset's value.
 
     Args:
         dataset: Dataset directory (ultron-sweeps/1).
@@ -61,51 +73,18 @@ def fit_field_command(
         preset: default (grid, Ultra-NeRF's heads), shadow (grid, φ floor 0.1 and a 500-step
             φ warm-up: the shadow goes into T) or paper (Ultra-NeRF as published: 8 × 128
             MLP, 75k iterations).
-        backend: grid (fast) or mlp (the paper's network); default: preset's.
-        iters: Training iterations (default: preset's).
+        backend: grid (fast) or mlp (the paper's network).
         scattering_floor: Lower bound φ_min of the scattering amplitude (0: allow anechoic
-            regions); default: preset's (shadow 0.1, else 0).
-        scattering_warmup: Steps with φ held constant before it is learned (default:
-            preset's).
-        confidence_prior: Weight of the one-sided prior T ≤ C + 0.3, C the frame's
-            ultrasound confidence map (0: off); default: preset's.
+            regions; the shadow preset's is 0.1).
         volume_cell: grid: cell of a dense 3D feature grid read beside the planes on every
             box; 0: none (default: 2 on a long box, a long bone's sweep; none on a compact
             one: docs/decisions.md).
-        orientation: The field's axes: world (the tracker's, default) or auto (the sweep's
-            where it runs more than 5° oblique to the tracker's; measured worse on the real
-            fibula: docs/field.md).
-        seed: Seed of initialisation and batches.
-        holdout_every: Hold out every K-th frame for checks (0: none).
         fit_shape: Fit at HxW pixels (frames area-resampled), native (the frames' own size)
             or auto (the frames' own, or coarser where their pixels are finer than half a
             speckle grain).
-        train_scatterers: expected (E[S], default) or sample (Ultra-NeRF's per-step draw) in
-            training.
-        check_every: Held-out check every N steps.
-        checkpoint_every: Save checkpoint.pt (with train_log.jsonl and field.json) every N
-            steps and at the last; an interrupted fit resumes from the latest (default: the
-            preset's, 500).
-        max_memory: GiB the fit may take: its planes, frames and working memory are
-            estimated before any work (default: the machine's memory, or the cgroup's limit).
         no_resume: Start afresh even if a checkpoint exists: a previous fit's files in --out
             are removed first.
     """
-    check_count("--iters", iters)
-    check_range("--scattering-floor", scattering_floor, 0.0, 1.0, high_open=True)
-    check_count("--scattering-warmup", scattering_warmup, 0)
-    check_range("--confidence-prior", confidence_prior, 0.0)
-    check_range("--volume-cell", volume_cell, 0.0)
-    if orientation is not None:
-        check_choice("--orientation", orientation, ORIENTATIONS)
-    check_seed("--seed", seed)
-    _check_holdout(holdout_every)
-    check_count("--check-every", check_every)
-    check_count("--checkpoint-every", checkpoint_every)
-    check_range("--max-memory", max_memory, 0.0, low_open=True)
-    apply_threads(threads)
-    device = check_device(device)
-
     from ultron.pipeline.field import fit_field_dir, fit_lines, fit_warnings
     from ultron.train import field_preset
 
@@ -140,15 +119,7 @@ def fit_field_command(
     print_lines(fit_lines(result, device), fit_warnings(result))
 
 
-def _check_holdout(holdout_every: int) -> None:
-    check_count("--holdout-every", holdout_every, 0)
-    if holdout_every == 1:
-        raise argument_error(
-            "--holdout-every", "expected 0 (none) or an integer ≥ 2 (1 holds out every frame)"
-        )
-
-
-@command("field_dir")
+@command("field_dir", documented_by=("ultron.pipeline.field:render_frames",))
 def render_command(
     field_dir: Path,
     out: Path,
@@ -162,24 +133,7 @@ def render_command(
     device: str = "auto",
     threads: int | None = None,
 ) -> None:
-    """Render B-mode frames from a fitted field at given probe poses (field's probe geometry).
-
-    Args:
-        field_dir: FIELD_DIR written by ultron fit-field.
-        out: Output .npy: (N, H, W) float32 in [0, 1].
-        poses: POSES.npy: (N, 4, 4) probe-to-world, mm.
-        dataset: Dataset whose sweep's poses to render.
-        sweep: Sweep name (with --dataset).
-        maps: Also write OUT.theta.npy (N,H,W,C) and OUT.transmission.npy.
-        seed: Seed of the scatterer draw.
-        expected: Render the scatterer expectation (no speckle).
-        allow_other_field: With --dataset: accept a field fitted on another dataset (its
-            field.json's dataset_sha256 differs).
-    """
-    apply_threads(threads)
-    check_seed("--seed", seed)
-    device = check_device(device)
-
+    """Render B-mode frames from a fitted field at given probe poses (field's probe geometry)."""
     from ultron.pipeline.field import render_frames, render_lines
 
     result = render_frames(

@@ -7,7 +7,7 @@ from pathlib import Path
 import typer
 
 from ultron.arguments import sweep_names
-from ultron.cli.common import apply_threads, command, print_lines, stage_progress
+from ultron.cli.common import command, print_lines, stage_progress
 
 
 @command("dataset")
@@ -27,7 +27,6 @@ def label(
         sweeps: Sweep to label (repeat, or comma-separate; default: all sweeps).
         replace: Overwrite the labels a sweep already has.
     """
-    apply_threads(threads)
     from ultron.data.auto_label_dataset import check_labelling, label_checked_sweeps
     from ultron.errors import argument_error
 

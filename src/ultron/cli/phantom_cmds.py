@@ -6,50 +6,29 @@ from pathlib import Path
 
 import typer
 
-from ultron.arguments import check_count, check_range, check_seed
-from ultron.cli.common import apply_threads, command, print_lines, stage_progress
+from ultron.cli.common import command, print_lines, stage_progress
+
+#: The library's names of what simulate passes on under another name (its checks and help).
+SIMULATE_ALIASES = {
+    "frames_per_sweep": "frames",
+    "width_mm": "probe_width_mm",
+    "translation_mm": "pose_noise_mm",
+    "rotation_deg": "pose_noise_deg",
+    "jitter_mm": "label_noise_mm",
+    "missing_fraction": "label_missing",
+    "error_rate": "label_errors",
+}
 
 
-def _check_numbers(
-    seed: int,
-    frames: int,
-    step_mm: float | None,
-    probe_width_mm: float,
-    depth_mm: float,
-    height_px: int,
-    width_px: int,
-    pose_noise_mm: float,
-    pose_noise_deg: float,
-    label_noise_mm: float,
-    label_missing: float,
-    label_errors: float,
-    voxel_mm: float,
-) -> None:
-    """``simulate``'s numeric options, each refused with a one-line error naming it."""
-    from ultron.phantom.dataset import MAX_VOXEL_MM
-
-    check_seed("--seed", seed)
-    check_count("--frames", frames)
-    for name, value in (
-        ("--step-mm", step_mm),
-        ("--probe-width-mm", probe_width_mm),
-        ("--depth-mm", depth_mm),
-    ):
-        check_range(name, value, 0.0, low_open=True)
-    check_count("--height-px", height_px)
-    check_count("--width-px", width_px)
-    for name, value in (
-        ("--pose-noise-mm", pose_noise_mm),
-        ("--pose-noise-deg", pose_noise_deg),
-        ("--label-noise-mm", label_noise_mm),
-    ):
-        check_range(name, value, 0.0)
-    check_range("--label-missing", label_missing, 0.0, 1.0)
-    check_range("--label-errors", label_errors, 0.0, 1.0)
-    check_range("--voxel-mm", voxel_mm, 0.0, MAX_VOXEL_MM, low_open=True)
-
-
-@command()
+@command(
+    aliases=SIMULATE_ALIASES,
+    documented_by=(
+        "ultron.phantom.dataset:SimulationConfig",
+        "ultron.phantom.protocols:ScanConfig",
+        "ultron.phantom.protocols:TrackingNoise",
+        "ultron.phantom.annotation:AnnotationConfig",
+    ),
+)
 def simulate(
     out: Path,
     phantom: str = "L3",
@@ -74,29 +53,9 @@ def simulate(
 
     Args:
         out: Dataset directory to write (created).
-        phantom: Phantom: vertebrae L2, L3, L3b, L4; condyle (end of a long bone); femur (44
-            cm, long sweeps).
-        seed: Random seed (same seed → same files).
         sweeps: Comma-separated sweeps: row, column, tilt_p<deg>, tilt_m<deg>.
-        frames: Frames per sweep.
-        step_mm: Probe step between frames, mm (default: spread over the bone extent).
-        probe_width_mm: Linear probe width (lateral FOV), mm.
-        depth_mm: Imaging depth, mm.
-        height_px: Samples per scanline.
-        width_px: Scanlines per frame.
-        pose_noise_mm: Tracking error σ per axis, mm (0: exact poses).
-        pose_noise_deg: Tracking error σ per axis, degrees.
-        label_noise_mm: Annotation edge jitter σ, mm (0: exact edges).
-        label_missing: Fraction of frames left unannotated (255).
-        label_errors: Fraction of frames annotated with a coarse error.
-        voxel_mm: SDF grid / reference mesh voxel, mm.
         preview: Also write OUT/preview.png (frames + labels).
     """
-    apply_threads(threads)
-    _check_numbers(
-        seed, frames, step_mm, probe_width_mm, depth_mm, height_px, width_px, pose_noise_mm,
-        pose_noise_deg, label_noise_mm, label_missing, label_errors, voxel_mm,
-    )  # fmt: skip
     from ultron.phantom import AnnotationConfig, ScanConfig, SimulationConfig, TrackingNoise
     from ultron.pipeline.simulate import simulate_to
 

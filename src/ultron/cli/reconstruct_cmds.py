@@ -6,17 +6,7 @@ from pathlib import Path
 
 import typer
 
-from ultron.arguments import check_choice, check_count, check_range, check_seed
-from ultron.cli.common import (
-    StageLines,
-    apply_threads,
-    check_device,
-    command,
-    console,
-    fit_progress,
-    warning_line,
-)
-from ultron.errors import argument_error
+from ultron.cli.common import StageLines, command, console, fit_progress, warning_line
 from ultron.methods.catalog import method_help
 
 #: The help of the options reconstruct and finetune share.
@@ -27,25 +17,17 @@ RUN_HELP = {
     "points": "Points per surface for metrics.",
     "allow_other_field": "Accept a --field fitted on another dataset (its field.json's"
     " dataset_sha256 differs); run.json records field_dataset_match false.",
-    "max_memory": "GiB the run's grids may take, estimated before any work (default: the"
-    " machine's memory).",
     "mesh_coordinates": "Coordinates of the mesh files: lps (ultron's world; 3D Slicer's"
     " default for models) or ras; either is tagged SPACE=… in the file header, which Slicer"
     " reads.",
 }
-
-
-def _check_common(
-    seed: int,
-    field_iters: int | None,
-    points: int,
-    max_memory: float | None = None,
-) -> None:
-    """The numeric options reconstruct and finetune share."""
-    check_seed("--seed", seed)
-    check_count("--field-iters", field_iters)
-    check_count("--points", points)
-    check_range("--max-memory", max_memory, 0.0, low_open=True)
+#: The library's names of options reconstruct and finetune pass on under another name.
+RUN_ALIASES = {
+    "n_points": "points",
+    "max_memory_gib": "max_memory",
+    "iterations": "field_iters",
+    "field_dir": "field",
+}
 
 
 def _field_progress():
@@ -57,6 +39,10 @@ def _field_progress():
     "dataset",
     shared={**RUN_HELP, "method": method_help()},
     metavars={"field": "FIELD_DIR", "label_support": "MM"},
+    aliases=RUN_ALIASES
+    | {"iters": "occupancy_iters", "oracle": "oracle_transmission"}
+    | {"label_support_mm": "label_support"},
+    documented_by=("ultron.pipeline.presets:preset_request",),
 )
 def reconstruct(
     dataset: Path,
@@ -98,57 +84,11 @@ def reconstruct(
             field_candidates).
         field_iters: Field iterations when fitting (default: the preset's: 3000; paper:
             75000).
-        occupancy_iters: Occupancy iterations of ultron* and on (default: the preset's: 1500;
-            paper: 50000).
-        preset: Settings of every stage: fast (this project's, minutes on a CPU) or paper
-            (the UltrON paper's: 8 × 128 MLP field, 75k + 50k iterations, θ alone, BCE(T·f,
-            y), whole surface, RoCoSDF's paper settings; for a GPU). Options given win.
-        visibility: Source of the loss's transmission T (ultron*): field (the fitted
-            acoustic field), confidence (the frame's ultrasound confidence map) or labels
-            (the annotation's first bone run per scanline).
-        oracle_transmission: Diagnostic (ultron*): train with the simulator's true T
-            (<sweep>/transmission.npy of a simulated dataset).
-        surface: ultron* and compounding: observed (keep the faces some frame saw facing the
-            probe with T ≥ 0.3 above them — compounding: T = 1) or all (the closed
-            iso-surface) (default: the preset's: observed; paper: all).
-        theta_context: ultron*: radii (mm, comma-separated) of the world-axis neighbours
-            whose θ f reads besides θ(x); 'none' for θ(x) alone, as in the paper (default:
-            the preset's: 1,2; paper: none).
-        positive_weight: ultron*: loss weight of the bone labels: 1 (unweighted, the
-            paper's), another number > 0, or 'balanced' (n_background / n_bone, at most 20:
-            a fuller but less accurate surface, e.g. for very short runs) (default: 1).
-        negatives: ultron: background labels in the compensated loss: 'observed' (full
-            weight where T ≥ 0.3, none below: only observed free space is evidence), 'front'
-            (observed, and every background label in front of its scanline's first bone
-            label whatever T says) or 'weighted' (scaled by T: the paper's BCE(T·f, y))
-            (default: the preset's: observed; paper: weighted).
-        echo_support: ultron*: keep only surface some frame shows as bone — a bone echo or
-            the onset of a shadow within ±1 mm (default: the preset's: on; paper: off).
-        label_support: ultron*: surface within MM of a labelled bone surface counts as
-            observed (default: the preset's: 1 mm; paper: 0, off).
-        label_bridges: ultron*: with --label-support, the labelled surface also runs between
-            consecutive labelled frames whose labelled cross-sections agree to within MM
-            (default: on).
-        label_fusion: ultron*: mesh max(f, C), C the labels f trained on compounded as
-            --method compounding does: the annotated bone stays bone; --label-fusion at any
-            label fraction (default: the preset's: when the labelled frames are ≥ 90 % of the
-            dataset's, e.g. label --auto's labels with --label-fraction 1; paper: off).
     """
-    apply_threads(threads)
-    _check_common(seed, field_iters, points, max_memory)
-    check_count("--occupancy-iters", occupancy_iters, 0)
-    check_range("--label-support", label_support, low=0.0)
-    device = check_device(device)
-
-    from ultron.methods.registry import METHODS
-    from ultron.pipeline.presets import PIPELINE_PRESETS, preset_field_config, preset_request
+    from ultron.pipeline.presets import preset_field_config, preset_request
     from ultron.pipeline.run import reconstruct as run
 
-    check_choice("--method", method, tuple(METHODS))
-    check_choice("--preset", preset, PIPELINE_PRESETS)
-    if field and len(field) > 1 and not METHODS[method].needs_field:
-        raise argument_error("--field", f"given {len(field)} times; {method} uses no field")
-    request = preset_request(
+    request = preset_request(  # checks every option it takes
         preset, method, label_fraction, seed, points=points, occupancy_iters=occupancy_iters,
         visibility=visibility, oracle=oracle_transmission, surface=surface,
         theta_context=theta_context, positive_weight=positive_weight, negatives=negatives,
@@ -156,6 +96,7 @@ def reconstruct(
         label_fusion=label_fusion,
         mesh_coordinates=mesh_coordinates, device=device,
     )  # fmt: skip
+    field_config = preset_field_config(preset, seed, field_iters)
     lines = StageLines()
     with _field_progress() as update:
         summary = run(
@@ -163,7 +104,7 @@ def reconstruct(
             request,
             out,
             field,
-            preset_field_config(preset, seed, field_iters),
+            field_config,
             progress=update,
             allow_other_field=allow_other_field,
             max_memory_gib=max_memory,
@@ -213,10 +154,6 @@ def demo(
         out: Output directory.
         seed: Seed of simulation, labels and training.
     """
-    apply_threads(threads)
-    check_seed("--seed", seed)
-    device = check_device(device)
-
     from ultron.pipeline.demo import DEMO_METHODS, run_demo
 
     def log(line: str) -> None:
@@ -231,7 +168,13 @@ def demo(
         )
 
 
-@command("model_dir", "dataset", shared=RUN_HELP)
+@command(
+    "model_dir",
+    "dataset",
+    shared=RUN_HELP,
+    aliases=RUN_ALIASES,
+    documented_by=("ultron.methods.finetune:FinetuneConfig",),
+)
 def finetune(
     model_dir: Path,
     dataset: Path,
@@ -259,20 +202,9 @@ def finetune(
     Args:
         model_dir: Output directory of a reconstruct --method ultron run.
         dataset: The new shape's dataset directory.
-        iters: Fine-tuning iterations; 0 applies the model as is.
-        anchor_weight: Weight of the term that holds the network, at pixels of every frame, to
-            what it predicted before fine-tuning; 0 fine-tunes as the paper does (on few
-            labels the plain fit can lose surface the model had found).
         field: The dataset's FIELD_DIR (default: fit and cache one).
         field_iters: Field iterations when fitting (default: the fast preset's 3000).
-        visibility: Source of the loss's T: field, confidence or labels (default: the
-            model's).
     """
-    apply_threads(threads)
-    _check_common(seed, field_iters, points, max_memory)
-    check_count("--iters", iters, 0)
-    device = check_device(device)
-
     from ultron.methods.finetune import FinetuneConfig
     from ultron.metrics.surface import MetricsConfig
     from ultron.pipeline.finetune import finetune as run
@@ -289,6 +221,7 @@ def finetune(
         mesh_coordinates=mesh_coordinates,
         device=device,
     )
+    field_config = preset_field_config("fast", seed, field_iters)
     with _field_progress() as update:
         summary = run(
             model_dir,
@@ -296,7 +229,7 @@ def finetune(
             config,
             out,
             field,
-            preset_field_config("fast", seed, field_iters),
+            field_config,
             update,
             allow_other_field=allow_other_field,
             max_memory_gib=max_memory,

@@ -6,11 +6,18 @@ from pathlib import Path
 
 import typer
 
-from ultron.arguments import check_choice, check_range, sweep_names
-from ultron.cli.common import apply_threads, command, print_lines
+from ultron.arguments import sweep_names
+from ultron.cli.common import command, print_lines
 
 
-@command("dataset")
+@command(
+    "dataset",
+    aliases={"spacing_mm": "spacing", "max_memory_gib": "max_memory"},
+    documented_by=(
+        "ultron.mesh.image_compounding:ImageCompoundingConfig",
+        "ultron.mesh.splat:SplatConfig",
+    ),
+)
 def compound(
     dataset: Path,
     out: Path,
@@ -36,26 +43,12 @@ def compound(
     Args:
         dataset: Dataset directory (ultron-sweeps/1).
         out: Output volume, .nii.gz or .nii (written atomically).
-        spacing: Voxel size on all three axes, mm (PLUS: 0.5).
         sweeps: Comma-separated sweeps to compound (default: all).
-        interpolation: nearest (a pixel fills its nearest voxel) or linear (its 8 neighbours,
-            with trilinear weights).
-        reduce: How a voxel combines its pixels: mean (weighted) or max.
-        fill_holes: Fill empty voxels with PLUS's stick filler: N = the longest stick in
-            voxels, both filled ends included (PLUS's StickLengthLimit; 0 = no filling).
-        max_memory: GiB the volume may take, estimated before any work (default: the
-            machine's memory, or the cgroup's or ulimit -v's limit).
     """
-    apply_threads(threads)
     from ultron.mesh.image_compounding import ImageCompoundingConfig
-    from ultron.mesh.splat import INTERPOLATIONS, REDUCTIONS, SplatConfig
+    from ultron.mesh.splat import SplatConfig
     from ultron.pipeline.compound import compound_volume
 
-    check_range("--spacing", spacing, 0.0, low_open=True)
-    check_range("--fill-holes", fill_holes, 0)
-    check_range("--max-memory", max_memory, 0.0, low_open=True)
-    check_choice("--interpolation", interpolation, INTERPOLATIONS)
-    check_choice("--reduce", reduce, REDUCTIONS)
     config = ImageCompoundingConfig(spacing, SplatConfig(interpolation, reduce), fill_holes)
     summary = compound_volume(dataset, out, config, sweep_names(sweeps), max_memory)
     print_lines(summary.lines())

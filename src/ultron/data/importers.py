@@ -64,6 +64,18 @@ def nearest_rotation(matrices: np.ndarray) -> np.ndarray:
     return (u * fix[..., None, :]) @ vt
 
 
+def check_orthonormalize_tolerance(tolerance: float) -> None:
+    """``tolerance`` must lie in [0, :data:`MAX_ORTHONORMALIZE_TOLERANCE`): NaN, which fails
+    every comparison, would "repair" any pose."""
+    if isinstance(tolerance, bool) or not (
+        isinstance(tolerance, int | float) and 0 <= tolerance < MAX_ORTHONORMALIZE_TOLERANCE
+    ):
+        raise argument_error(
+            "orthonormalize_tolerance",
+            f"expected a value in [0, {MAX_ORTHONORMALIZE_TOLERANCE:g}), got {tolerance!r}",
+        )
+
+
 def orthonormalize_poses(
     poses: np.ndarray, tolerance: float, where: str | Path
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -71,13 +83,7 @@ def orthonormalize_poses(
 
     Returns the repaired float64 poses and the per-pose deviation max|R Rᵀ − I| before repair.
     """
-    if isinstance(tolerance, bool) or not (
-        isinstance(tolerance, int | float) and 0 <= tolerance < MAX_ORTHONORMALIZE_TOLERANCE
-    ):  # NaN fails every comparison: it would "repair" any pose
-        raise argument_error(
-            "orthonormalize_tolerance",
-            f"expected a value in [0, {MAX_ORTHONORMALIZE_TOLERANCE:g}), got {tolerance!r}",
-        )
+    check_orthonormalize_tolerance(tolerance)
     poses = np.asarray(poses, dtype=np.float64)
     if poses.ndim != 3 or poses.shape[1:] != (4, 4):
         raise UltronInputError(where, "poses", f"expected shape (N, 4, 4), got {poses.shape}")
@@ -203,6 +209,7 @@ def read_ultranerf(
     src = Path(src)
     validate_positive(width_mm, "argument", "width_mm")
     validate_positive(depth_mm, "argument", "depth_mm")
+    check_orthonormalize_tolerance(orthonormalize_tolerance)
     if not src.is_dir():
         raise UltronInputError(src, "SRC", "not a directory")
     has_npy = input_file(src / "images.npy", "images", required=False) is not None

@@ -48,8 +48,16 @@ CHUNK_PIXELS = 1 << 21
 
 @dataclass(frozen=True)
 class ImageCompoundingConfig:
-    """Settings of :func:`compound_images`: voxel size, splatting, hole filling (the stick
-    length in voxels, 0 = none; ``plus_weights``: PLUS's own stick weighting)."""
+    """Settings of :func:`compound_images`.
+
+    Attributes:
+        spacing_mm: Voxel size on all three axes, mm (PLUS: 0.5).
+        splat: How pixels are spread over voxels and combined (:class:`SplatConfig`).
+        fill_holes: Fill empty voxels with PLUS's stick filler: N = the longest stick in
+            voxels, both filled ends included (PLUS's StickLengthLimit; 0 = no filling).
+        plus_weights: Weight the stick filler's ends as PLUS does.
+        chunk_pixels: Pixels splatted at a time (bounds the working memory).
+    """
 
     spacing_mm: float = 0.5
     splat: SplatConfig = field(default_factory=SplatConfig)
@@ -60,11 +68,11 @@ class ImageCompoundingConfig:
     def __post_init__(self) -> None:
         if not (math.isfinite(self.spacing_mm) and self.spacing_mm > 0):
             raise argument_error(
-                "--spacing", f"expected a finite number > 0, got {self.spacing_mm!r}"
+                "spacing_mm", f"expected a finite number > 0, got {self.spacing_mm!r}"
             )
         if self.fill_holes != 0 and self.fill_holes < 3:
             raise argument_error(
-                "--fill-holes",
+                "fill_holes",
                 f"expected 0 (off) or a stick length ≥ 3 voxels, got {self.fill_holes}",
             )
         if self.chunk_pixels < 1:

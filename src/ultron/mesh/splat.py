@@ -44,7 +44,13 @@ MAX_MIN_WEIGHT = 0.125
 
 @dataclass(frozen=True)
 class SplatConfig:
-    """How samples are spread over voxels (``interpolation``) and combined (``reduce``)."""
+    """How samples are spread over voxels and combined.
+
+    Attributes:
+        interpolation: nearest (a pixel fills its nearest voxel) or linear (its 8 neighbours,
+            with trilinear weights).
+        reduce: How a voxel combines its pixels: mean (weighted) or max.
+    """
 
     interpolation: str = "nearest"
     reduce: str = "mean"

@@ -39,7 +39,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from ultron.arguments import check_integer
+from ultron.arguments import MAX_COUNT, MAX_SEED, check_integer
 from ultron.data.dataset import SweepDataset
 from ultron.data.labels import LabelledPixels, select_label_frames
 from ultron.device import module_device, resolve_device
@@ -81,6 +81,24 @@ class FinetuneConfig:
     what the trained network had found and did worse than no fine-tuning; with λ = 1 (set
     once) it did not. Figures in
     docs/decisions.md#fine-tuning-an-anchor-against-forgetting-methodsfinetunepy.
+
+    Attributes:
+        label_fraction: Share of annotated frames used, in (0, 1].
+        iters: Fine-tuning iterations; 0 applies the model as is.
+        frozen_layers: The network's last linear layers held fixed.
+        seed: Seed of label selection and training.
+        lr: Learning rate at the first iteration.
+        final_lr_factor: The last iteration's rate as a share of ``lr``.
+        batch_size: Labelled pixels per step.
+        anchor_weight: Weight of the term that holds the network, at pixels of every frame, to
+            what it predicted before fine-tuning; 0 fine-tunes as the paper does (on few
+            labels the plain fit can lose surface the model had found).
+        anchor_points: Pixels the anchor holds the network at.
+        meshing: How the fine-tuned network is meshed (UltrON's stage 3).
+        metrics: How the mesh is scored.
+        visibility: Source of the loss's T: field, confidence or labels (unset: the model's).
+        mesh_coordinates: Coordinates of the mesh files: lps or ras.
+        device: Where the field and the network compute.
     """
 
     label_fraction: float = 0.01
@@ -105,8 +123,9 @@ class FinetuneConfig:
             raise argument_error(
                 "label_fraction", f"expected a value in (0, 1], got {self.label_fraction!r}"
             )
-        for name in ("iters", "frozen_layers", "seed"):
-            check_integer(name, getattr(self, name))
+        check_integer("iters", self.iters, 0, MAX_COUNT)
+        check_integer("frozen_layers", self.frozen_layers)
+        check_integer("seed", self.seed, 0, MAX_SEED)
         check_integer("anchor_points", self.anchor_points, 1)
         weight = self.anchor_weight
         number = isinstance(weight, int | float) and not isinstance(weight, bool)

@@ -45,6 +45,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ultron.arguments import MAX_COUNT, MAX_SEED, check_integer
 from ultron.errors import UltronInputError, argument_error
 from ultron.memory import check_fits_in_memory
 from ultron.metrics.distance import MeshDistanceIndex, build_distance_index, mesh_distances
@@ -85,9 +86,17 @@ POINT_BYTES = 512
 
 @dataclass(frozen=True)
 class MetricsConfig:
-    """Sampling settings: points per surface, repeats (seeds ``seed … seed+repeats−1``) and
-    the optional crop of the reconstruction to ``crop_mm`` of the visible reference (module
-    doc; None: no crop)."""
+    """Sampling settings (module doc).
+
+    Attributes:
+        n_points: Points sampled per surface.
+        repeats: Repeats with different seeds (seed … seed + repeats − 1).
+        seed: First sampling seed.
+        crop_mm: Keep only the mesh's faces within this distance (mm) of the visible
+            reference before measuring (a real sweep images more than its reference holds,
+            e.g. the tibia beside a CT fibula); the area left outside is reported (default:
+            no crop).
+    """
 
     n_points: int = 100_000
     repeats: int = 3
@@ -95,10 +104,9 @@ class MetricsConfig:
     crop_mm: float | None = None
 
     def __post_init__(self) -> None:
-        if self.n_points < 1:
-            raise argument_error("n_points", f"expected ≥ 1, got {self.n_points}")
-        if self.repeats < 1:
-            raise argument_error("repeats", f"expected ≥ 1, got {self.repeats}")
+        check_integer("n_points", self.n_points, 1, MAX_COUNT)
+        check_integer("repeats", self.repeats, 1, MAX_COUNT)
+        check_integer("seed", self.seed, 0, MAX_SEED)
         crop = self.crop_mm
         if crop is not None and not (isinstance(crop, int | float) and 0 < crop < math.inf):
             raise argument_error("crop_mm", f"expected a positive distance in mm, got {crop!r}")

@@ -41,7 +41,18 @@ from ultron.phantom.simulator import BoneInterfaces
 
 @dataclass(frozen=True)
 class AnnotationConfig:
-    """Every parameter of the annotation simulator (see the module docstring)."""
+    """Every parameter of the annotation simulator (see the module docstring).
+
+    Attributes:
+        band_mm: Thickness of the labelled band under a visible bone surface, mm.
+        min_echo_db: Weakest displayed echo, relative to a normally incident unattenuated
+            one, that the annotator sees as bone, dB.
+        jitter_mm: Annotation edge jitter σ, mm (0: exact edges).
+        jitter_correlation_mm: Lateral correlation length of the edge jitter, mm.
+        missing_fraction: Fraction of frames left unannotated (255).
+        error_rate: Fraction of frames annotated with a coarse error.
+        error_shift_mm: Shift of a coarse error's whole annotation, mm.
+    """
 
     band_mm: float = 2.0
     min_echo_db: float = -18.0

@@ -44,7 +44,7 @@ import numpy as np
 import torch
 
 from ultron import atomic
-from ultron.arguments import check_integer
+from ultron.arguments import MAX_SEED, check_integer
 from ultron.data.dataset import ProbeGeometry, Sweep, SweepDataset
 from ultron.data.geometry import field_of_view_bounds_mm
 from ultron.errors import argument_error
@@ -82,7 +82,19 @@ FRAME_BYTES_PER_PIXEL = 8
 
 @dataclass(frozen=True)
 class SimulationConfig:
-    """Every parameter of a simulated dataset (immutable; derive variants with ``replace``)."""
+    """Every parameter of a simulated dataset (immutable; derive variants with ``replace``).
+
+    Attributes:
+        phantom: Phantom: vertebrae L2, L3, L3b, L4; condyle (end of a long bone); femur (44
+            cm, long sweeps).
+        seed: Random seed (same seed → same files).
+        sweeps: Sweeps by name: row, column, tilt_p<deg>, tilt_m<deg>.
+        probe_width_mm: Linear probe width (lateral FOV), mm.
+        depth_mm: Imaging depth, mm.
+        height_px: Samples per scanline.
+        width_px: Scanlines per frame.
+        voxel_mm: SDF grid / reference mesh voxel, mm.
+    """
 
     phantom: str = "L3"
     seed: int = 0
@@ -99,7 +111,7 @@ class SimulationConfig:
 
     def __post_init__(self) -> None:
         get_phantom(self.phantom)
-        check_integer("seed", self.seed)
+        check_integer("seed", self.seed, 0, MAX_SEED)
         if isinstance(self.sweeps, str) or not self.sweeps:
             raise argument_error(
                 "sweeps", f"expected a non-empty tuple of names, got {self.sweeps!r}"

@@ -42,7 +42,14 @@ _TILT = re.compile(r"^tilt_([pm])(\d+(?:\.\d+)?)$")
 
 @dataclass(frozen=True)
 class ScanConfig:
-    """Sweep sampling: frames per sweep, optional fixed step, margin, tilt pivot depth."""
+    """Sweep sampling.
+
+    Attributes:
+        frames_per_sweep: Frames per sweep.
+        step_mm: Probe step between frames, mm (default: spread over the bone extent).
+        margin_mm: Distance the sweep runs beyond the bone's extent at each end, mm.
+        tilt_pivot_depth_mm: Depth below the probe about which a tilted sweep turns, mm.
+    """
 
     frames_per_sweep: int = 60
     step_mm: float | None = None  # None: spread the frames over the bone extent + margin
@@ -130,7 +137,14 @@ def plan_sweep(
 
 @dataclass(frozen=True)
 class TrackingNoise:
-    """Tracking error of stored poses: per-axis σ of translation (mm) and rotation (deg)."""
+    """Tracking error of stored poses.
+
+    Attributes:
+        translation_mm: Tracking error σ per axis, mm (0: exact poses).
+        rotation_deg: Tracking error σ per axis, degrees.
+        sweep_bias_share: Share of the error's variance that is one offset for a whole sweep
+            (the rest drawn per frame).
+    """
 
     translation_mm: float = 0.3
     rotation_deg: float = 0.2

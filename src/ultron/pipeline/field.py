@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from ultron import atomic
-from ultron.arguments import check_integer
+from ultron.arguments import MAX_SEED, check_integer
 from ultron.data.dataset import SweepDataset
 from ultron.data.outliers import check_pose_array_outliers
 from ultron.data.validation import load_npy, validate_poses
@@ -130,19 +130,28 @@ def render_frames(
     allow_other_field: bool = False,
     device: str = "cpu",
 ) -> RenderResult:
-    """Render B-mode frames from FIELD_DIR ``field_dir`` at the field's probe geometry and
-    write them to ``out`` (.npy, (N, H, W) float32 in [0, 1]), atomically.
+    """Render B-mode frames from a fitted field at the field's probe geometry and write them
+    atomically. The poses come from exactly one of ``poses`` or ``dataset`` with ``sweep``
+    (the dataset's probe must be the field's). Every output is checked before the field is
+    loaded, so a bad path costs no rendering.
 
-    The poses come from exactly one of ``poses`` (a (N, 4, 4) or (4, 4) probe-to-world .npy,
-    mm, checked like a dataset's) or ``dataset`` with ``sweep`` (that sweep's poses; the
-    dataset's probe must be the field's, and the field fitted on it unless
-    ``allow_other_field``). Scatterers are drawn with ``seed``, or replaced by their
-    expectation when ``expected``. With ``maps`` θ (N, H, W, C), T (N, H, W) and the channel
-    names go beside ``out`` (:data:`MAP_SUFFIXES`). Every output is checked before the field
-    is loaded, so a bad path costs no rendering."""
+    Args:
+        field_dir: FIELD_DIR written by ultron fit-field.
+        out: Output .npy: (N, H, W) float32 in [0, 1].
+        poses: POSES.npy: (N, 4, 4) or (4, 4) probe-to-world, mm (checked like a dataset's).
+        dataset: Dataset whose sweep's poses to render.
+        sweep: Sweep name (with --dataset).
+        maps: Also write OUT.theta.npy (N,H,W,C), OUT.transmission.npy and OUT.maps.json (the
+            channel names).
+        seed: Seed of the scatterer draw.
+        expected: Render the scatterer expectation (no speckle).
+        allow_other_field: With --dataset: accept a field fitted on another dataset (its
+            field.json's dataset_sha256 differs).
+        device: Where the field renders.
+    """
     if (poses is None) == (dataset is None):
         raise argument_error("--poses/--dataset", "give exactly one of --poses or --dataset")
-    check_integer("--seed", seed)
+    check_integer("seed", seed, 0, MAX_SEED)
     out = Path(out)
     if out.suffix != ".npy":
         raise argument_error("--out", f"expected a .npy file name, got {out}")

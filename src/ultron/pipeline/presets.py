@@ -113,18 +113,47 @@ def preset_request(
     device: str = "cpu",
 ) -> ReconstructionRequest:
     """The reconstruction request of ``preset`` for ``method``, with the options given (None:
-    the preset's): ``occupancy_iters`` for UltrON and ON, ``visibility`` / ``oracle`` the
-    source of T (:func:`~ultron.train.visibility.visibility_config`; UltrON's alone),
-    ``surface``, ``theta_context`` (radii in mm, comma-separated, or ``none``),
-    ``positive_weight`` (a number or ``balanced``), ``negatives``, ``echo_support`` (UltrON's
-    observed crop asks some frame to show bone, :mod:`ultron.mesh.echo_support`),
-    ``label_support_mm`` (surface that near the labelled surface counts as observed,
-    :mod:`ultron.mesh.observed`), ``label_bridges`` (and near the bridges between agreeing
-    labelled frames, :mod:`ultron.mesh.label_bridges`), ``label_fusion`` (True: mesh max(f, the
-    compounded labels) at any label fraction, :mod:`ultron.mesh.label_fusion`); metrics on
-    ``points``
-    points per surface. The request carries ``method``'s settings alone
-    (:meth:`~ultron.methods.registry.Method.config_of`)."""
+    the preset's); the request carries ``method``'s settings alone
+    (:meth:`~ultron.methods.registry.Method.config_of`). ``ultron reconstruct`` shows these
+    entries as its options' help.
+
+    Args:
+        preset: Settings of every stage: fast (this project's, minutes on a CPU) or paper
+            (the UltrON paper's: 8 × 128 MLP field, 75k + 50k iterations, θ alone, BCE(T·f,
+            y), whole surface, RoCoSDF's paper settings; for a GPU). Options given win.
+        occupancy_iters: Occupancy iterations of ultron* and on (default: the preset's: 1500;
+            paper: 50000).
+        visibility: Source of the loss's transmission T (ultron*): field (the fitted
+            acoustic field), confidence (the frame's ultrasound confidence map) or labels
+            (the annotation's first bone run per scanline).
+        oracle: Diagnostic (ultron*): train with the simulator's true T
+            (<sweep>/transmission.npy of a simulated dataset).
+        surface: ultron* and compounding: observed (keep the faces some frame saw facing the
+            probe with T ≥ 0.3 above them — compounding: T = 1) or all (the closed
+            iso-surface) (default: the preset's: observed; paper: all).
+        theta_context: ultron*: radii (mm, comma-separated) of the world-axis neighbours
+            whose θ f reads besides θ(x); 'none' for θ(x) alone, as in the paper (default:
+            the preset's: 1,2; paper: none).
+        positive_weight: ultron*: loss weight of the bone labels: 1 (unweighted, the
+            paper's), another number > 0, or 'balanced' (n_background / n_bone, at most 20:
+            a fuller but less accurate surface, e.g. for very short runs) (default: 1).
+        negatives: ultron: background labels in the compensated loss: 'observed' (full
+            weight where T ≥ 0.3, none below: only observed free space is evidence), 'front'
+            (observed, and every background label in front of its scanline's first bone
+            label whatever T says) or 'weighted' (scaled by T: the paper's BCE(T·f, y))
+            (default: the preset's: observed; paper: weighted).
+        echo_support: ultron*: keep only surface some frame shows as bone — a bone echo or
+            the onset of a shadow within ±1 mm (default: the preset's: on; paper: off).
+        label_support_mm: ultron*: surface within MM of a labelled bone surface counts as
+            observed (default: the preset's: 1 mm; paper: 0, off).
+        label_bridges: ultron*: with --label-support, the labelled surface also runs between
+            consecutive labelled frames whose labelled cross-sections agree to within MM
+            (default: on).
+        label_fusion: ultron*: mesh max(f, C), C the labels f trained on compounded as
+            --method compounding does: the annotated bone stays bone; --label-fusion at any
+            label fraction (default: the preset's: when the labelled frames are ≥ 90 % of the
+            dataset's, e.g. label --auto's labels with --label-fraction 1; paper: off).
+    """
     chosen = get_method(method)
     source = visibility_config(visibility, oracle)
     if source.source != "field" and not chosen.needs_field:  # T is UltrON's alone

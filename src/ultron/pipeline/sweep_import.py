@@ -123,11 +123,20 @@ def import_ultranerf_sweep(
     orthonormalize_tolerance: float = DEFAULT_ORTHONORMALIZE_TOLERANCE,
     replace: bool = False,
 ) -> ImportedSweep[ImportReport]:
-    """Add the Ultra-NeRF sweep folder ``src`` (frames and poses, the probe ``width_mm`` wide
-    and ``depth_mm`` deep) to the dataset at ``out`` as ``sweep_name`` (default: a name made
-    from ``src``'s folder name, :func:`safe_sweep_name`); ``replace`` replaces a sweep of that
-    name. Rotation blocks deviating by at most ``orthonormalize_tolerance`` are repaired
-    (:func:`~ultron.data.importers.read_ultranerf`). ``out`` is checked first (``--out``)."""
+    """Add an Ultra-NeRF sweep folder to a dataset (:func:`~ultron.data.importers.
+    read_ultranerf`). ``out`` is checked first (``--out``).
+
+    Args:
+        src: Ultra-NeRF folder: images/0.png… or images.npy, and poses.npy.
+        out: Dataset directory (created, or extended by a new sweep).
+        width_mm: Probe width (lateral field of view), mm.
+        depth_mm: Imaging depth, mm.
+        sweep_name: Name of the new sweep (default: SRC's folder name).
+        kind: Sweep kind: row, column, tilted or other.
+        orthonormalize_tolerance: Largest rotation-block deviation from orthonormal that is
+            repaired (nearest rotation), in [0, 1).
+        replace: Replace an existing sweep of the same name.
+    """
     check_output_dir(out)
     name = sweep_name or safe_sweep_name(src)
     sweep, probe, report = read_ultranerf(
@@ -149,14 +158,25 @@ def import_plus_sweep(
     replace: bool = False,
     keep_blank_columns: bool = False,
 ) -> ImportedSweep[PlusImportReport]:
-    """Add the tracked PLUS / 3D Slicer recording ``sequence``, calibrated by the PLUS
-    configuration ``config``, to the dataset at ``out`` as ``sweep_name`` (default: a name made
-    from the file's stem) in the world frame ``to``, its frames shrunk by ``downsample``
-    (:func:`~ultron.data.plus_import.read_plus`); ``replace`` replaces a sweep of that name.
-    The frames keep only the columns with signal in some frame (the first sweep's columns when
-    the dataset holds PLUS sweeps already, so that they share one probe geometry), unless
-    ``keep_blank_columns``. The import's provenance is kept in ``dataset.json``. ``kind``
-    (``--kind``) and ``out`` (``--out``) are checked before the recording is read."""
+    """Add a tracked PLUS / 3D Slicer recording to a dataset as a sweep
+    (:func:`~ultron.data.plus_import.read_plus`); the import's provenance is kept in
+    ``dataset.json``. ``kind`` (``--kind``) and ``out`` (``--out``) are checked before the
+    recording is read.
+
+    Args:
+        sequence: PLUS / 3D Slicer sequence: .igs.mha, .seq.mha, .mha, .igs.nrrd, .seq.nrrd
+            (raw or compressed).
+        config: PLUS configuration XML holding the Image → Probe matrix.
+        out: Dataset directory (created, or extended by a new sweep).
+        to: World frame: Reference (moves with the patient) or Tracker.
+        sweep_name: Name of the new sweep (default: the file's stem).
+        kind: Sweep kind: row, column, tilted or other.
+        downsample: Shrink frames by this factor ≥ 1 (area-averaged; spacings updated).
+        replace: Replace an existing sweep of the same name.
+        keep_blank_columns: Keep the columns that are 0 in every frame (default: drop them,
+            as outside the probe's aperture; a dataset holding PLUS sweeps already keeps its
+            first sweep's columns, so that they share one probe geometry).
+    """
     if kind not in SWEEP_KINDS:
         raise argument_error("--kind", f"{kind!r} is not one of {', '.join(SWEEP_KINDS)}")
     check_output_dir(out)

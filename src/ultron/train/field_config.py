@@ -8,7 +8,7 @@ from dataclasses import asdict, dataclass, replace
 from dataclasses import field as dataclass_field
 from typing import Any
 
-from ultron.arguments import check_integer
+from ultron.arguments import MAX_COUNT, MAX_SEED, check_integer
 from ultron.data.orientation import ORIENTATIONS
 from ultron.errors import argument_error
 from ultron.fields.factory import FieldConfig
@@ -49,6 +49,37 @@ class FieldTrainConfig:
     docs/decisions.md#field-fit-confidence-prior-trainfield_configpy. ``paper`` and ``shadow``
     presets leave it off.
     See :func:`field_preset` for the paper's configuration.
+
+    Attributes:
+        field: The network: backend, grid or MLP settings, heads.
+        render: The scanline renderer's settings.
+        iterations: Training iterations.
+        seed: Seed of initialisation and batches.
+        frames_per_batch: Frames a training batch draws its patches from.
+        patch_width: Scanlines per training patch.
+        learning_rate: Initial learning rate (default: the backend's).
+        lr_decay_steps: Steps over which the rate falls tenfold (default: the run's length on
+            the grid, the paper's 250k on the MLP).
+        holdout_every: Hold out every K-th frame for checks (0: none).
+        check_every: Held-out check every N steps.
+        checkpoint_every: Save checkpoint.pt (with train_log.jsonl and field.json) every N
+            steps and at the last; an interrupted fit resumes from the latest.
+        log_every: Steps between train_log.jsonl entries.
+        fit_shape: Fit at (H, W) pixels (frames area-resampled), None for the frames' own
+            size, or auto (the frames' own, or coarser where their pixels are finer than half a
+            speckle grain).
+        ssim_weight: Weight of the SSIM term of the image loss.
+        mse_weight: Weight of the squared-error term of the image loss.
+        scattering_tv_weight: Weight of a total-variation prior on φ (0: off).
+        max_check_frames: Held-out frames a check renders at most.
+        train_scatterers: expected (E[S]) or sample (Ultra-NeRF's per-step draw) in training.
+        scattering_warmup_iters: Steps with φ held constant before it is learned.
+        confidence_prior_weight: Weight of the one-sided prior T ≤ C + m (m the margin), C the frame's
+            ultrasound confidence map (0: off).
+        confidence_prior_margin: The prior's margin.
+        orientation: The field's axes: world (the tracker's) or auto (the sweep's where it
+            runs more than 5° oblique to the tracker's; measured worse on the real fibula:
+            docs/field.md).
     """
 
     field: FieldConfig = dataclass_field(default_factory=FieldConfig)
@@ -82,11 +113,13 @@ class FieldTrainConfig:
     def __post_init__(self) -> None:
         positive = ("iterations", "frames_per_batch", "patch_width", "check_every")
         for name in (*positive, "checkpoint_every", "log_every", "max_check_frames"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise argument_error(name, f"expected a positive integer, got {value!r}")
-        for name in ("seed", "holdout_every"):
-            check_integer(name, getattr(self, name))
+            check_integer(name, getattr(self, name), 1, MAX_COUNT)
+        check_integer("seed", self.seed, 0, MAX_SEED)
+        check_integer("holdout_every", self.holdout_every)
+        if self.holdout_every == 1:
+            raise argument_error(
+                "holdout_every", "expected 0 (none) or an integer ≥ 2 (1 holds out every frame)"
+            )
         if self.patch_width < MIN_FIT_SIDE:
             raise argument_error(
                 "patch_width",
