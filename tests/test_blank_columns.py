@@ -16,6 +16,7 @@ from ultron.data.resolution import signal_columns
 from ultron.train.field_batch import sample_patches
 from ultron.train.field_fit import evaluate_frames
 from ultron.train.frames import FrameSet, copy_baselines
+from ultron.train.losses import METRIC_SSIM_K2, ssim
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -97,8 +98,14 @@ def test_the_held_out_check_scores_the_lit_columns_only() -> None:
     found = evaluate_frames(_WhiteField(), frames, frames.holdout_index)  # type: ignore[arg-type]
     # lit columns: (1 − 0.5)²; with the blank columns (1 − 0)² would raise the mse to 0.5
     assert found["psnr"] == pytest.approx(10 * math.log10(1 / 0.25), abs=1e-4)
-    c1 = 0.01**2  # constant images: SSIM is the luminance term alone, on every window
-    assert found["ssim"] == pytest.approx((2 * 0.5 + c1) / (1 + 0.25 + c1), abs=1e-5)
+    # exactly the SSIM of the lit columns, computed alone
+    lit = frames.images[1:2, :, 2:10]
+    assert found["ssim"] == float(ssim(torch.ones_like(lit), lit, k1=0.01, k2=METRIC_SSIM_K2))
+    # constant images: SSIM is the luminance term alone, on every window, up to float32's
+    # rounding of σ² = E[x²] − μ² against C2 = 9e-4 (≈ 1e-5 here, with the CPU's kernels);
+    # with the blank columns it would be 0.30
+    c1 = 0.01**2
+    assert found["ssim"] == pytest.approx((2 * 0.5 + c1) / (1 + 0.25 + c1), abs=1e-4)
 
 
 def test_info_names_the_blank_columns(tmp_path) -> None:
