@@ -170,19 +170,11 @@ def preset_request(
         occupancy = replace(occupancy, positive_weight=parse_positive_weight(positive_weight))
     if occupancy_iters is not None:
         on = replace(on, occupancy=replace(on.occupancy, iters=occupancy_iters))
-    ultron = replace(base.ultron, occupancy=occupancy, visibility=source)
-    if surface is not None:
-        ultron = replace(ultron, observed=replace(ultron.observed, surface=surface))
-    if theta_context is not None:
-        ultron = replace(ultron, context=ThetaContextConfig.parse(theta_context))
-    if echo_support is not None:
-        ultron = replace(ultron, echo_support=EchoSupportConfig() if echo_support else None)
-    if label_fusion is not None:
-        fusion = LabelFusionConfig(min_frame_share=0.0) if label_fusion else None
-        ultron = replace(ultron, label_fusion=fusion)
-    for name, value in (("label_support_mm", label_support_mm), ("label_bridges", label_bridges)):
-        if value is not None:
-            ultron = replace(ultron, observed=replace(ultron.observed, **{name: value}))
+    ultron = _with_options(
+        replace(base.ultron, occupancy=occupancy, visibility=source), theta_context,
+        echo_support, label_fusion,
+        {"surface": surface, "label_support_mm": label_support_mm, "label_bridges": label_bridges},
+    )  # fmt: skip
     return ReconstructionRequest(
         method=method,
         label_fraction=label_fraction,
@@ -192,6 +184,26 @@ def preset_request(
         mesh_coordinates=mesh_coordinates,
         device=device,
     )
+
+
+def _with_options(
+    ultron: UltronConfig,
+    theta_context: str | None,
+    echo_support: bool | None,
+    label_fusion: bool | None,
+    observed: dict[str, object],
+) -> UltronConfig:
+    """``ultron`` with :func:`preset_request`'s options that were given (not None); ``observed``
+    holds those of its observed-surface crop."""
+    if theta_context is not None:
+        ultron = replace(ultron, context=ThetaContextConfig.parse(theta_context))
+    if echo_support is not None:
+        ultron = replace(ultron, echo_support=EchoSupportConfig() if echo_support else None)
+    if label_fusion is not None:
+        fusion = LabelFusionConfig(min_frame_share=0.0) if label_fusion else None
+        ultron = replace(ultron, label_fusion=fusion)
+    given = {name: value for name, value in observed.items() if value is not None}
+    return replace(ultron, observed=replace(ultron.observed, **given)) if given else ultron
 
 
 __all__ = [
