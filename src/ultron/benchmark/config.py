@@ -126,9 +126,34 @@ class BenchmarkConfig:
 
     ``simulation`` and ``field_fit`` are templates: each dataset replaces their phantom and seed.
     ``ultron``, ``on`` and ``metrics`` go into every cell's ``ReconstructionRequest`` (the
-    fine-tuning cells mesh with ``ultron`` and measure with ``metrics`` too). ``threads`` is
-    torch's thread count per task (default: cores // jobs, at least 1). ``robust_annotation``
-    and ``robust_tracking`` are the robustness study's perturbed annotation and tracking.
+    fine-tuning cells mesh with ``ultron`` and measure with ``metrics`` too). ``device`` and
+    ``cell_reports`` are not settings of the results' identity: a DIR resumed on another device
+    or without cell reports keeps its finished cells.
+
+    Attributes:
+        phantoms: The phantoms simulated and reconstructed.
+        seeds: Seeds 0..K-1 per phantom.
+        jobs: Tasks run in parallel (spawned worker processes).
+        threads: torch threads per task (default: cores // jobs, at least 1).
+        robustness: Also UltrON (10%) vs RoCoSDF (100%) on L3 with larger annotation errors
+            and with pose misalignment.
+        generalisation: Table 2: train on L3, apply to L2.
+        quick: Fewer field and occupancy iterations and metric points (:func:`quick_config`).
+        rocosdf_preset: RoCoSDF's settings: fast or paper.
+        device: Where every task's networks compute.
+        cell_reports: Every cell's run directory gets its own report.html, as reconstruct
+            writes it (seconds of figures per cell); DIR's report.html shows every row either
+            way.
+        simulation: The simulated datasets' template.
+        field_fit: The field fits' template.
+        ultron: UltrON's settings in every cell.
+        on: ON's settings.
+        metrics: How every cell is scored.
+        robust_annotation: The robustness study's perturbed annotation.
+        robust_tracking: The robustness study's perturbed tracking.
+        auto_labels: label --auto's settings for the auto-labelled cells.
+        label_selection: How a cell's labelled frames are drawn (module doc): per-phantom or
+            shared.
     """
 
     phantoms: tuple[str, ...] = BENCHMARK_PHANTOMS
@@ -139,12 +164,7 @@ class BenchmarkConfig:
     generalisation: bool = True
     quick: bool = False
     rocosdf_preset: str = "fast"
-    #: Where every task's networks compute (not a setting of the results' identity: a DIR
-    #: resumed on another device keeps its finished cells).
     device: str = "cpu"
-    #: Whether every cell's run directory gets its own report.html (as ``reconstruct``
-    #: writes it; seconds of figures per cell). The benchmark's report.html shows every row
-    #: either way; not a setting of the results' identity.
     cell_reports: bool = True
     simulation: SimulationConfig = field(default_factory=_benchmark_simulation)
     field_fit: FieldTrainConfig = field(default_factory=FieldTrainConfig)
@@ -154,7 +174,6 @@ class BenchmarkConfig:
     robust_annotation: AnnotationConfig = field(default_factory=_robust_annotation)
     robust_tracking: TrackingNoise = field(default_factory=_robust_tracking)
     auto_labels: AutoLabelConfig = field(default_factory=AutoLabelConfig)
-    #: How a cell's labelled frames are drawn (module doc): "per-phantom" or "shared".
     label_selection: str = "per-phantom"
 
     def __post_init__(self) -> None:

@@ -108,9 +108,19 @@ def run_benchmark(
     executor: str = "local",
     address: str | None = None,
 ) -> BenchmarkResult:
-    """Run the benchmark of ``config`` into ``out`` (see the module doc), with the ``local``
-    or the ``ray`` executor (:func:`~ultron.benchmark.runner.run_tasks`); the executor does
-    not change a cell's outputs."""
+    """Run the benchmark of ``config`` into ``out`` (see the module doc); the executor
+    (:func:`~ultron.benchmark.runner.run_tasks`) does not change a cell's outputs.
+
+    Args:
+        config: Every setting of the benchmark.
+        out: Output directory (resumed if it exists).
+        log: Told each line of progress.
+        report_html: Write DIR/report.html.
+        executor: local (this machine, config.jobs at a time) or ray (each task a Ray task of
+            config.threads CPUs; needs Ray: pip install ray).
+        address: With the ray executor: the Ray cluster to join (auto, ray://host:10001);
+            default: start a local one.
+    """
     check_executor(executor, address)
     if not isinstance(config, BenchmarkConfig):
         raise argument_error("config", f"expected a BenchmarkConfig, got {type(config).__name__}")

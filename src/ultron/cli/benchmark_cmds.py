@@ -16,7 +16,13 @@ def _phantom_list(text: str) -> tuple[str, ...]:
     return tuple(name.strip() for name in text.split(",") if name.strip())
 
 
-@command(torch_threads=False)
+@command(
+    torch_threads=False,
+    documented_by=(
+        "ultron.benchmark.config:BenchmarkConfig",
+        "ultron.benchmark.pipeline:run_benchmark",
+    ),
+)
 def benchmark(
     out: Path,
     quick: bool = False,
@@ -37,15 +43,11 @@ def benchmark(
     DIR/tables.md and DIR/report.html. Exits 1 if any cell failed.
 
     Args:
-        out: Output directory (resumed if it exists).
         quick: L3 (+ L2 for Table 2), one seed, fewer field/occupancy iterations and metric
             points (≈ 10 min on 2 idle cores).
         seeds: Seeds 0..K-1 per phantom (default 3; 1 with --quick).
         phantoms: Comma-separated phantoms (default L2,L3,L3b,L4,condyle; L3 with --quick).
-        jobs: Tasks run in parallel (spawned worker processes).
         threads: torch threads per task (default: cores // jobs).
-        robustness: Also UltrON (10%) vs RoCoSDF (100%) on L3 with larger annotation errors
-            and with pose misalignment.
         no_generalisation: Skip Table 2 (train on L3, apply to L2).
         no_cell_reports: Skip each cell's own report.html (DIR/report.html still shows every
             row).
@@ -53,8 +55,6 @@ def benchmark(
             75k + 50k iterations, RoCoSDF's paper settings; days on a CPU, for GPUs).
         executor: local (this machine, --jobs at a time) or ray (each task a Ray task of
             --threads CPUs; needs Ray: pip install ray).
-        address: With --executor ray: the Ray cluster to join (auto, ray://host:10001);
-            default: start a local one.
     """
     from ultron.benchmark import run_benchmark
     from ultron.benchmark.config import benchmark_config
