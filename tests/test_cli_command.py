@@ -206,3 +206,18 @@ def test_declaring_the_commands_loads_no_torch():
     )
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert done.stdout.strip() == "[]"
+
+
+def test_help_is_the_same_read_from_the_source_or_from_the_imported_module(monkeypatch, tmp_path):
+    """Without the sources (an install of byte code only) the entries come from the imported
+    object's docstring: the same help."""
+    import ultron
+    from ultron.cli.common import _library_args
+
+    targets = ("ultron.pipeline.presets:preset_request", "ultron.metrics.surface:MetricsConfig")
+    from_source = [_library_args(target) for target in targets]
+    monkeypatch.setattr(ultron, "__file__", str(tmp_path / "__init__.py"))
+    assert [_library_args(target) for target in targets] == from_source
+    assert from_source[0]["negatives"].startswith("ultron: background labels")
+    with pytest.raises(TypeError, match="no such function or class"):
+        _library_args("ultron.pipeline.presets:no_such_function")

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import ast
 import functools
+import importlib
 import inspect
 import re
 import time
@@ -146,8 +147,13 @@ def _library_args(target: str) -> dict[str, str]:
     package, *parts = module.split(".")  # not find_spec: it would import the parent packages
     if package != "ultron":
         raise TypeError(f"{target}: not an ultron module")
-    source = Path(ultron.__file__).parent.joinpath(*parts).with_suffix(".py").read_text("utf-8")
-    for node in ast.parse(source).body:
+    path = Path(ultron.__file__).parent.joinpath(*parts).with_suffix(".py")
+    if not path.is_file():  # an install without sources (byte code only): import it instead
+        found = getattr(importlib.import_module(module), name, None)
+        if found is None:
+            raise TypeError(f"{target}: no such function or class")
+        return _documented(inspect.getdoc(found) or "")
+    for node in ast.parse(path.read_text("utf-8")).body:
         if isinstance(node, ast.FunctionDef | ast.ClassDef) and node.name == name:
             return _documented(ast.get_docstring(node) or "")
     raise TypeError(f"{target}: no such function or class")
