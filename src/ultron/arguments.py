@@ -59,34 +59,28 @@ def check_range(
         raise argument_error(option, f"expected {expected}, got {value!r}")
 
 
-def check_seed(option: str, value: int | None) -> None:
-    """A seed must be an integer in [0, :data:`MAX_SEED`]."""
-    check_range(option, value, 0, MAX_SEED)
-
-
 #: The largest count any option takes (iterations, points, frames …): beyond it no run ends.
 MAX_COUNT = 10**9
 
 
 def check_integer(name: str, value: object, low: int = 0, high: int | None = None) -> None:
     """A one-line error naming ``name`` unless ``value`` is an integer (not a bool) ≥ ``low``
-    (and ≤ ``high`` when given: :data:`MAX_COUNT` for a count, :data:`MAX_SEED` for a seed)."""
+    (and ≤ ``high`` when given)."""
     integer = isinstance(value, int) and not isinstance(value, bool)
     if not integer or value < low or (high is not None and value > high):  # type: ignore[operator]
         expected = f"≥ {low}" if high is None else f"in [{low}, {high}]"
         raise argument_error(name, f"expected an integer {expected}, got {value!r}")
 
 
-def check_count(option: str, value: int | None, minimum: int = 1) -> None:
+def check_seed(name: str, value: object) -> None:
+    """A seed must be an integer in [0, :data:`MAX_SEED`]."""
+    check_integer(name, value, 0, MAX_SEED)
+
+
+def check_count(name: str, value: object, minimum: int = 1) -> None:
     """A count (iterations, points, frames, threads …) must be an integer in
     [``minimum``, :data:`MAX_COUNT`]."""
-    check_range(option, value, minimum, MAX_COUNT)
-
-
-def check_choice(option: str, value: str | None, choices: tuple[str, ...]) -> None:
-    """A one-line error naming ``option`` unless ``value`` (None: unset) is one of ``choices``."""
-    if value is not None and value not in choices:
-        raise argument_error(option, f"expected one of {', '.join(choices)}, got {value!r}")
+    check_integer(name, value, minimum, MAX_COUNT)
 
 
 def sweep_names(values: str | list[str] | None, option: str = "--sweeps") -> list[str] | None:

@@ -241,8 +241,8 @@ def check_device(value: str) -> str:
 
 def apply_threads(threads: int | None) -> None:
     """Check ``--threads`` and, when given, set torch's CPU thread count."""
-    check_count("--threads", threads)
     if threads is not None:
+        check_count("--threads", threads)
         import torch
 
         torch.set_num_threads(threads)

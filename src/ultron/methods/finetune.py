@@ -39,7 +39,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from ultron.arguments import MAX_COUNT, MAX_SEED, check_integer
+from ultron.arguments import check_count, check_integer, check_seed
 from ultron.data.dataset import SweepDataset
 from ultron.data.labels import LabelledPixels, select_label_frames
 from ultron.device import module_device, resolve_device
@@ -123,9 +123,9 @@ class FinetuneConfig:
             raise argument_error(
                 "label_fraction", f"expected a value in (0, 1], got {self.label_fraction!r}"
             )
-        check_integer("iters", self.iters, 0, MAX_COUNT)
+        check_count("iters", self.iters, 0)
         check_integer("frozen_layers", self.frozen_layers)
-        check_integer("seed", self.seed, 0, MAX_SEED)
+        check_seed("seed", self.seed)
         check_integer("anchor_points", self.anchor_points, 1)
         weight = self.anchor_weight
         number = isinstance(weight, int | float) and not isinstance(weight, bool)

@@ -12,7 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
-from ultron.arguments import MAX_SEED, check_integer
+from ultron.arguments import check_seed
 from ultron.device import resolve_device
 from ultron.errors import argument_error
 from ultron.mesh.export import check_mesh_coordinates
@@ -44,7 +44,7 @@ class ReconstructionRequest:
                 f"method {self.method!r} takes a {config_class.__name__}, got"
                 f" {type(self.method_config).__name__}",
             )
-        check_integer("seed", self.seed, 0, MAX_SEED)
+        check_seed("seed", self.seed)
         if not 0 < self.label_fraction <= 1:
             raise argument_error(
                 "label_fraction", f"expected a value in (0, 1], got {self.label_fraction}"

@@ -45,7 +45,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ultron.arguments import MAX_COUNT, MAX_SEED, check_integer
+from ultron.arguments import check_count, check_seed
 from ultron.errors import UltronInputError, argument_error
 from ultron.memory import check_fits_in_memory
 from ultron.metrics.distance import MeshDistanceIndex, build_distance_index, mesh_distances
@@ -104,9 +104,9 @@ class MetricsConfig:
     crop_mm: float | None = None
 
     def __post_init__(self) -> None:
-        check_integer("n_points", self.n_points, 1, MAX_COUNT)
-        check_integer("repeats", self.repeats, 1, MAX_COUNT)
-        check_integer("seed", self.seed, 0, MAX_SEED)
+        check_count("n_points", self.n_points)
+        check_count("repeats", self.repeats)
+        check_seed("seed", self.seed)
         crop = self.crop_mm
         if crop is not None and not (isinstance(crop, int | float) and 0 < crop < math.inf):
             raise argument_error("crop_mm", f"expected a positive distance in mm, got {crop!r}")

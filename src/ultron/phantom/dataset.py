@@ -44,7 +44,7 @@ import numpy as np
 import torch
 
 from ultron import atomic
-from ultron.arguments import MAX_SEED, check_integer
+from ultron.arguments import check_seed
 from ultron.data.dataset import ProbeGeometry, Sweep, SweepDataset
 from ultron.data.geometry import field_of_view_bounds_mm
 from ultron.errors import argument_error
@@ -111,7 +111,7 @@ class SimulationConfig:
 
     def __post_init__(self) -> None:
         get_phantom(self.phantom)
-        check_integer("seed", self.seed, 0, MAX_SEED)
+        check_seed("seed", self.seed)
         if isinstance(self.sweeps, str) or not self.sweeps:
             raise argument_error(
                 "sweeps", f"expected a non-empty tuple of names, got {self.sweeps!r}"

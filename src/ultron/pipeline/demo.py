@@ -15,7 +15,7 @@ from contextlib import AbstractContextManager, nullcontext
 from pathlib import Path
 from typing import Any
 
-from ultron.arguments import MAX_SEED, check_integer
+from ultron.arguments import check_seed
 from ultron.data.dataset import SweepDataset
 from ultron.outputs import check_output_dir
 from ultron.phantom import SimulationConfig, simulate_dataset
@@ -53,7 +53,7 @@ def run_demo(
     :data:`DEMO_METHODS`. ``field_progress()`` wraps the field fit and gives the callback of its
     per-step dicts (e.g. a progress bar's), ``status(text)`` wraps each other long stage (e.g.
     a spinner), ``log(line)`` reports what was done."""
-    check_integer("seed", seed, 0, MAX_SEED)
+    check_seed("seed", seed)
     out = check_demo_out(out)
     field_progress = field_progress or nullcontext
     status = status or (lambda text: nullcontext())

@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from ultron import atomic
-from ultron.arguments import MAX_SEED, check_integer
+from ultron.arguments import check_seed
 from ultron.data.dataset import SweepDataset
 from ultron.data.outliers import check_pose_array_outliers
 from ultron.data.validation import load_npy, validate_poses
@@ -151,7 +151,7 @@ def render_frames(
     """
     if (poses is None) == (dataset is None):
         raise argument_error("--poses/--dataset", "give exactly one of --poses or --dataset")
-    check_integer("seed", seed, 0, MAX_SEED)
+    check_seed("seed", seed)
     out = Path(out)
     if out.suffix != ".npy":
         raise argument_error("--out", f"expected a .npy file name, got {out}")

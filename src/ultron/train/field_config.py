@@ -8,7 +8,7 @@ from dataclasses import asdict, dataclass, replace
 from dataclasses import field as dataclass_field
 from typing import Any
 
-from ultron.arguments import MAX_COUNT, MAX_SEED, check_integer
+from ultron.arguments import check_count, check_integer, check_seed
 from ultron.data.orientation import ORIENTATIONS
 from ultron.errors import argument_error
 from ultron.fields.factory import FieldConfig
@@ -113,8 +113,8 @@ class FieldTrainConfig:
     def __post_init__(self) -> None:
         positive = ("iterations", "frames_per_batch", "patch_width", "check_every")
         for name in (*positive, "checkpoint_every", "log_every", "max_check_frames"):
-            check_integer(name, getattr(self, name), 1, MAX_COUNT)
-        check_integer("seed", self.seed, 0, MAX_SEED)
+            check_count(name, getattr(self, name))
+        check_seed("seed", self.seed)
         check_integer("holdout_every", self.holdout_every)
         if self.holdout_every == 1:
             raise argument_error(
