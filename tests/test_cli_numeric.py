@@ -97,6 +97,19 @@ CASES = [
     ("benchmark", "--seeds", "0"),
     ("benchmark", "--jobs", "0"),
     ("benchmark", "--threads", "-1"),
+    # counts above MAX_COUNT, refused by the library's check_count
+    *[
+        (command, option, str(10**10))
+        for command, option in [
+            ("simulate", "--frames"),
+            ("simulate", "--height-px"),
+            ("reconstruct", "--occupancy-iters"),
+            ("fit-field", "--scattering-warmup"),
+            ("fit-field", "--holdout-every"),
+            ("benchmark", "--seeds"),
+            ("benchmark", "--jobs"),
+        ]
+    ],
 ]
 
 

@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from ultron.arguments import check_integer
+from ultron.arguments import check_count
 from ultron.data.auto_labels import AutoLabelConfig
 from ultron.device import resolve_device
 from ultron.errors import argument_error
@@ -192,12 +192,9 @@ class BenchmarkConfig:
             raise argument_error("phantoms", f"phantoms must be unique, got {list(phantoms)}")
         object.__setattr__(self, "phantoms", tuple(phantoms))
         for name in ("seeds", "jobs"):
-            check_integer(name, getattr(self, name), 1)
-        threads = self.threads
-        if threads is not None and (
-            isinstance(threads, bool) or not isinstance(threads, int) or threads < 1
-        ):
-            raise argument_error("threads", f"expected an integer ≥ 1 or None, got {threads!r}")
+            check_count(name, getattr(self, name))
+        if self.threads is not None:
+            check_count("threads", self.threads)
         if self.rocosdf_preset not in ROCOSDF_PRESETS:
             raise argument_error(
                 "preset", f"expected one of {ROCOSDF_PRESETS}, got {self.rocosdf_preset!r}"

@@ -44,7 +44,7 @@ import numpy as np
 import torch
 
 from ultron import atomic
-from ultron.arguments import check_seed
+from ultron.arguments import check_count, check_seed
 from ultron.data.dataset import ProbeGeometry, Sweep, SweepDataset
 from ultron.data.geometry import field_of_view_bounds_mm
 from ultron.errors import argument_error
@@ -119,6 +119,8 @@ class SimulationConfig:
         specs = [sweep_spec(name) for name in self.sweeps]
         if len({s.name for s in specs}) != len(specs):
             raise argument_error("sweeps", f"sweep names must be unique, got {list(self.sweeps)}")
+        check_count("height_px", self.height_px)
+        check_count("width_px", self.width_px)
         self.probe()  # validates the geometry
         if not (math.isfinite(self.voxel_mm) and 0 < self.voxel_mm <= MAX_VOXEL_MM):
             raise argument_error(

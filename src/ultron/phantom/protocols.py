@@ -34,6 +34,7 @@ import numpy as np
 import torch
 from scipy.spatial.transform import Rotation
 
+from ultron.arguments import check_count
 from ultron.errors import argument_error
 
 DEFAULT_SWEEPS = ("row", "column", "tilt_p10", "tilt_m10")
@@ -57,9 +58,7 @@ class ScanConfig:
     tilt_pivot_depth_mm: float = 40.0
 
     def __post_init__(self) -> None:
-        n = self.frames_per_sweep
-        if isinstance(n, bool) or not isinstance(n, int) or n < 1:
-            raise argument_error("frames_per_sweep", f"expected a positive integer, got {n!r}")
+        check_count("frames_per_sweep", self.frames_per_sweep)
         if self.step_mm is not None and not (math.isfinite(self.step_mm) and self.step_mm > 0):
             raise argument_error("step_mm", f"expected a positive step or None, got {self.step_mm}")
         if not (math.isfinite(self.margin_mm) and self.margin_mm >= 0):

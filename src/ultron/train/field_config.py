@@ -8,7 +8,7 @@ from dataclasses import asdict, dataclass, replace
 from dataclasses import field as dataclass_field
 from typing import Any
 
-from ultron.arguments import check_count, check_integer, check_seed
+from ultron.arguments import check_count, check_seed
 from ultron.data.orientation import ORIENTATIONS
 from ultron.errors import argument_error
 from ultron.fields.factory import FieldConfig
@@ -115,7 +115,7 @@ class FieldTrainConfig:
         for name in (*positive, "checkpoint_every", "log_every", "max_check_frames"):
             check_count(name, getattr(self, name))
         check_seed("seed", self.seed)
-        check_integer("holdout_every", self.holdout_every)
+        check_count("holdout_every", self.holdout_every, 0)
         if self.holdout_every == 1:
             raise argument_error(
                 "holdout_every", "expected 0 (none) or an integer ≥ 2 (1 holds out every frame)"
@@ -148,10 +148,7 @@ class FieldTrainConfig:
                 "train_scatterers",
                 f"expected one of {SCATTERER_MODES}, got {self.train_scatterers!r}",
             )
-        if isinstance(self.scattering_warmup_iters, bool) or not (
-            isinstance(self.scattering_warmup_iters, int) and self.scattering_warmup_iters >= 0
-        ):
-            raise argument_error("scattering_warmup_iters", "expected an integer ≥ 0")
+        check_count("scattering_warmup_iters", self.scattering_warmup_iters, 0)
         for name in (
             "ssim_weight",
             "mse_weight",

@@ -47,6 +47,7 @@ from typing import Any
 
 import torch
 
+from ultron.arguments import check_count
 from ultron.device import resolve_device
 from ultron.errors import argument_error
 from ultron.fields.occupancy import OccupancyNetwork, OccupancyNetworkConfig
@@ -177,8 +178,7 @@ class OccupancyTrainConfig:
     def __post_init__(self) -> None:
         if self.loss not in LOSSES:
             raise argument_error("loss", f"expected one of {LOSSES}, got {self.loss!r}")
-        if self.iters < 0:
-            raise argument_error("iters", f"expected ≥ 0, got {self.iters}")
+        check_count("iters", self.iters, 0)
         if self.batch_size < 1:
             raise argument_error("batch_size", f"expected ≥ 1, got {self.batch_size}")
         if not self.lr > 0:
