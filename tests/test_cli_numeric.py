@@ -42,6 +42,7 @@ CASES = [
     ("fit-field", "--volume-cell", "-1"),
     ("fit-field", "--volume-cell", "nan"),
     ("fit-field", "--scattering-floor", "-0.1"),
+    ("fit-field", "--scattering-floor", "0.9"),  # at or above the initial φ (0.5)
     ("fit-field", "--scattering-warmup", "-1"),
     ("fit-field", "--check-every", "0"),
     ("fit-field", "--threads", "0"),

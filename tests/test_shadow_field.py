@@ -59,7 +59,9 @@ def test_untrained_field_starts_with_the_configured_properties() -> None:
         ({"attenuation_scale_per_mm": 0.0}, "heads.attenuation_scale_per_mm"),
         ({"initial_attenuation_per_mm": math.nan}, "heads.initial_attenuation_per_mm"),
         ({"initial_reflection": 1.0}, "heads.initial_reflection"),
-        ({"scattering_floor": 0.6, "initial_scattering": 0.5}, "heads.initial_scattering"),
+        ({"scattering_floor": 0.6, "initial_scattering": 0.5}, "heads.scattering_floor"),
+        ({"initial_scattering": 1.0}, "heads.initial_scattering"),
+        ({"initial_scattering": 0.0}, "heads.initial_scattering"),
     ],
 )
 def test_bad_head_configs_name_the_field(changes: dict, name: str) -> None:

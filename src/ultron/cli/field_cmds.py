@@ -74,8 +74,8 @@ def fit_field_command(
             φ warm-up: the shadow goes into T) or paper (Ultra-NeRF as published: 8 × 128
             MLP, 75k iterations).
         backend: grid (fast) or mlp (the paper's network).
-        scattering_floor: Lower bound φ_min of the scattering amplitude (0: allow anechoic
-            regions; the shadow preset's is 0.1).
+        scattering_floor: Lower bound φ_min of the scattering amplitude, below its initial
+            0.5 (0: allow anechoic regions; the shadow preset's is 0.1).
         volume_cell: grid: cell of a dense 3D feature grid read beside the planes on every
             box; 0: none (default: 2 on a long box, a long bone's sweep; none on a compact
             one: docs/decisions.md).

@@ -66,9 +66,13 @@ class HeadConfig:
         for name in ("initial_reflection", "initial_density"):
             if not 0 < getattr(self, name) < 1:
                 raise argument_error(f"heads.{name}", "expected a value inside (0, 1)")
-        if not self.scattering_floor < self.initial_scattering < 1:
+        if not 0 < self.initial_scattering < 1:
+            raise argument_error("heads.initial_scattering", "expected a value inside (0, 1)")
+        if not self.scattering_floor < self.initial_scattering:  # φ starts above its floor
             raise argument_error(
-                "heads.initial_scattering", "expected a value inside (scattering_floor, 1)"
+                "heads.scattering_floor",
+                f"expected a value below the initial scattering {self.initial_scattering:g},"
+                f" got {self.scattering_floor:g}",
             )
 
     @classmethod
