@@ -63,11 +63,9 @@ class HeadConfig:
             math.isfinite(self.initial_attenuation_per_mm) and self.initial_attenuation_per_mm > 0
         ):
             raise argument_error("heads.initial_attenuation_per_mm", "expected > 0")
-        for name in ("initial_reflection", "initial_density"):
+        for name in ("initial_reflection", "initial_scattering", "initial_density"):
             if not 0 < getattr(self, name) < 1:
                 raise argument_error(f"heads.{name}", "expected a value inside (0, 1)")
-        if not 0 < self.initial_scattering < 1:
-            raise argument_error("heads.initial_scattering", "expected a value inside (0, 1)")
         if not self.scattering_floor < self.initial_scattering:  # φ starts above its floor
             raise argument_error(
                 "heads.scattering_floor",
