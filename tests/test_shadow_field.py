@@ -29,6 +29,29 @@ def test_paper_heads_are_ultranerf_exactly() -> None:
     torch.testing.assert_close(theta.scattering, torch.sigmoid(raw[:, 2]))
 
 
+@pytest.mark.parametrize("gain", [1.0, 4.0])
+def test_reflection_gain_scales_the_raw_output_about_its_start(gain: float) -> None:
+    """β = sigmoid(b₀ + g(b − b₀)): β_init at b = b₀ whatever g, slope g·β(1 − β) there."""
+    heads = HeadConfig(reflection_gain=gain)
+    b0 = math.log(heads.initial_reflection / (1 - heads.initial_reflection))
+    raw = torch.tensor([[0.0, b0, 0.0], [0.0, b0 + 1.0, 0.0]], dtype=F64, requires_grad=True)
+    beta = properties_from_raw(raw, False, heads).reflection
+    assert float(beta[0].detach()) == pytest.approx(heads.initial_reflection, rel=1e-12)
+    assert float(beta[1].detach()) == pytest.approx(1 / (1 + math.exp(-(b0 + gain))), rel=1e-12)
+    (slope,) = torch.autograd.grad(beta[0], raw)
+    b_init = heads.initial_reflection
+    assert float(slope[0, 1]) == pytest.approx(gain * b_init * (1 - b_init), rel=1e-9)
+    assert torch.autograd.gradcheck(
+        lambda r: properties_from_raw(r, False, heads).reflection, (raw.detach().requires_grad_(),)
+    )
+
+
+def test_unit_reflection_gain_is_the_sigmoid_bit_for_bit() -> None:
+    raw = torch.randn(1000, 3, generator=torch.Generator().manual_seed(1)) * 8
+    beta = properties_from_raw(raw, False, HeadConfig(reflection_gain=1.0)).reflection
+    assert torch.equal(beta, torch.sigmoid(raw[:, 1]))
+
+
 @pytest.mark.parametrize("floor", [0.0, 0.1, 0.4])
 def test_scattering_floor_bounds_phi_and_initial_bias_inverts_the_heads(floor: float) -> None:
     heads = HeadConfig(scattering_floor=floor, initial_attenuation_per_mm=0.01)
@@ -62,6 +85,10 @@ def test_untrained_field_starts_with_the_configured_properties() -> None:
         ({"scattering_floor": 0.6, "initial_scattering": 0.5}, "heads.scattering_floor"),
         ({"initial_scattering": 1.0}, "heads.initial_scattering"),
         ({"initial_scattering": 0.0}, "heads.initial_scattering"),
+        ({"reflection_gain": 0.0}, "heads.reflection_gain"),
+        ({"reflection_gain": -2.0}, "heads.reflection_gain"),
+        ({"reflection_gain": math.inf}, "heads.reflection_gain"),
+        ({"reflection_gain": math.nan}, "heads.reflection_gain"),
     ],
 )
 def test_bad_head_configs_name_the_field(changes: dict, name: str) -> None:
@@ -73,9 +100,20 @@ def test_old_field_configs_load_with_the_paper_heads() -> None:
     data = FieldConfig().to_dict()
     data.pop("heads")
     assert FieldConfig.from_dict(data).heads == HeadConfig.paper()
-    assert FieldConfig().heads == HeadConfig.paper()
+    assert FieldConfig().heads == HeadConfig()
+    assert HeadConfig.paper().reflection_gain == 1.0 and HeadConfig().reflection_gain == 4.0
     custom = FieldConfig(heads=HeadConfig(scattering_floor=0.2))
     assert FieldConfig.from_dict(custom.to_dict()) == custom
+
+
+def test_field_configs_saved_before_the_reflection_gain_load_without_one() -> None:
+    data = FieldConfig(heads=HeadConfig(reflection_gain=4.0)).to_dict()
+    assert data["heads"]["reflection_gain"] == 4.0
+    assert FieldConfig.from_dict(data).heads.reflection_gain == 4.0
+    del data["heads"]["reflection_gain"]  # a field.json written before the gain existed
+    assert FieldConfig.from_dict(data).heads.reflection_gain == 1.0
+    # a unit gain is written as before (the same field.json and field cache keys)
+    assert "reflection_gain" not in FieldConfig(heads=HeadConfig.paper()).to_dict()["heads"]
 
 
 def test_slab_transmission_is_exp_of_attenuation_times_reflection_product() -> None:

@@ -38,6 +38,8 @@ class FieldConfig:
             # no volume: the keys of every field.json (and field cache key) written before it
             for key in ("volume_cell_mm", "volume_features", "volume_nodes"):
                 del data["grid"][key]
+        if self.heads.reflection_gain == 1.0:  # as written before the gain existed
+            del data["heads"]["reflection_gain"]
         return data
 
     @classmethod

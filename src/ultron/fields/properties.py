@@ -23,15 +23,20 @@ INITIAL_ATTENUATION_PER_MM = 0.005
 INITIAL_REFLECTION = 1e-3
 INITIAL_SCATTERING = 0.5
 INITIAL_DENSITY = 0.75
+#: The reflection head's gain g_β of the default heads (Ultra-NeRF's: 1); see HeadConfig.
+REFLECTION_GAIN = 4.0
 
 
 @dataclass(frozen=True)
 class HeadConfig:
     """How raw network outputs become θ, and where an untrained field starts.
 
-        α = s_α · softplus(a),   β = sigmoid(b),   φ = φ_min + (1 − φ_min) · sigmoid(c)
+        α = s_α · softplus(a),   β = sigmoid(b₀ + g_β · (b − b₀)),
+        φ = φ_min + (1 − φ_min) · sigmoid(c),   b₀ = logit(β_init)
 
-    The default is Ultra-NeRF's parameterisation (φ_min = 0, s_α = 1, the INITIAL_* values).
+    The default is Ultra-NeRF's parameterisation (φ_min = 0, s_α = 1, the INITIAL_* values)
+    with a reflection gain g_β = 4; :meth:`paper` is Ultra-NeRF's exactly (g_β = 1, so β =
+    sigmoid(b)).
     :meth:`identifiable` adds the two changes that make the shadow identifiable:
 
     - a **scattering floor** φ_min: soft tissue and bone always scatter, so a dark region
@@ -45,6 +50,14 @@ class HeadConfig:
     φ → 0) and the floor brings it near 0. It is not the default because UltrON(10 %) on such a
     field scored a worse visible CD: the θ it gives separates bone from gel less well. Figures
     in docs/decisions.md#field-heads-scattering-floor-fieldspropertiespy.
+
+    ``reflection_gain`` g_β scales the reflection head's raw output about its start b₀, so the
+    field still starts at β_init. At β_init = 10⁻³ the sigmoid's slope is ≈ 10⁻³, against 0.25
+    for φ at 0.5: a bright echo is first explained by φ, and whether β ever leaves its start in
+    a 3000-step fit depends on the seed. A field whose β stays there explains the bone's echo
+    by φ alone, and UltrON on it loses surface; with g_β = 4 the reflection head learns four
+    times faster in its raw output. Figures in
+    docs/decisions.md#field-heads-reflection-gain-fieldspropertiespy.
     """
 
     scattering_floor: float = 0.0
@@ -53,12 +66,18 @@ class HeadConfig:
     initial_reflection: float = INITIAL_REFLECTION
     initial_scattering: float = INITIAL_SCATTERING
     initial_density: float = INITIAL_DENSITY
+    reflection_gain: float = REFLECTION_GAIN
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.scattering_floor) and 0 <= self.scattering_floor < 1):
             raise argument_error("heads.scattering_floor", "expected a value in [0, 1)")
         if not (math.isfinite(self.attenuation_scale_per_mm) and self.attenuation_scale_per_mm > 0):
             raise argument_error("heads.attenuation_scale_per_mm", "expected > 0")
+        if not (math.isfinite(self.reflection_gain) and self.reflection_gain > 0):
+            raise argument_error(
+                "heads.reflection_gain",
+                f"expected a finite value > 0, got {self.reflection_gain!r}",
+            )
         if not (
             math.isfinite(self.initial_attenuation_per_mm) and self.initial_attenuation_per_mm > 0
         ):
@@ -75,8 +94,9 @@ class HeadConfig:
 
     @classmethod
     def paper(cls) -> HeadConfig:
-        """Ultra-NeRF's heads exactly (no floor, α = softplus, the paper-port initial values)."""
-        return cls()
+        """Ultra-NeRF's heads exactly (no floor, α = softplus, β = sigmoid, the paper-port
+        initial values)."""
+        return cls(reflection_gain=1.0)
 
     @classmethod
     def identifiable(cls) -> HeadConfig:
@@ -88,7 +108,9 @@ class HeadConfig:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> HeadConfig:
-        return config_from_dict(cls, data, "heads")
+        """From field.json's ``heads``; a field saved before ``reflection_gain`` existed had
+        none (1)."""
+        return config_from_dict(cls, {"reflection_gain": 1.0, **data}, "heads")
 
 
 @dataclass(frozen=True)
@@ -156,10 +178,20 @@ def properties_from_raw(
     floor = heads.scattering_floor
     return AcousticProperties(
         attenuation=heads.attenuation_scale_per_mm * F.softplus(raw[..., 0]),
-        reflection=torch.sigmoid(raw[..., 1]),
+        reflection=torch.sigmoid(_reflection_raw(raw[..., 1], heads)),
         scattering=floor + (1.0 - floor) * torch.sigmoid(raw[..., 2]),
         density=torch.sigmoid(raw[..., 3]) if learn_density else None,
     )
+
+
+def _reflection_raw(raw: torch.Tensor, heads: HeadConfig) -> torch.Tensor:
+    """b₀ + g_β · (b − b₀): the raw reflection output scaled about its start (b itself at g_β =
+    1, bit for bit)."""
+    gain = heads.reflection_gain
+    if gain == 1.0:
+        return raw
+    start = _logit(heads.initial_reflection)
+    return start + gain * (raw - start)
 
 
 def initial_raw_bias(learn_density: bool, heads: HeadConfig | None = None) -> torch.Tensor:

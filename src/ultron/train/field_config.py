@@ -223,7 +223,8 @@ PAPER_ITERATIONS = 75_000
 def field_preset(name: str = "default", **changes: Any) -> FieldTrainConfig:
     """A fresh field-fit configuration.
 
-    - ``default``: the grid backend with Ultra-NeRF's heads and the confidence prior on T;
+    - ``default``: the grid backend with Ultra-NeRF's heads and a reflection gain of 4
+      (:class:`~ultron.fields.properties.HeadConfig`), and the confidence prior on T;
     - ``shadow``: the grid backend with the identifiable heads (:meth:`HeadConfig.identifiable`)
       and a 500-step φ warm-up: the field puts the acoustic shadow in T;
     - ``paper``: Ultra-NeRF as published: the 8 × 128 MLP, the paper's heads, no curriculum,
