@@ -71,17 +71,10 @@ class HeadConfig:
     def __post_init__(self) -> None:
         if not (math.isfinite(self.scattering_floor) and 0 <= self.scattering_floor < 1):
             raise argument_error("heads.scattering_floor", "expected a value in [0, 1)")
-        if not (math.isfinite(self.attenuation_scale_per_mm) and self.attenuation_scale_per_mm > 0):
-            raise argument_error("heads.attenuation_scale_per_mm", "expected > 0")
-        if not (math.isfinite(self.reflection_gain) and self.reflection_gain > 0):
-            raise argument_error(
-                "heads.reflection_gain",
-                f"expected a finite value > 0, got {self.reflection_gain!r}",
-            )
-        if not (
-            math.isfinite(self.initial_attenuation_per_mm) and self.initial_attenuation_per_mm > 0
-        ):
-            raise argument_error("heads.initial_attenuation_per_mm", "expected > 0")
+        for name in ("attenuation_scale_per_mm", "initial_attenuation_per_mm", "reflection_gain"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise argument_error(f"heads.{name}", f"expected a finite value > 0, got {value!r}")
         for name in ("initial_reflection", "initial_scattering", "initial_density"):
             if not 0 < getattr(self, name) < 1:
                 raise argument_error(f"heads.{name}", "expected a value inside (0, 1)")
