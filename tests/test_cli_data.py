@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -24,11 +25,14 @@ def test_help(command):
 
 
 def test_every_command_is_listed_demo_first():
-    from ultron.cli.main import COMMAND_ORDER
+    from ultron.cli.main import COMMANDS
 
-    names = [c.name for c in app.registered_commands]
-    assert names[0] == "demo" and sorted(names) == sorted(COMMAND_ORDER)
-    assert len(names) == 13
+    names = [name for name, _ in COMMANDS]
+    assert names[0] == "demo" and len(set(names)) == len(names) == 13
+    assert [c.name for c in app.registered_commands] == names
+    listing = runner.invoke(app, ["--help"], terminal_width=200).output
+    rows = [line.split()[1] for line in listing.splitlines() if re.match(r"│ \S", line)]
+    assert [row for row in rows if row in names] == names  # --help lists them in that order
 
 
 def test_version():

@@ -86,7 +86,3 @@ def benchmark(
     if failed:
         log(f"{len(failed)} cell(s) failed (see the list above and each run's error.log)")
         raise typer.Exit(EXIT_CELLS_FAILED)
-
-
-def register(app: typer.Typer) -> None:
-    app.command("benchmark")(benchmark)

@@ -4,8 +4,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import typer
-
 from ultron.cli.common import command, console, print_lines
 
 
@@ -81,9 +79,3 @@ def info(dataset: Path) -> None:
     print_lines(summary.lines())
     print_lines(summary.outlier_lines())
     print_lines(f"warning: {line}" for line in summary.units_warnings())
-
-
-def register(app: typer.Typer) -> None:
-    app.command("import-ultranerf")(import_ultranerf)
-    app.command("import-plus")(import_plus)
-    app.command("info")(info)

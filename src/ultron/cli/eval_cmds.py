@@ -4,8 +4,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import typer
-
 from ultron.cli.common import command, console, warning_line
 
 
@@ -47,7 +45,3 @@ def evaluate(
     if crop_line is not None:
         console.print(crop_line)
     console.print(f"wrote {done.out}")
-
-
-def register(app: typer.Typer) -> None:
-    app.command("evaluate")(evaluate)

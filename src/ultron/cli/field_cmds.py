@@ -4,8 +4,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import typer
-
 from ultron.cli.common import command, fit_progress, print_lines
 from ultron.errors import argument_error
 
@@ -149,8 +147,3 @@ def render_command(
         device=device,
     )
     print_lines(*render_lines(result, field_dir, seed, expected))
-
-
-def register(app: typer.Typer) -> None:
-    app.command("fit-field")(fit_field_command)
-    app.command("render")(render_command)

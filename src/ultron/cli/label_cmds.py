@@ -4,8 +4,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import typer
-
 from ultron.arguments import sweep_names
 from ultron.cli.common import command, print_lines, stage_progress
 
@@ -38,7 +36,3 @@ def label(
         summaries = label_checked_sweeps(dataset, data, names, progress=report)
     for summary in summaries:
         print_lines(*summary.lines(dataset))
-
-
-def register(app: typer.Typer) -> None:
-    app.command("label")(label)

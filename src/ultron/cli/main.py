@@ -1,4 +1,5 @@
-"""Entry point of the ``ultron`` command. Commands live in role modules and register here."""
+"""Entry point of the ``ultron`` command. Commands live in role modules; :data:`COMMANDS` names
+them and orders them here."""
 
 from __future__ import annotations
 
@@ -29,6 +30,24 @@ INTERRUPTED = (
     " reconstruct's network fits continue from their last checkpoint"
 )
 
+#: Every command under its name, in the order ``ultron --help`` lists them: the demo, then a
+#: dataset's life.
+COMMANDS = (
+    ("demo", reconstruct_cmds.demo),
+    ("simulate", phantom_cmds.simulate),
+    ("import-ultranerf", data_cmds.import_ultranerf),
+    ("import-plus", data_cmds.import_plus),
+    ("info", data_cmds.info),
+    ("label", label_cmds.label),
+    ("compound", volume_cmds.compound),
+    ("fit-field", field_cmds.fit_field_command),
+    ("render", field_cmds.render_command),
+    ("reconstruct", reconstruct_cmds.reconstruct),
+    ("finetune", reconstruct_cmds.finetune),
+    ("evaluate", eval_cmds.evaluate),
+    ("benchmark", benchmark_cmds.benchmark),
+)
+
 app = typer.Typer(
     name="ultron",
     help="Ultrasound Occupancy Networks: 3D bone surfaces from tracked 2D ultrasound sweeps.",
@@ -36,24 +55,8 @@ app = typer.Typer(
     pretty_exceptions_enable=False,
     add_completion=False,
 )
-
-data_cmds.register(app)
-eval_cmds.register(app)
-field_cmds.register(app)
-label_cmds.register(app)
-phantom_cmds.register(app)
-reconstruct_cmds.register(app)
-volume_cmds.register(app)
-benchmark_cmds.register(app)
-
-#: The order ``ultron --help`` lists the commands in: the demo, then a dataset's life.
-COMMAND_ORDER = (
-    "demo", "simulate", "import-ultranerf", "import-plus", "info", "label", "compound",
-    "fit-field", "render", "reconstruct", "finetune", "evaluate", "benchmark",
-)  # fmt: skip
-app.registered_commands.sort(
-    key=lambda c: COMMAND_ORDER.index(c.name) if c.name in COMMAND_ORDER else len(COMMAND_ORDER)
-)
+for _name, _function in COMMANDS:
+    app.command(_name)(_function)
 
 
 def _print_version(value: bool) -> None:

@@ -4,8 +4,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import typer
-
 from ultron.cli.common import command, print_lines, stage_progress
 
 #: The library's names of what simulate passes on under another name (its checks and help).
@@ -77,7 +75,3 @@ def simulate(
     with stage_progress("simulating") as report:
         result = simulate_to(config, out, preview, progress=report)
     print_lines(result.lines(phantom))
-
-
-def register(app: typer.Typer) -> None:
-    app.command("simulate")(simulate)

@@ -4,8 +4,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import typer
-
 from ultron.cli.common import StageLines, command, console, fit_progress, warning_line
 from ultron.methods.catalog import method_help
 
@@ -238,9 +236,3 @@ def finetune(
     name = f"fine-tuned ({label_fraction:g}, {iters} iter)" if iters else "w/o fine-tuning"
     _print_summary({name: summary})
     console.print(f"outputs in {out}")
-
-
-def register(app: typer.Typer) -> None:
-    app.command("reconstruct")(reconstruct)
-    app.command("finetune")(finetune)
-    app.command("demo")(demo)

@@ -4,8 +4,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import typer
-
 from ultron.arguments import sweep_names
 from ultron.cli.common import command, print_lines
 
@@ -52,7 +50,3 @@ def compound(
     config = ImageCompoundingConfig(spacing, SplatConfig(interpolation, reduce), fill_holes)
     summary = compound_volume(dataset, out, config, sweep_names(sweeps), max_memory)
     print_lines(summary.lines())
-
-
-def register(app: typer.Typer) -> None:
-    app.command("compound")(compound)
