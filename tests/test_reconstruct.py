@@ -153,6 +153,17 @@ def test_ultron_end_to_end(tiny: Path, tmp_path: Path, monkeypatch):
     assert (
         run["label_fusion"]["hole_fill_radius_mm"] > 0 and "mesh_label_fusion" in run["timings_s"]
     )
+    # the labels' own surface where the kept one lacks it: its faces join the mesh and count
+    added = run["label_fusion"]["label_surface_faces_added"]
+    assert "mesh_label_surface" in run["timings_s"] and run["label_fusion"]["surface_gap_mm"] == 1
+    assert len(load_mesh(tmp_path / "fused" / "mesh.ply").faces) == run["faces_kept"]
+    no_surface = LabelFusionConfig(min_frame_share=0, surface_gap_mm=None)
+    fused_only = replace(request, method_config=replace(fusion, label_fusion=no_surface))
+    reconstruct(tiny, fused_only, tmp_path / "fused-only", field_config=field_config, report=False)
+    alone = json.loads((tmp_path / "fused-only" / "run.json").read_text())
+    assert "mesh_label_surface" not in alone["timings_s"]
+    assert "label_surface_faces_added" not in alone["label_fusion"]
+    assert alone["faces_kept"] + added == run["faces_kept"]
     # by default half the labelled frames are too few to fuse: recorded, not applied
     plain_run = json.loads((tmp_path / "again" / "run.json").read_text())
     assert plain_run["label_fusion"]["applied"] is False and run["label_fusion"]["applied"]

@@ -10,6 +10,14 @@ trilinearly (0 outside C's grid). The annotated bone is bone whatever f made of 
 everywhere else. Its 0.5 level is the union of the two solids, so the surface keeps every
 labelled bone f lost and the bone f found beyond the labels.
 
+The compounded labels' own surface, cropped as label compounding crops it, can lie inside f's
+bone where f extends past the labels: max(f, C) then has no surface there, and the observed crop
+may drop f's surface beyond it for want of evidence, leaving a hole where the labels show bone.
+So the kept surface also takes every face of the labels' kept surface whose centroid lies more
+than :attr:`LabelFusionConfig.surface_gap_mm` from it (:func:`add_label_surface`): the surface
+is then no longer one closed level set, but each of its faces is backed by f and the crop or by
+the labels themselves.
+
 When it applies (:attr:`LabelFusionConfig.min_frame_share`): C between two labelled frames is
 the hole filling's interpolation across their gap. With nearly every frame labelled the gap is
 one step of the sweep and C is the labels themselves; with sparse frames (10 % of them lie
@@ -32,25 +40,40 @@ from ultron.data.dataset import SweepDataset
 from ultron.data.labels import FrameSelection
 from ultron.errors import argument_error
 from ultron.mesh.compounding import CompoundedVolume, CompoundingConfig
+from ultron.mesh.observed import SurfaceObservation, face_submesh
+from ultron.metrics.surface import point_to_surface_distances
 
 #: The share of a dataset's frames a run must label for the default fusion to apply: nearly
 #: every frame, which admits a few unannotated ones (the benchmark leaves 5 % unannotated).
 DENSE_FRAME_SHARE = 0.9
+#: How far (mm) a face of the labels' kept surface must lie from the fused kept surface to be
+#: added to it: the distance within which UltrON's crop already counts the labelled surface
+#: as observed (:data:`~ultron.mesh.observed.DEFAULT_LABEL_SUPPORT_MM`), so a face nearer than
+#: that has its counterpart in the kept surface.
+SURFACE_GAP_MM = 1.0
 
 
 @dataclass(frozen=True)
 class LabelFusionConfig:
     """When and how UltrON meshes max(f, C) (module doc): ``min_frame_share``, fuse only when
     the run's labelled frames are at least this share of the dataset's frames (0: at every
-    label fraction); ``volume``, how C is compounded."""
+    label fraction); ``volume``, how C is compounded; ``surface_gap_mm``, add the faces of the
+    labels' own kept surface farther than this from the kept surface (None: do not)."""
 
     min_frame_share: float = DENSE_FRAME_SHARE
     volume: CompoundingConfig = field(default_factory=CompoundingConfig)
+    surface_gap_mm: float | None = SURFACE_GAP_MM
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.min_frame_share <= 1.0:
             raise argument_error(
                 "min_frame_share", f"expected a share in [0, 1], got {self.min_frame_share}"
+            )
+        gap = self.surface_gap_mm
+        number = isinstance(gap, int | float) and not isinstance(gap, bool)
+        if gap is not None and not (number and 0 < gap < np.inf):
+            raise argument_error(
+                "surface_gap_mm", f"expected a positive distance (mm) or None, got {gap!r}"
             )
         if not isinstance(self.volume, CompoundingConfig):
             raise argument_error(
@@ -90,3 +113,46 @@ def fuse_with_labels(
         return torch.maximum(occupancy, torch.from_numpy(labelled).to(occupancy.dtype))
 
     return fused
+
+
+def add_label_surface(
+    kept: SurfaceObservation, labels: SurfaceObservation, gap_mm: float
+) -> tuple[SurfaceObservation, dict[str, float]]:
+    """``kept`` with the faces of ``labels.kept`` whose centroid lies more than ``gap_mm`` from
+    ``kept.kept`` appended (module doc), and an account: ``label_surface_faces_added`` and
+    their area ``label_surface_area_added_mm2``. The appended faces join both the extracted and
+    the kept surface, their vertices observed as ``labels`` found them, so that a surface's
+    evidence covers every face it returns."""
+    import trimesh
+
+    for name, value in (("kept", kept), ("labels", labels)):
+        if not isinstance(value, SurfaceObservation):
+            raise argument_error(name, f"expected a SurfaceObservation, got {type(value)}")
+    if isinstance(gap_mm, bool) or not (isinstance(gap_mm, int | float) and gap_mm > 0):
+        raise argument_error("gap_mm", f"expected a positive distance (mm), got {gap_mm!r}")
+    added = np.ones(len(labels.kept.faces), dtype=bool)  # all of them beside no surface
+    if len(labels.kept.faces) and len(kept.kept.faces):
+        centroids = np.asarray(labels.kept.triangles_center, dtype=np.float64)
+        added = point_to_surface_distances(centroids, kept.kept) > gap_mm
+    account = {
+        "label_surface_faces_added": int(np.count_nonzero(added)),
+        "label_surface_area_added_mm2": float(np.asarray(labels.kept.area_faces)[added].sum()),
+    }
+    if not added.any():
+        return kept, account
+    extra, used = face_submesh(labels.kept, added)
+    n_extracted = len(kept.extracted.vertices)
+    info = dict(kept.info)
+    for key in ("faces_extracted", "faces_kept"):
+        if key in info:
+            info[key] += len(extra.faces)
+    joined = SurfaceObservation(
+        extracted=trimesh.util.concatenate([kept.extracted, extra]),
+        observed=np.concatenate([kept.observed, labels.kept_observed[used]]),
+        kept=trimesh.util.concatenate([kept.kept, extra]),
+        kept_vertices=np.concatenate(
+            [kept.kept_vertices, n_extracted + np.arange(len(extra.vertices))]
+        ),
+        info=info,
+    )
+    return joined, account

@@ -43,11 +43,12 @@ from typing import Any
 import numpy as np
 import torch
 
-from ultron.data.dataset import ProbeGeometry
+from ultron.data.dataset import ProbeGeometry, SweepDataset
 from ultron.data.geometry import as_pose_tensor, probe_mm_to_pixel
 from ultron.errors import argument_error
 from ultron.mesh.evidence import nearest_distance_mm
 from ultron.mesh.extract import ExtractionConfig
+from ultron.mesh.occupancy_mesh import elevation_half_thickness_mm
 
 _FRAMES_PER_CHUNK = 8
 
@@ -56,6 +57,8 @@ DEFAULT_MAX_INCIDENCE_DEG = 70.0
 DEFAULT_MIN_TRANSMISSION = 0.3
 #: Distance (mm) from the labelled surface within which a point counts as observed.
 DEFAULT_LABEL_SUPPORT_MM = 1.0
+#: ``observation_transmission`` of the T ≡ 1 criterion (:func:`faced_observation`).
+NO_TRANSMISSION = "none (T = 1)"
 #: What a reconstruction keeps of its surface: only the observed part, or all of it.
 SURFACES = ("observed", "all")
 
@@ -249,10 +252,10 @@ def observed_faces(mesh, vertex_observed: np.ndarray) -> np.ndarray:
 def observed_submesh(mesh, vertex_observed: np.ndarray):
     """The sub-mesh of the observed faces (:func:`observed_faces`), unreferenced vertices
     dropped and the order kept; an empty mesh when none is observed."""
-    return _face_submesh(mesh, observed_faces(mesh, vertex_observed))[0]
+    return face_submesh(mesh, observed_faces(mesh, vertex_observed))[0]
 
 
-def _face_submesh(mesh, keep: np.ndarray) -> tuple[Any, np.ndarray]:
+def face_submesh(mesh, keep: np.ndarray) -> tuple[Any, np.ndarray]:
     """The faces ``keep`` of ``mesh`` as a mesh, unreferenced vertices dropped in order, and
     the (V',) indices of its vertices in ``mesh``."""
     import trimesh
@@ -345,7 +348,7 @@ def observe_surface(
         return SurfaceObservation(
             mesh, observed, mesh, everything, info | {"faces_kept": len(mesh.faces)}
         )
-    kept, used = _face_submesh(mesh, observed_faces(mesh, observed))
+    kept, used = face_submesh(mesh, observed_faces(mesh, observed))
     if len(kept.faces) == 0:
         info |= {"faces_kept": len(mesh.faces), "surface_fallback": "all"}
         return SurfaceObservation(mesh, observed, mesh, everything, info)
@@ -366,3 +369,15 @@ def _as_maps(
     if not np.isfinite(maps).all():
         raise argument_error("transmission", "expected finite values")
     return maps
+
+
+def faced_observation(
+    mesh, dataset: SweepDataset, voxel_mm: float, observed: ObservedSurfaceConfig
+) -> SurfaceObservation:
+    """:func:`observe_surface` of ``mesh`` with T ≡ 1 over every frame of ``dataset``, in the
+    slab UltrON's crop uses for a grid of ``voxel_mm``: the criterion of a method without a
+    transmission (label compounding crops its surface with it)."""
+    return observe_surface(
+        mesh, dataset.all_poses(), dataset.probe, None,
+        elevation_half_thickness_mm(dataset, voxel_mm), observed, NO_TRANSMISSION,
+    )  # fmt: skip

@@ -1,7 +1,7 @@
 """The observed / inferred split and the per-vertex evidence of every method's surface.
 
 UltrON computes its observation with the field's T (:func:`~ultron.methods.ultron_method.
-keep_observed_surface`). Methods without a transmission use :func:`faced_observation`: the
+keep_observed_surface`). Methods without a transmission use :func:`~ultron.mesh.observed.faced_observation`: the
 criterion of :mod:`ultron.mesh.observed` with T ≡ 1, over every frame, in the slab UltrON's
 crop uses — label compounding crops its surface with it (``--surface observed``, the default:
 it drops the floor and walls of the compounded label band, which no frame sees from above); ON
@@ -17,23 +17,10 @@ from typing import Any
 from ultron.data.dataset import SweepDataset
 from ultron.data.labels import bone_points_mm
 from ultron.mesh.evidence import SurfaceEvidence, surface_evidence
-from ultron.mesh.observed import ObservedSurfaceConfig, SurfaceObservation, observe_surface
-from ultron.mesh.occupancy_mesh import elevation_half_thickness_mm
+from ultron.mesh.observed import NO_TRANSMISSION, ObservedSurfaceConfig, faced_observation
 from ultron.methods.ultron_method import Reconstruction
 
-#: ``observation_transmission`` of the T ≡ 1 criterion.
-NO_TRANSMISSION = "none (T = 1)"
-
-
-def faced_observation(
-    mesh, dataset: SweepDataset, voxel_mm: float, observed: ObservedSurfaceConfig
-) -> SurfaceObservation:
-    """:func:`~ultron.mesh.observed.observe_surface` of ``mesh`` with T ≡ 1 over every frame,
-    slab from ``voxel_mm`` (module docstring)."""
-    return observe_surface(
-        mesh, dataset.all_poses(), dataset.probe, None,
-        elevation_half_thickness_mm(dataset, voxel_mm), observed, NO_TRANSMISSION,
-    )  # fmt: skip
+__all__ = ["NO_TRANSMISSION", "faced_observation", "reconstruction_evidence", "with_observation"]
 
 
 def with_observation(

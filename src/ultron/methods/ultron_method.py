@@ -57,16 +57,22 @@ from ultron.device import module_device
 from ultron.errors import UltronInputError, argument_error
 from ultron.fields.context import ThetaContextConfig, theta_features
 from ultron.fields.occupancy import OccupancyNetwork
-from ultron.mesh.compounding import compound_labels
+from ultron.mesh.compounding import CompoundedVolume, compound_labels
 from ultron.mesh.echo_support import EchoSupportConfig, echo_support_maps
-from ultron.mesh.extract import ExtractionConfig
+from ultron.mesh.extract import ExtractionConfig, extract_surface
 from ultron.mesh.grid import GridSpec
 from ultron.mesh.label_bridges import bridged_labelled_surface_mm
-from ultron.mesh.label_fusion import LabelFusionConfig, fuse_with_labels, labelled_frame_share
+from ultron.mesh.label_fusion import (
+    LabelFusionConfig,
+    add_label_surface,
+    fuse_with_labels,
+    labelled_frame_share,
+)
 from ultron.mesh.observed import (
     CroppedExtraction,
     ObservedSurfaceConfig,
     SurfaceObservation,
+    faced_observation,
     observe_surface,
 )
 from ultron.mesh.occupancy_mesh import MeshingConfig, elevation_half_thickness_mm, mesh_occupancy
@@ -394,6 +400,20 @@ def train_ultron(
     )
 
 
+def _with_label_surface(
+    observation: SurfaceObservation,
+    compounded: CompoundedVolume,
+    dataset: SweepDataset,
+    config: UltronConfig,
+) -> tuple[SurfaceObservation, dict[str, float]]:
+    """``observation`` with the compounded labels' own surface where it hides
+    (:func:`~ultron.mesh.label_fusion.add_label_surface`): that surface meshed and cropped as
+    label compounding does it (``config.observed``'s extraction and criterion, T ≡ 1)."""
+    labels_mesh = extract_surface(compounded.volume, compounded.grid, config.observed.extraction)
+    labels = faced_observation(labels_mesh, dataset, compounded.grid.voxel_mm, config.observed)
+    return add_label_surface(observation, labels, config.label_fusion.surface_gap_mm)
+
+
 def mesh_ultron(
     dataset: SweepDataset,
     trained: Stage2Fit,
@@ -405,11 +425,12 @@ def mesh_ultron(
     same ``config`` and ``truth``) and keep its observed surface."""
     fitted, network, selection = trained.fitted, trained.network, trained.selection
     fn = occupancy_function(fitted, network, config.context)
-    fusion = None
+    fusion, compounded = None, None
     if config.label_fusion is not None:
         applied = config.label_fusion.applies(dataset, selection)
         fusion = {"min_frame_share": config.label_fusion.min_frame_share,
                   "labelled_frame_share": labelled_frame_share(dataset, selection),
+                  "surface_gap_mm": config.label_fusion.surface_gap_mm,
                   "applied": applied}  # fmt: skip
         if applied:
             with timer.stage("mesh_label_fusion"):
@@ -423,6 +444,10 @@ def mesh_ultron(
             mesh, dataset, fitted, config, grid.voxel_mm, truth, timer.counter("frames"),
             selection,
         )  # fmt: skip
+    if compounded is not None and config.label_fusion.surface_gap_mm is not None:
+        with timer.stage("mesh_label_surface"):
+            observation, added = _with_label_surface(observation, compounded, dataset, config)
+        fusion.update(added)
     occupancy_config = trained.config
     info = {
         **observation.info,
