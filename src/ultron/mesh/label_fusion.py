@@ -36,6 +36,7 @@ import numpy as np
 import torch
 from scipy import ndimage
 
+from ultron.arguments import check_range
 from ultron.data.dataset import SweepDataset
 from ultron.data.labels import FrameSelection
 from ultron.errors import argument_error
@@ -69,12 +70,8 @@ class LabelFusionConfig:
             raise argument_error(
                 "min_frame_share", f"expected a share in [0, 1], got {self.min_frame_share}"
             )
-        gap = self.surface_gap_mm
-        number = isinstance(gap, int | float) and not isinstance(gap, bool)
-        if gap is not None and not (number and 0 < gap < np.inf):
-            raise argument_error(
-                "surface_gap_mm", f"expected a positive distance (mm) or None, got {gap!r}"
-            )
+        if self.surface_gap_mm is not None:
+            _check_gap("surface_gap_mm", self.surface_gap_mm)
         if not isinstance(self.volume, CompoundingConfig):
             raise argument_error(
                 "volume", f"expected a CompoundingConfig, got {type(self.volume).__name__}"
@@ -84,6 +81,13 @@ class LabelFusionConfig:
         """Whether ``selection``'s frames are at least :attr:`min_frame_share` of
         ``dataset``'s frames (every sweep's, labelled or not; :func:`labelled_frame_share`)."""
         return labelled_frame_share(dataset, selection) >= self.min_frame_share
+
+
+def _check_gap(name: str, value: object) -> None:
+    """Refuse ``value`` unless it is a finite distance > 0 (mm), with an error naming ``name``."""
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise argument_error(name, f"expected a positive distance (mm), got {value!r}")
+    check_range(name, value, 0, low_open=True)
 
 
 def labelled_frame_share(dataset: SweepDataset, selection: FrameSelection) -> float:
@@ -128,8 +132,7 @@ def add_label_surface(
     for name, value in (("kept", kept), ("labels", labels)):
         if not isinstance(value, SurfaceObservation):
             raise argument_error(name, f"expected a SurfaceObservation, got {type(value)}")
-    if isinstance(gap_mm, bool) or not (isinstance(gap_mm, int | float) and gap_mm > 0):
-        raise argument_error("gap_mm", f"expected a positive distance (mm), got {gap_mm!r}")
+    _check_gap("gap_mm", gap_mm)
     added = np.ones(len(labels.kept.faces), dtype=bool)  # all of them beside no surface
     if len(labels.kept.faces) and len(kept.kept.faces):
         centroids = np.asarray(labels.kept.triangles_center, dtype=np.float64)
