@@ -16,7 +16,11 @@ wall time and peak RSS are its own (``os.wait4``'s rusage of the child, as
    reuses it (``--field``; the auto-labelled copy with ``--allow-other-field``).
 3. ``ultron reconstruct`` for each label condition — the CT-derived labels on 10 % and 5 % of
    the frames (``--fractions``), the auto labels on every frame — and each method
-   (``--methods``: compounding, UltrON, UltrON w/o loss, ON, RoCoSDF).
+   (``--methods``: compounding, UltrON, UltrON w/o loss, ON, RoCoSDF). With ``--seeds 0,1,2``
+   the CT-label rows run once per ``reconstruct --seed`` (which frames are labelled, and the
+   training's seed; the rows of seed 0 keep their names and commands) and the table ends with
+   each method's mean over the seeds; the auto-label rows, every frame labelled, run at the
+   first seed only.
 4. Scoring as the data's README says, with ``ultron evaluate``'s crop (``--crop-mm``, 5): the
    faces within 5 mm of the visible CT surface are kept (the tibia and soft tissue are imaged
    but have no CT here; the area outside is reported), accuracy (MAD, HD95) to the whole CT
@@ -31,6 +35,7 @@ Usage::
 
     python benchmarks/real_fibula.py --out runs/real_fibula
     python benchmarks/real_fibula.py --out runs/real_fibula --methods compounding --skip-auto
+    python benchmarks/real_fibula.py --out runs/real_fibula --seeds 0,1,2 --skip-auto
     python benchmarks/real_fibula.py --out runs/real_fibula_gpu --device cuda
 """
 
@@ -95,19 +100,33 @@ def score_auto_labels(data: Path, auto: Path) -> dict[str, dict[str, float]]:
     return scores
 
 
-def conditions(args: argparse.Namespace) -> list[tuple[str, Path, float]]:
-    """(name, dataset, label fraction) of each label condition."""
-    rows = [(f"CT {round(100 * f)} %", args.data, f) for f in args.fractions]
+def seed_suffix(seed: int) -> str:
+    """What a row's name gains from its seed: nothing for seed 0 (the runs before ``--seeds``)."""
+    return "" if seed == 0 else f" seed {seed}"
+
+
+def conditions(args: argparse.Namespace) -> list[tuple[str, Path, float, int]]:
+    """(name, dataset, label fraction, seed) of each label condition (module doc, step 3)."""
+    rows = [
+        (f"CT {round(100 * f)} %{seed_suffix(seed)}", args.data, f, seed)
+        for f in args.fractions
+        for seed in args.seeds
+    ]
     if not args.skip_auto:
-        rows.append(("auto 100 %", args.out / "auto", 1.0))
+        first = args.seeds[0]
+        rows.append((f"auto 100 %{seed_suffix(first)}", args.out / "auto", 1.0, first))
     return rows
 
 
-def reconstruct_command(args, dataset: Path, method: str, fraction: float, out: Path) -> list:
+def reconstruct_command(
+    args, dataset: Path, method: str, fraction: float, out: Path, seed: int = 0
+) -> list:
     command = [
         "ultron", "reconstruct", str(dataset), "--method", method, "--label-fraction",
         str(fraction), "--points", str(args.points), "--out", str(out),
     ]  # fmt: skip
+    if seed != 0:
+        command += ["--seed", str(seed)]
     if method in FIELD_METHODS:
         command += ["--field", str(args.out / "field")]
         if dataset != args.data:
@@ -165,11 +184,32 @@ def print_table(rows: list[dict], field_stage: dict | None) -> None:
             f" {m['fscore_visible_1mm']:.3f} | {crop['area_outside_mm2']:.0f} |"
             f" {row['seconds']:.1f} | {row['peak_rss_bytes'] / GIB:.2f} |"
         )
+    for line in seed_means(rows):
+        print(line)
     if field_stage is not None:
         print(
             f"\nfield fit (shared by the UltrON rows): {field_stage['seconds']:.1f} s,"
             f" peak RSS {field_stage['peak_rss_bytes'] / GIB:.2f} GiB"
         )
+
+
+def seed_means(rows: list[dict]) -> list[str]:
+    """Per label fraction and method run at more than one seed, its mean CD over the seeds
+    (none when a seed's row failed)."""
+    groups: dict[tuple[float, str], list[dict]] = {}
+    for row in rows:
+        groups.setdefault((row["fraction"], row["method"]), []).append(row)
+    lines = []
+    for (fraction, method), group in groups.items():
+        if len(group) < 2 or any("error" in row for row in group):
+            continue
+        cds = [row["metrics"]["mean"]["cd_visible"] for row in group]
+        seeds = ", ".join(str(row["seed"]) for row in group)
+        lines.append(
+            f"mean CD over seeds {seeds}, {100 * fraction:g} % labels, {method}:"
+            f" {sum(cds) / len(cds):.3f} (from {min(cds):.3f} to {max(cds):.3f})"
+        )
+    return lines
 
 
 def main() -> None:
@@ -178,6 +218,7 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=Path("runs/real_fibula"))
     parser.add_argument("--methods", default=",".join(METHODS))
     parser.add_argument("--fractions", default="0.1,0.05", help="of the CT-derived labels")
+    parser.add_argument("--seeds", default="0", help="reconstruct --seed of the CT-label rows")
     parser.add_argument("--skip-auto", action="store_true", help="no auto-label rows")
     parser.add_argument("--points", type=int, default=30_000, help="per surface, metrics")
     parser.add_argument("--repeats", type=int, default=1)
@@ -188,6 +229,7 @@ def main() -> None:
     )
     args = parser.parse_args()
     args.fractions = [float(f) for f in args.fractions.split(",")]
+    args.seeds = [int(s) for s in args.seeds.split(",")]
     methods = [m for m in args.methods.split(",") if m]
     unknown = sorted(set(methods) - set(METHODS))
     if unknown:
@@ -217,14 +259,15 @@ def main() -> None:
         field_stage = timed("fit field", command, args.out / "field" / "field.json", args, log)
         log_file.write_text(json.dumps(log, indent=2))
     rows = []
-    for labels, dataset, fraction in conditions(args):
+    for labels, dataset, fraction, seed in conditions(args):
         for method in methods:
             name = f"{labels} {method}"
             out = args.out / "runs" / name.replace(" ", "-").replace("%", "pct")
-            command = reconstruct_command(args, dataset, method, fraction, out)
+            command = reconstruct_command(args, dataset, method, fraction, out, seed)
             stage = timed(name, command, out / "run.json", args, log)
             log_file.write_text(json.dumps(log, indent=2))
-            row = {"labels": labels, "method": method, **stage}
+            row = {"labels": labels, "method": method, "fraction": fraction, "seed": seed}
+            row.update(stage)
             if "error" not in stage:
                 row["metrics"] = evaluate(args, out / "mesh.ply")
             rows.append(row)
