@@ -160,9 +160,12 @@ def _boundary_app():
 
 
 def test_device_and_threads_are_resolved_before_the_command_runs(one_thread):
+    import torch
+
     result = runner.invoke(_boundary_app(), ["example", "--device", "auto", "--threads", "2"])
     assert result.exit_code == 0, result.output
-    assert result.output.split()[1:] == ["cpu", "2"]  # auto → cpu here; torch given 2 threads
+    auto = "cuda" if torch.cuda.is_available() else "cpu"  # as --device's help promises
+    assert result.output.split()[1:] == [auto, "2"]  # resolved, and torch given 2 threads
     result = runner.invoke(_boundary_app(), ["example", "--device", "tpu"])
     assert result.exit_code == 2 and result.output.startswith("error: argument: --device: ")
 
