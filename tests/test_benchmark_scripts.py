@@ -101,3 +101,43 @@ def test_real_fibula_runs_the_ct_rows_once_per_seed(monkeypatch, tmp_path):
         row(0.05, "ultron", 0, 0.6), row(0.05, "ultron", 2), row(1.0, "ultron", 0, 0.8),
     ])  # fmt: skip
     assert lines == ["mean CD over seeds 0, 2, 10 % labels, ultron: 0.600 (from 0.500 to 0.700)"]
+
+
+def _stage2_row(dataset: str, fraction: float, variant: str, cd: float) -> dict:
+    return {"dataset": dataset, "fraction": fraction, "T": variant, "cd_visible": cd}
+
+
+def test_stage2_checks_count_only_the_rows_that_ran(monkeypatch):
+    bench = _load("stage2_transmission.py", monkeypatch)
+    oracle, field, ones = (bench.VARIANTS[k][0] for k in ("oracle", "field", "ones"))
+    rows = [
+        _stage2_row("A", 0.1, oracle, 0.5), _stage2_row("A", 0.1, field, 0.4),
+        _stage2_row("A", 0.1, ones, 0.8), _stage2_row("B", 0.1, field, 0.3),
+        _stage2_row("B", 0.1, ones, 0.3),
+    ]  # fmt: skip
+    a, b = bench.checks(rows)
+    assert a["monotone"] is False  # the oracle is worse than the field's T
+    assert a["loss_margin"] == pytest.approx(0.5)
+    assert b["monotone"] is None  # no oracle row
+    assert b["loss_margin"] == pytest.approx(0.0)
+
+
+def test_stage2_sparse_checks_against_issue_32s_targets(monkeypatch):
+    """5 % within +10 % and 1 % within +30 % of the same cell's 10 %, and the mean row is the
+    ratio of the means (not the mean of the ratios); a cell without a 10 % run is left out."""
+    bench = _load("stage2_transmission.py", monkeypatch)
+    field, ones = bench.VARIANTS["field"][0], bench.VARIANTS["ones"][0]
+    rows = [
+        _stage2_row("A", 0.1, field, 0.40), _stage2_row("A", 0.05, field, 0.43),
+        _stage2_row("B", 0.1, field, 0.20), _stage2_row("B", 0.05, field, 0.24),
+        _stage2_row("A", 0.01, field, 0.56), _stage2_row("C", 0.05, field, 0.1),
+        _stage2_row("A", 0.05, ones, 9.0),
+    ]  # fmt: skip
+    got = {(c["dataset"], c["fraction"]): c for c in bench.sparse_checks(rows)}
+    assert set(got) == {("A", 0.05), ("B", 0.05), ("mean", 0.05), ("A", 0.01), ("mean", 0.01)}
+    assert got["A", 0.05]["rise"] == pytest.approx(0.075) and got["A", 0.05]["met"]
+    assert got["B", 0.05]["rise"] == pytest.approx(0.2) and not got["B", 0.05]["met"]
+    assert got["mean", 0.05]["rise"] == pytest.approx(0.67 / 0.60 - 1)  # +11.7 %: missed
+    assert not got["mean", 0.05]["met"]
+    assert got["A", 0.01]["rise"] == pytest.approx(0.4) and got["A", 0.01]["target"] == 0.3
+    assert bench.sparse_checks([_stage2_row("A", 0.05, field, 0.4)]) == []
