@@ -60,7 +60,8 @@ def parse_args() -> argparse.Namespace:
     parser.add_argument("--points", type=int, default=30_000, help="metric points per mesh")
     parser.add_argument("--fresh", action="store_true", help="rerun every stage")
     args = parser.parse_args()
-    unknown = set(args.variants.split(",")) - set(VARIANTS)
+    args.variants = args.variants.split(",")
+    unknown = set(args.variants) - set(VARIANTS)
     if unknown:
         parser.error(f"--variants: expected some of {','.join(VARIANTS)}, got {sorted(unknown)}")
     return args
@@ -90,7 +91,7 @@ def cell_rows(args: argparse.Namespace, phantom: str, seed: int) -> list[dict]:
     run_unless_done(f"fit-field {tag}", fit, field / "field.json", logs)
     rows = []
     for fraction in (float(f) for f in args.fractions.split(",")):
-        for name, method, extra in (VARIANTS[k] for k in args.variants.split(",")):
+        for name, method, extra in (VARIANTS[k] for k in args.variants):
             slug = f"{method}{'-oracle' if extra else ''}-{fraction:g}"
             run = root / "runs" / slug
             command = [
@@ -109,15 +110,13 @@ def checks(rows: list[dict]) -> list[dict]:
     """Per dataset × fraction: monotone in T (None unless all three rows ran) and the loss's
     margin over its ablation (None unless the field-T and T ≡ 1 rows ran)."""
     cd = {(r["dataset"], r["fraction"], r["T"]): r["cd_visible"] for r in rows}
-    oracle, fitted, ones = (VARIANTS[k][0] for k in ("oracle", "field", "ones"))
     out = []
     for dataset, fraction in sorted({key[:2] for key in cd}):
-        row = {name: cd.get((dataset, fraction, name)) for name in (oracle, fitted, ones)}
-        ran = [row[name] is not None for name in (oracle, fitted, ones)]
+        oracle, fitted, ones = (cd.get((dataset, fraction, VARIANTS[k][0])) for k in VARIANTS)
         out.append({
             "dataset": dataset, "fraction": fraction,
-            "monotone": row[oracle] <= row[fitted] <= row[ones] if all(ran) else None,
-            "loss_margin": 1.0 - row[fitted] / row[ones] if all(ran[1:]) else None,
+            "monotone": None if None in (oracle, fitted, ones) else oracle <= fitted <= ones,
+            "loss_margin": None if None in (fitted, ones) else 1.0 - fitted / ones,
         })  # fmt: skip
     return out
 
@@ -131,10 +130,9 @@ def sparse_checks(rows: list[dict]) -> list[dict]:
     out = []
     for fraction, target in SPARSE_TARGETS.items():
         cells = sorted(d for d, f in cd if f == fraction and (d, 0.1) in cd)
-        for dataset in [*cells, "mean"] if cells else []:
-            ten = [cd[c, 0.1] for c in (cells if dataset == "mean" else [dataset])]
-            sparse = [cd[c, fraction] for c in (cells if dataset == "mean" else [dataset])]
-            rise = sum(sparse) / sum(ten) - 1.0
+        groups = [(c, [c]) for c in cells] + ([("mean", cells)] if cells else [])
+        for dataset, group in groups:
+            rise = sum(cd[c, fraction] for c in group) / sum(cd[c, 0.1] for c in group) - 1.0
             out.append({"dataset": dataset, "fraction": fraction, "rise": rise,
                         "target": target, "met": rise <= target})  # fmt: skip
     return out
