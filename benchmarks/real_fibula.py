@@ -28,8 +28,10 @@ wall time and peak RSS are its own (``os.wait4``'s rusage of the child, as
    against the visible part.
 
 Nothing is tuned here: the script only runs the defaults. Re-running it resumes: a stage whose
-output exists is not run again (``--fresh`` reruns everything). It prints the table in markdown
-and writes ``OUT/real_fibula.json``.
+output exists is not run again (``--fresh`` reruns everything). It prints each row as soon as it
+is scored and rewrites ``OUT/real_fibula.json`` then (``"complete": false`` until the last row),
+so a run stopped part-way keeps the rows it finished; at the end it prints the table in
+markdown.
 
 Usage::
 
@@ -48,6 +50,7 @@ import time
 from pathlib import Path
 
 from long_sweep import GIB, run_stage
+from ultron.atomic import write_text
 from ultron.methods.catalog import FIELD_METHODS
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "ultrabones-fibula"
@@ -168,22 +171,31 @@ def evaluate(args, mesh: Path) -> dict:
     return {"mean": result["mean"], "std": result["std"], "crop": result["crop"]}
 
 
+TABLE_HEADER = (
+    "| labels | method | CD | accuracy MAD | completeness vis. | HD95 | F@1 mm vis. |"
+    " area outside crop (mm²) | wall (s) | peak RSS (GiB) |"
+)
+
+
+def table_row(row: dict) -> str:
+    """``row`` as a line of the markdown table (:data:`TABLE_HEADER`)."""
+    if "error" in row:
+        return f"| {row['labels']} | {row['method']} | n/a: {row['error']} |" + " |" * 7
+    m = row["metrics"]["mean"]
+    crop = row["metrics"]["crop"]
+    return (
+        f"| {row['labels']} | {row['method']} | {m['cd_visible']:.3f} | {m['mad']:.3f} |"
+        f" {m['completeness_visible']:.3f} | {m['hd95']:.3f} |"
+        f" {m['fscore_visible_1mm']:.3f} | {crop['area_outside_mm2']:.0f} |"
+        f" {row['seconds']:.1f} | {row['peak_rss_bytes'] / GIB:.2f} |"
+    )
+
+
 def print_table(rows: list[dict], field_stage: dict | None) -> None:
-    print("\n| labels | method | CD | accuracy MAD | completeness vis. | HD95 | F@1 mm vis. |"
-          " area outside crop (mm²) | wall (s) | peak RSS (GiB) |")  # fmt: skip
+    print("\n" + TABLE_HEADER)
     print("|---" * 10 + "|")
     for row in rows:
-        if "error" in row:
-            print(f"| {row['labels']} | {row['method']} | n/a: {row['error']} |" + " |" * 7)
-            continue
-        m = row["metrics"]["mean"]
-        crop = row["metrics"]["crop"]
-        print(
-            f"| {row['labels']} | {row['method']} | {m['cd_visible']:.3f} | {m['mad']:.3f} |"
-            f" {m['completeness_visible']:.3f} | {m['hd95']:.3f} |"
-            f" {m['fscore_visible_1mm']:.3f} | {crop['area_outside_mm2']:.0f} |"
-            f" {row['seconds']:.1f} | {row['peak_rss_bytes'] / GIB:.2f} |"
-        )
+        print(table_row(row))
     for line in seed_means(rows):
         print(line)
     if field_stage is not None:
@@ -210,6 +222,33 @@ def seed_means(rows: list[dict]) -> list[str]:
             f" {sum(cds) / len(cds):.3f} (from {min(cds):.3f} to {max(cds):.3f})"
         )
     return lines
+
+
+def save_json(path: Path, obj: dict) -> None:
+    """``obj`` as JSON at ``path``, atomically (NumPy scalars written as floats)."""
+    write_text(path, json.dumps(obj, indent=2, default=float) + "\n")
+
+
+def run_rows(args, methods: list[str], log: dict, result: dict) -> list[dict]:
+    """Every label condition × method (module doc, step 3). Each row is printed as soon as it
+    is scored and ``OUT/real_fibula.json`` rewritten (atomically, ``"complete": false``), so a
+    run stopped part-way — a GPU lease's time limit — keeps the rows it finished."""
+    rows = result.setdefault("rows", [])
+    for labels, dataset, fraction, seed in conditions(args):
+        for method in methods:
+            name = f"{labels} {method}"
+            out = args.out / "runs" / name.replace(" ", "-").replace("%", "pct")
+            command = reconstruct_command(args, dataset, method, fraction, out, seed)
+            stage = timed(name, command, out / "run.json", args, log)
+            save_json(args.out / "stages.json", log)
+            row = {"labels": labels, "method": method, "fraction": fraction, "seed": seed}
+            row.update(stage)
+            if "error" not in stage:
+                row["metrics"] = evaluate(args, out / "mesh.ply")
+            rows.append(row)
+            print(f"[{name}] scored: {table_row(row)}", flush=True)
+            save_json(args.out / "real_fibula.json", {**result, "complete": False})
+    return rows
 
 
 def main() -> None:
@@ -257,22 +296,10 @@ def main() -> None:
         command = ["ultron", "fit-field", str(args.data), "--out", str(args.out / "field")]
         command += device_option(args)
         field_stage = timed("fit field", command, args.out / "field" / "field.json", args, log)
-        log_file.write_text(json.dumps(log, indent=2))
-    rows = []
-    for labels, dataset, fraction, seed in conditions(args):
-        for method in methods:
-            name = f"{labels} {method}"
-            out = args.out / "runs" / name.replace(" ", "-").replace("%", "pct")
-            command = reconstruct_command(args, dataset, method, fraction, out, seed)
-            stage = timed(name, command, out / "run.json", args, log)
-            log_file.write_text(json.dumps(log, indent=2))
-            row = {"labels": labels, "method": method, "fraction": fraction, "seed": seed}
-            row.update(stage)
-            if "error" not in stage:
-                row["metrics"] = evaluate(args, out / "mesh.ply")
-            rows.append(row)
-    result.update(rows=rows, field_stage=field_stage)
-    (args.out / "real_fibula.json").write_text(json.dumps(result, indent=2, default=float))
+        save_json(log_file, log)
+    result["field_stage"] = field_stage
+    rows = run_rows(args, methods, log, result)
+    save_json(args.out / "real_fibula.json", {**result, "complete": True})
     print_table(rows, field_stage)
     print(f"\nbenchmark wall time {time.perf_counter() - started:.0f} s; {args.out}")
 

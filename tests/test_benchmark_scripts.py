@@ -103,6 +103,44 @@ def test_real_fibula_runs_the_ct_rows_once_per_seed(monkeypatch, tmp_path):
     assert lines == ["mean CD over seeds 0, 2, 10 % labels, ultron: 0.600 (from 0.500 to 0.700)"]
 
 
+def test_real_fibula_keeps_each_row_as_it_is_scored(monkeypatch, tmp_path, capsys):
+    """A run stopped part-way (a GPU lease's limit) keeps the rows it finished: each is printed
+    with its scores and written to real_fibula.json (marked incomplete) before the next runs."""
+    import json
+    from types import SimpleNamespace
+
+    bench = _load("real_fibula.py", monkeypatch)
+    args = SimpleNamespace(
+        points=100, out=tmp_path, data=tmp_path / "data", device=None,
+        fractions=[0.1], seeds=[0], skip_auto=True,
+    )  # fmt: skip
+    metrics = {
+        "mean": {"cd_visible": 0.5, "mad": 0.4, "completeness_visible": 0.6, "hd95": 1.2,
+                 "fscore_visible_1mm": 0.9},
+        "crop": {"area_outside_mm2": 10.0},
+    }  # fmt: skip
+    calls = []
+
+    def timed(name, command, done, args, log):
+        calls.append(name)
+        if len(calls) == 2:  # the second row's command is killed
+            raise KeyboardInterrupt
+        log[name] = {"stage": name, "seconds": 1.5, "peak_rss_bytes": 2**30}
+        return log[name]
+
+    monkeypatch.setattr(bench, "timed", timed)
+    monkeypatch.setattr(bench, "evaluate", lambda args, mesh: metrics)
+    with pytest.raises(KeyboardInterrupt):
+        bench.run_rows(args, ["ultron", "compounding"], {}, {"crop_mm": 5.0})
+    saved = json.loads((tmp_path / "real_fibula.json").read_text())
+    assert saved["complete"] is False and [r["method"] for r in saved["rows"]] == ["ultron"]
+    assert saved["rows"][0]["metrics"]["mean"]["cd_visible"] == 0.5
+    assert json.loads((tmp_path / "stages.json").read_text())["CT 10 % ultron"]["seconds"] == 1.5
+    assert (
+        "[CT 10 % ultron] scored: | CT 10 % | ultron | 0.500 | 0.400 |" in capsys.readouterr().out
+    )
+
+
 def _stage2_row(dataset: str, fraction: float, variant: str, cd: float) -> dict:
     return {"dataset": dataset, "fraction": fraction, "T": variant, "cd_visible": cd}
 
