@@ -17,10 +17,10 @@ wall time and peak RSS are its own (``os.wait4``'s rusage of the child, as
 3. ``ultron reconstruct`` for each label condition — the CT-derived labels on 10 % and 5 % of
    the frames (``--fractions``), the auto labels on every frame — and each method
    (``--methods``: compounding, UltrON, UltrON w/o loss, ON, RoCoSDF). With ``--seeds 0,1,2``
-   the CT-label rows run once per ``reconstruct --seed`` (which frames are labelled, and the
-   training's seed; the rows of seed 0 keep their names and commands) and the table ends with
-   each method's mean over the seeds; the auto-label rows, every frame labelled, run at the
-   first seed only.
+   every row runs once per ``reconstruct --seed`` (for the CT-derived labels which frames are
+   labelled and the training's seed; for the auto labels, every frame labelled, the training's
+   seed alone; the rows of seed 0 keep their names and commands) and the table ends with each
+   method's mean over the seeds.
 4. Scoring as the data's README says, with ``ultron evaluate``'s crop (``--crop-mm``, 5): the
    faces within 5 mm of the visible CT surface are kept (the tibia and soft tissue are imaged
    but have no CT here; the area outside is reported), accuracy (MAD, HD95) to the whole CT
@@ -116,8 +116,8 @@ def conditions(args: argparse.Namespace) -> list[tuple[str, Path, float, int]]:
         for seed in args.seeds
     ]
     if not args.skip_auto:
-        first = args.seeds[0]
-        rows.append((f"auto 100 %{seed_suffix(first)}", args.out / "auto", 1.0, first))
+        auto = args.out / "auto"
+        rows += [(f"auto 100 %{seed_suffix(seed)}", auto, 1.0, seed) for seed in args.seeds]
     return rows
 
 
@@ -206,19 +206,20 @@ def print_table(rows: list[dict], field_stage: dict | None) -> None:
 
 
 def seed_means(rows: list[dict]) -> list[str]:
-    """Per label fraction and method run at more than one seed, its mean CD over the seeds
-    (none when a seed's row failed)."""
-    groups: dict[tuple[float, str], list[dict]] = {}
+    """Per label condition (``CT 10 %``, ``auto 100 %``) and method run at more than one seed,
+    its mean CD over the seeds (none when a seed's row failed)."""
+    groups: dict[tuple[str, str], list[dict]] = {}
     for row in rows:
-        groups.setdefault((row["fraction"], row["method"]), []).append(row)
+        condition = row["labels"].removesuffix(seed_suffix(row["seed"]))
+        groups.setdefault((condition, row["method"]), []).append(row)
     lines = []
-    for (fraction, method), group in groups.items():
+    for (condition, method), group in groups.items():
         if len(group) < 2 or any("error" in row for row in group):
             continue
         cds = [row["metrics"]["mean"]["cd_visible"] for row in group]
         seeds = ", ".join(str(row["seed"]) for row in group)
         lines.append(
-            f"mean CD over seeds {seeds}, {100 * fraction:g} % labels, {method}:"
+            f"mean CD over seeds {seeds}, {condition} labels, {method}:"
             f" {sum(cds) / len(cds):.3f} (from {min(cds):.3f} to {max(cds):.3f})"
         )
     return lines
@@ -257,7 +258,7 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=Path("runs/real_fibula"))
     parser.add_argument("--methods", default=",".join(METHODS))
     parser.add_argument("--fractions", default="0.1,0.05", help="of the CT-derived labels")
-    parser.add_argument("--seeds", default="0", help="reconstruct --seed of the CT-label rows")
+    parser.add_argument("--seeds", default="0", help="reconstruct --seed of every row")
     parser.add_argument("--skip-auto", action="store_true", help="no auto-label rows")
     parser.add_argument("--points", type=int, default=30_000, help="per surface, metrics")
     parser.add_argument("--repeats", type=int, default=1)

@@ -70,10 +70,10 @@ def test_real_fibula_passes_its_device_to_the_commands_that_train(monkeypatch, t
     assert command[-2:] == ["--device", "cuda"] and "--field" not in command
 
 
-def test_real_fibula_runs_the_ct_rows_once_per_seed(monkeypatch, tmp_path):
+def test_real_fibula_runs_every_row_once_per_seed(monkeypatch, tmp_path):
     """--seeds: seed 0 keeps its row names and commands (earlier runs resume), another seed is
-    named and passed on; the auto-label rows run at the first seed only; the means cover the
-    fractions and methods run at several seeds, and none with a failed seed."""
+    named and passed on, to the auto-label rows too (their training's seed); the means cover
+    the fractions and methods run at several seeds, and none with a failed seed."""
     from types import SimpleNamespace
 
     bench = _load("real_fibula.py", monkeypatch)
@@ -84,23 +84,28 @@ def test_real_fibula_runs_the_ct_rows_once_per_seed(monkeypatch, tmp_path):
     rows = bench.conditions(args)
     assert [(name, fraction, seed) for name, _, fraction, seed in rows] == [
         ("CT 10 %", 0.1, 0), ("CT 10 % seed 2", 0.1, 2), ("CT 5 %", 0.05, 0),
-        ("CT 5 % seed 2", 0.05, 2), ("auto 100 %", 1.0, 0),
+        ("CT 5 % seed 2", 0.05, 2), ("auto 100 %", 1.0, 0), ("auto 100 % seed 2", 1.0, 2),
     ]  # fmt: skip
     assert "--seed" not in bench.reconstruct_command(args, args.data, "ultron", 0.1, tmp_path)
     command = bench.reconstruct_command(args, args.data, "ultron", 0.1, tmp_path, seed=2)
     assert command[command.index("--seed") + 1] == "2"
 
-    def row(fraction, method, seed, cd=None):
-        if cd is None:
-            return {"fraction": fraction, "method": method, "seed": seed, "error": "refused"}
-        metrics = {"mean": {"cd_visible": cd}}
-        return {"fraction": fraction, "method": method, "seed": seed, "metrics": metrics}
+    def row(labels, method, seed, cd=None):
+        row = {"labels": labels, "method": method, "seed": seed}
+        return row | (
+            {"error": "refused"} if cd is None else {"metrics": {"mean": {"cd_visible": cd}}}
+        )
 
     lines = bench.seed_means([
-        row(0.1, "ultron", 0, 0.5), row(0.1, "ultron", 2, 0.7), row(0.1, "on", 0, 1.0),
-        row(0.05, "ultron", 0, 0.6), row(0.05, "ultron", 2), row(1.0, "ultron", 0, 0.8),
+        row("CT 10 %", "ultron", 0, 0.5), row("CT 10 % seed 2", "ultron", 2, 0.7),
+        row("CT 10 %", "on", 0, 1.0), row("CT 5 %", "ultron", 0, 0.6),
+        row("CT 5 % seed 2", "ultron", 2), row("CT 100 %", "ultron", 0, 0.4),
+        row("auto 100 %", "ultron", 0, 0.8), row("auto 100 % seed 2", "ultron", 2, 0.9),
     ])  # fmt: skip
-    assert lines == ["mean CD over seeds 0, 2, 10 % labels, ultron: 0.600 (from 0.500 to 0.700)"]
+    assert lines == [
+        "mean CD over seeds 0, 2, CT 10 % labels, ultron: 0.600 (from 0.500 to 0.700)",
+        "mean CD over seeds 0, 2, auto 100 % labels, ultron: 0.850 (from 0.800 to 0.900)",
+    ]
 
 
 def test_real_fibula_keeps_each_row_as_it_is_scored(monkeypatch, tmp_path, capsys):
