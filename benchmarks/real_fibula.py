@@ -55,6 +55,8 @@ from ultron.methods.catalog import FIELD_METHODS
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "ultrabones-fibula"
 METHODS = ("compounding", "ultron", "ultron-noloss", "on", "rocosdf")
+#: Each stage's wall time and peak RSS (or its error), kept across resumed runs: OUT/STAGES.
+STAGES = "stages.json"
 #: Depth tolerance of the auto-label scores: 1 mm in rows of 0.2696 mm, rounded down.
 TOLERANCE_MM = 1.0
 
@@ -143,9 +145,9 @@ def device_option(args) -> list[str]:
 
 
 def timed(name: str, command: list[str], done: Path, args, log: dict) -> dict:
-    """Run ``command`` unless ``done`` exists (then the timing recorded before is kept). A
-    command that refuses the data (e.g. RoCoSDF without a column sweep) gives
-    ``{"error": its one-line message}``."""
+    """Run ``command`` unless ``done`` exists (then the timing recorded before is kept), and
+    save ``log`` with its timing to ``OUT/stages.json``. A command that refuses the data (e.g.
+    RoCoSDF without a column sweep) gives ``{"error": its one-line message}``."""
     if name in log and (done.exists() or "error" in log[name]):
         print(f"[{name}] done before", flush=True)
         return log[name]
@@ -156,6 +158,7 @@ def timed(name: str, command: list[str], done: Path, args, log: dict) -> dict:
         text = (args.out / "logs" / f"{stage}.log").read_text(encoding="utf-8", errors="replace")
         errors = [line for line in text.splitlines() if line.startswith("error:")]
         log[name] = {"error": errors[-1] if errors else text.strip().splitlines()[-1]}
+    save_json(args.out / STAGES, log)
     return log[name]
 
 
@@ -241,7 +244,6 @@ def run_rows(args, methods: list[str], log: dict, result: dict) -> list[dict]:
             out = args.out / "runs" / name.replace(" ", "-").replace("%", "pct")
             command = reconstruct_command(args, dataset, method, fraction, out, seed)
             stage = timed(name, command, out / "run.json", args, log)
-            save_json(args.out / "stages.json", log)
             row = {"labels": labels, "method": method, "fraction": fraction, "seed": seed}
             row.update(stage)
             if "error" not in stage:
@@ -277,7 +279,7 @@ def main() -> None:
     if args.fresh:
         shutil.rmtree(args.out, ignore_errors=True)
     args.out.mkdir(parents=True, exist_ok=True)
-    log_file = args.out / "stages.json"
+    log_file = args.out / STAGES
     log = json.loads(log_file.read_text()) if log_file.is_file() else {}
     started = time.perf_counter()
 
@@ -297,7 +299,6 @@ def main() -> None:
         command = ["ultron", "fit-field", str(args.data), "--out", str(args.out / "field")]
         command += device_option(args)
         field_stage = timed("fit field", command, args.out / "field" / "field.json", args, log)
-        save_json(log_file, log)
     result["field_stage"] = field_stage
     rows = run_rows(args, methods, log, result)
     save_json(args.out / "real_fibula.json", {**result, "complete": True})

@@ -112,7 +112,9 @@ def checks(rows: list[dict]) -> list[dict]:
     cd = {(r["dataset"], r["fraction"], r["T"]): r["cd_visible"] for r in rows}
     out = []
     for dataset, fraction in sorted({key[:2] for key in cd}):
-        oracle, fitted, ones = (cd.get((dataset, fraction, VARIANTS[k][0])) for k in VARIANTS)
+        oracle, fitted, ones = (
+            cd.get((dataset, fraction, VARIANTS[k][0])) for k in ("oracle", "field", "ones")
+        )
         out.append({
             "dataset": dataset, "fraction": fraction,
             "monotone": None if None in (oracle, fitted, ones) else oracle <= fitted <= ones,

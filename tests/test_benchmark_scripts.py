@@ -126,14 +126,13 @@ def test_real_fibula_keeps_each_row_as_it_is_scored(monkeypatch, tmp_path, capsy
     }  # fmt: skip
     calls = []
 
-    def timed(name, command, done, args, log):
-        calls.append(name)
+    def run_stage(stage, command, log_dir):
+        calls.append(stage)
         if len(calls) == 2:  # the second row's command is killed
             raise KeyboardInterrupt
-        log[name] = {"stage": name, "seconds": 1.5, "peak_rss_bytes": 2**30}
-        return log[name]
+        return {"stage": stage, "seconds": 1.5, "peak_rss_bytes": 2**30}
 
-    monkeypatch.setattr(bench, "timed", timed)
+    monkeypatch.setattr(bench, "run_stage", run_stage)
     monkeypatch.setattr(bench, "evaluate", lambda args, mesh: metrics)
     with pytest.raises(KeyboardInterrupt):
         bench.run_rows(args, ["ultron", "compounding"], {}, {"crop_mm": 5.0})
