@@ -175,7 +175,8 @@ def test_hole_fillers_work_on_the_filled_box_alone(seed):
     assert new.any() and np.array_equal(new, expected_new)
     np.testing.assert_allclose(out, expected, rtol=1e-5, atol=1e-4)
     distance, nearest = ndimage.distance_transform_edt(~filled, return_indices=True)
-    for radius in (1.5, 2.9):
+    # the exact boundary (√k), as float64 rounds it, and beyond any distance in the grid
+    for radius in (0.0, 1.0, 1.5, np.sqrt(2), 2.0, np.sqrt(5), 2.9, np.sqrt(13), 1e200):
         out, new = fill_holes_nearest(volume, filled, radius)
         assert np.array_equal(new, ~filled & (distance <= radius))
         assert np.array_equal(out[new], volume[tuple(axis[new] for axis in nearest)])

@@ -206,12 +206,20 @@ def test_tile_for_factor():
 
 
 @pytest.mark.parametrize("isolated", [False, True])
-def test_jacobi_step_matrix_is_the_sparse_expression(isolated):
+@pytest.mark.parametrize("rows_at_once", [1 << 16, 7])
+@pytest.mark.parametrize("overwrite", [False, True])
+def test_jacobi_step_matrix_is_the_sparse_expression(
+    isolated, rows_at_once, overwrite, monkeypatch
+):
     """J written on Q's entries has the bits of (1 − w)·I − w·D⁻¹(Q − D) built by sparse
-    products; a band with an isolated voxel (an empty row of Q) takes the sparse path."""
+    products, however many rows are scaled at once, and leaves Q as it was unless told to
+    overwrite it; a band with an isolated voxel (an empty row of Q) takes the sparse path."""
     from scipy import sparse
 
+    from ultron.mesh import smoothing
     from ultron.mesh.smoothing import jacobi_step_matrix
+
+    monkeypatch.setattr(smoothing, "_ROWS_AT_ONCE", rows_at_once)
 
     band = np.random.default_rng(2).random((7, 6, 5)) < 0.9
     if isolated:
@@ -219,11 +227,17 @@ def test_jacobi_step_matrix_is_the_sparse_expression(isolated):
         band[-1, 0, 0] = True
     q = band_second_differences(np.flatnonzero(band), np.asarray(band.shape))
     assert (np.diff(q.indptr) == 0).any() == isolated
+    original = q.copy()
     with np.errstate(divide="ignore"):
-        ours = jacobi_step_matrix(q, 0.5)
         d = q.diagonal()
         expected = sparse.diags(-0.5 / d) @ (q - sparse.diags(d))
+        ours = jacobi_step_matrix(q, 0.5, overwrite_q=overwrite)
     expected = (expected + sparse.identity(len(d)) * 0.5).tocsr()
     expected.sort_indices()
     for name in ("indptr", "indices", "data"):
         np.testing.assert_array_equal(getattr(ours, name), getattr(expected, name))
+    # overwritten: J lives in Q's arrays (on the sparse path Q is left alone)
+    shares = np.shares_memory(ours.data, q.data)
+    assert shares == (overwrite and not isolated)
+    if not shares:
+        np.testing.assert_array_equal(q.data, original.data)

@@ -26,6 +26,8 @@ besides the volume, and 16 bytes per reachable hole.
 
 from __future__ import annotations
 
+import queue
+
 import numpy as np
 
 from ultron.errors import argument_error
@@ -46,11 +48,18 @@ def _overlap(n: int, shift: int) -> tuple[slice, slice]:
 
 
 def nearest_back(
-    volume: np.ndarray, filled: np.ndarray, direction: tuple[int, int, int]
+    volume: np.ndarray,
+    filled: np.ndarray,
+    direction: tuple[int, int, int],
+    out: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """For every voxel v, the smallest j ≥ 1 with v − j·d filled (inf if none) and that
     voxel's value (0 if none), float32 volumes: one sweep through the slices along d's first
-    non-zero axis, each slice from the previous one shifted by d's other components."""
+    non-zero axis, each slice from the previous one shifted by d's other components.
+
+    ``out``: two float32 buffers of ``volume.size`` elements to write the steps and values
+    into (then returned as views), so that a caller sweeping many directions reuses its
+    memory instead of allocating two volumes per sweep."""
     d = np.asarray(direction, dtype=np.int64)
     axis = int(np.flatnonzero(d)[0])
     others = [a for a in range(3) if a != axis]
@@ -59,8 +68,14 @@ def nearest_back(
     fil = np.moveaxis(filled, axis, 0)
     (dst_b, src_b), (dst_c, src_c) = (_overlap(vol.shape[i + 1], int(d[a])) for i, a in
                                       enumerate(others))  # fmt: skip
-    steps = np.full(vol.shape, np.inf, dtype=np.float32)  # the border no shift reaches stays
-    values = np.zeros(vol.shape, dtype=np.float32)  # "none": inf steps, value 0
+    if out is None:
+        out = tuple(np.empty(volume.size, dtype=np.float32) for _ in range(2))
+    for buffer in out:
+        if buffer.dtype != np.float32 or buffer.size != volume.size:
+            raise argument_error("out", f"expected float32 buffers of {volume.size} elements")
+    steps, values = (buffer.reshape(vol.shape) for buffer in out)
+    steps.fill(np.inf)  # the border no shift reaches stays "none": inf steps, value 0
+    values.fill(0.0)
     step = np.empty(vol.shape[1:], dtype=np.float32)
     value = np.empty(vol.shape[1:], dtype=np.float32)
     previous = None
@@ -117,14 +132,27 @@ def _fill_sticks(
         moved = [volume.shape[axis]] + [volume.shape[a] for a in others]
         flat[axis] = np.ravel_multi_index((at[axis], *(at[a] for a in others)), moved)
 
+    workers = default_workers()  # the sweeps release the GIL; a batch bounds the memory
+    # one set of sweep buffers per thread, reused from direction to direction: fresh memory
+    # costs more than the sweeps on a virtual machine that hands freed pages back to its host
+    # (docs/decisions.md#memory-reused-across-the-stick-fillers-sweeps-2026-12-04)
+    spare: queue.SimpleQueue = queue.SimpleQueue()
+    for _ in range(min(workers, len(STICK_DIRECTIONS))):
+        spare.put([np.empty(volume.size, dtype=np.float32) for _ in range(2)])
+
     def sticks(direction: tuple[int, int, int]) -> list[np.ndarray]:
         """(back steps, back value, forward steps, forward value) at the reachable holes."""
         axis = int(np.flatnonzero(direction)[0])
-        back = nearest_back(volume, filled, direction)
-        forward = nearest_back(volume, filled, tuple(-c for c in direction))
-        return [np.take(np.moveaxis(a, axis, 0), flat[axis]) for a in (*back, *forward)]
+        buffers = spare.get()
+        try:
+            found = []
+            for sign in (1, -1):
+                swept = nearest_back(volume, filled, tuple(sign * c for c in direction), buffers)
+                found += [np.take(np.moveaxis(a, axis, 0), flat[axis]) for a in swept]
+            return found
+        finally:
+            spare.put(buffers)
 
-    workers = default_workers()  # the sweeps release the GIL; a batch bounds the memory
     batches = [STICK_DIRECTIONS[i : i + workers] for i in range(0, len(STICK_DIRECTIONS), workers)]
     swept = (
         pair
@@ -192,8 +220,43 @@ def fill_holes_nearest(
     if box is None:
         return out, new
     inside = filled[box]
-    distance, nearest = ndimage.distance_transform_edt(~inside, return_indices=True)
-    found = ~inside & (distance <= max_distance_voxels)
+    nearest = ndimage.distance_transform_edt(~inside, return_distances=False, return_indices=True)
+    squared = _squared_offsets(nearest)
+    within = min(_largest_square_within(max_distance_voxels), np.iinfo(squared.dtype).max)
+    found = ~inside & (squared <= within)
     out[box][found] = volume[box][tuple(axis[found] for axis in nearest)]
     new[box] = found
     return out, new
+
+
+def _squared_offsets(nearest: np.ndarray) -> np.ndarray:
+    """|v − nearest(v)|² in voxels², exact integers, from a feature transform ``nearest``
+    (ndim, *shape): what ``distance_transform_edt`` squares and sums in float64 (exactly, as
+    these are integers under 2⁵³), without its five float64 volumes."""
+    shape = nearest.shape[1:]
+    dtype = (
+        np.int32 if len(shape) * max(shape, default=0) ** 2 < np.iinfo(np.int32).max else np.int64
+    )
+    squared = np.zeros(shape, dtype=dtype)
+    for axis, n in enumerate(shape):
+        offset = nearest[axis].astype(dtype)
+        offset -= np.arange(n, dtype=dtype).reshape(
+            [n if a == axis else 1 for a in range(len(shape))]
+        )
+        offset *= offset
+        squared += offset
+    return squared
+
+
+def _largest_square_within(radius: float) -> int:
+    """The largest integer k with √k ≤ ``radius`` as float64 computes it (−1 when none):
+    √ is monotone, so |d|² ≤ k exactly when the Euclidean distance √|d|² ≤ ``radius``."""
+    square = float(radius) * float(radius)
+    if not square < 2.0**62:  # beyond any distance in a grid that fits in memory
+        return int(np.iinfo(np.int64).max)
+    k = int(np.floor(square))
+    while k >= 0 and np.sqrt(np.float64(k)) > radius:
+        k -= 1
+    while np.sqrt(np.float64(k + 1)) <= radius:
+        k += 1
+    return k

@@ -53,9 +53,12 @@ def band_second_differences(keys: np.ndarray, shape: np.ndarray) -> sparse.csr_m
     coords = np.unravel_index(keys, tuple(shape))
     strides = (shape[1] * shape[2], shape[2], 1)
     # 13 slots a row (the diagonal; per axis and side the neighbour and the one beyond), in the
-    # order of their keys' offsets; an absent one keeps column −1
-    cols = np.full((n, 13), -1, dtype=np.int64)
-    vals = np.zeros((n, 13))
+    # order of their keys' offsets; an absent one keeps column −1. The entries are integers in
+    # [−4, 18]: int8 slots, int32 columns where they fit, so that the matrix's temporaries take
+    # a fifth of the memory (docs/decisions.md#the-smoothings-matrix-in-less-memory-2026-12-04)
+    index = np.int32 if 13 * n < np.iinfo(np.int32).max else np.int64
+    cols = np.full((n, 13), -1, dtype=index)
+    vals = np.zeros((n, 13), dtype=np.int8)
     cols[:, 6] = np.arange(n)
     for axis in range(3):
         neighbours = []
@@ -67,7 +70,7 @@ def band_second_differences(keys: np.ndarray, shape: np.ndarray) -> sparse.csr_m
             if n:
                 present &= keys[found] == target
             neighbours.append(np.where(present, found, -1))
-        centre = -2.0 + (neighbours[0] < 0) + (neighbours[1] < 0)
+        centre = (neighbours[0] < 0).astype(np.int8) + (neighbours[1] < 0) - 2
         vals[:, 6] += centre**2 + (neighbours[0] >= 0) + (neighbours[1] >= 0)
         for side, near in zip((-1, 1), neighbours, strict=True):
             slot = (1, 3, 5)[axis] if side < 0 else (11, 9, 7)[axis]  # the beyond: slot + side
@@ -75,11 +78,12 @@ def band_second_differences(keys: np.ndarray, shape: np.ndarray) -> sparse.csr_m
             j = near[i]
             cols[i, slot], vals[i, slot] = j, centre[i] + centre[j]
             beyond = near[j] >= 0
-            cols[i[beyond], slot + side], vals[i[beyond], slot + side] = near[j[beyond]], 1.0
+            cols[i[beyond], slot + side], vals[i[beyond], slot + side] = near[j[beyond]], 1
     kept = vals != 0  # an isolated voxel's zero diagonal is left out, as DᵀD leaves it
+    indptr = np.zeros(n + 1, dtype=index)
+    np.cumsum(np.count_nonzero(kept, axis=1), out=indptr[1:])
     q = sparse.csr_matrix(
-        (vals[kept], cols[kept], np.concatenate([[0], np.cumsum(kept.sum(axis=1))])),
-        shape=(n, n),
+        (vals[kept].astype(np.float64), cols[kept], indptr), shape=(n, n), copy=False
     )
     q.sort_indices()  # in key order already unless the box is under 3 voxels along an axis
     return q
@@ -107,7 +111,7 @@ def smooth_constrained(
     lower = np.where(x > 0, x, -np.inf)
     upper[np.abs(upper) < 1] = 0
     lower[np.abs(lower) < 1] = 0
-    result[band] = projected_jacobi(q, x, lower, upper, max_iters, rel_tol)
+    result[band] = projected_jacobi(q, x, lower, upper, max_iters, rel_tol, overwrite_q=True)
     return result
 
 
@@ -120,6 +124,7 @@ def projected_jacobi(
     rel_tol: float,
     weight: float = 0.5,
     advance: Callable[[int, int], None] | None = None,
+    overwrite_q: bool = False,
 ) -> np.ndarray:
     """x ← clip(w·(−D⁻¹(Q − D)x) + (1 − w)·x, lower, upper), D = diag(Q).
 
@@ -129,9 +134,11 @@ def projected_jacobi(
     product runs on torch's threads (a CSR tensor with 32-bit indices; scipy's is
     single-threaded), in float64. The energy ½ xᵀQx checked every ``check_each`` steps reuses
     that step's product y = Jx, since Qx = D(x − y)/w: no second product. ``advance``, when
-    given, is told (iterations done, ``max_iters``) at every energy check."""
+    given, is told (iterations done, ``max_iters``) at every energy check. ``overwrite_q``:
+    J is assembled in Q's own arrays (:func:`jacobi_step_matrix`), when the caller is done
+    with Q."""
     diagonal = q.diagonal()
-    matrix = _torch_csr(jacobi_step_matrix(q, weight))
+    matrix = _torch_csr(jacobi_step_matrix(q, weight, overwrite_q))
     x = torch.from_numpy(np.array(x, dtype=np.float64))
     y = torch.empty_like(x)
     bounds = [torch.from_numpy(np.asarray(b, dtype=np.float64)) for b in (lower, upper)]
@@ -156,24 +163,46 @@ def projected_jacobi(
     return x.numpy()
 
 
-def jacobi_step_matrix(q: sparse.csr_matrix, weight: float) -> sparse.csr_matrix:
+def jacobi_step_matrix(
+    q: sparse.csr_matrix, weight: float, overwrite_q: bool = False
+) -> sparse.csr_matrix:
     """J = (1 − w)·I − w·D⁻¹(Q − D), D = diag(Q), with sorted indices: J_ij = (−w / Q_ii)·Q_ij
     off the diagonal, 1 − w on it. Scaled on Q's own entries (the same products, so the same
-    bits, as the sparse expression) when Q holds every diagonal entry; otherwise (an isolated
-    voxel's empty row) by the sparse expression."""
+    bits, as the sparse expression) when Q holds every diagonal entry, a run of rows at a time
+    so that the temporaries stay small; otherwise (an isolated voxel's empty row) by the sparse
+    expression. ``overwrite_q`` (as scipy.linalg's ``overwrite_a``): J is written into Q's
+    arrays, which it then shares, instead of a copy of them (a band of 10⁶ voxels: 0.1 GB)."""
     diagonal = q.diagonal()
     q = q.tocsr()
     q.sort_indices()
-    rows = np.repeat(np.arange(q.shape[0]), np.diff(q.indptr))
-    on_diagonal = q.indices == rows
-    if np.count_nonzero(on_diagonal) == q.shape[0]:
-        data = (-weight / diagonal)[rows] * q.data
-        data[on_diagonal] = 1 - weight
-        return sparse.csr_matrix((data, q.indices.copy(), q.indptr.copy()), shape=q.shape)
+    chunks = [(a, min(a + _ROWS_AT_ONCE, q.shape[0])) for a in range(0, q.shape[0], _ROWS_AT_ONCE)]
+    on_diagonal = [_on_diagonal(q, a, b) for a, b in chunks]
+    if sum(np.count_nonzero(on) for on in on_diagonal) == q.shape[0]:
+        scale = -weight / diagonal
+        data = q.data if overwrite_q else np.empty_like(q.data)
+        for (a, b), on in zip(chunks, on_diagonal, strict=True):
+            lo, hi = q.indptr[a], q.indptr[b]
+            part = data[lo:hi]
+            np.multiply(
+                np.repeat(scale[a:b], np.diff(q.indptr[a : b + 1])), q.data[lo:hi], out=part
+            )
+            part[on] = 1 - weight
+        arrays = (q.indices, q.indptr) if overwrite_q else (q.indices.copy(), q.indptr.copy())
+        return sparse.csr_matrix((data, *arrays), shape=q.shape, copy=False)
     step = sparse.diags(-weight / diagonal) @ (q - sparse.diags(diagonal))
     step = (step + sparse.identity(len(diagonal)) * (1 - weight)).tocsr()
     step.sort_indices()
     return step
+
+
+#: Rows of Q scaled at once by :func:`jacobi_step_matrix`.
+_ROWS_AT_ONCE = 1 << 16
+
+
+def _on_diagonal(q: sparse.csr_matrix, a: int, b: int) -> np.ndarray:
+    """Which stored entries of rows [a, b) of the CSR ``q`` lie on its diagonal."""
+    rows = np.repeat(np.arange(a, b, dtype=q.indices.dtype), np.diff(q.indptr[a : b + 1]))
+    return q.indices[q.indptr[a] : q.indptr[b]] == rows
 
 
 def _torch_csr(matrix: sparse.csr_matrix) -> torch.Tensor:
@@ -184,8 +213,8 @@ def _torch_csr(matrix: sparse.csr_matrix) -> torch.Tensor:
         for message in ("Sparse CSR tensor support", "Sparse invariant checks"):
             warnings.filterwarnings("ignore", message=message, category=UserWarning)
         return torch.sparse_csr_tensor(
-            torch.from_numpy(matrix.indptr.astype(index)),
-            torch.from_numpy(matrix.indices.astype(index)),
+            torch.from_numpy(matrix.indptr.astype(index, copy=False)),
+            torch.from_numpy(matrix.indices.astype(index, copy=False)),
             torch.from_numpy(matrix.data),
             size=matrix.shape,
             check_invariants=False,

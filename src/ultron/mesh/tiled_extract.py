@@ -222,7 +222,9 @@ def smooth_band(
     lower = np.where(distance > 0, distance, -np.inf)
     upper[np.abs(upper) < 1] = 0
     lower[np.abs(lower) < 1] = 0
-    return projected_jacobi(q, distance, lower, upper, MAX_ITERS, REL_TOL, advance=advance)
+    return projected_jacobi(
+        q, distance, lower, upper, MAX_ITERS, REL_TOL, advance=advance, overwrite_q=True
+    )
 
 
 def mesh_tiles(
