@@ -135,7 +135,7 @@ def _fill_sticks(
     workers = default_workers()  # the sweeps release the GIL; a batch bounds the memory
     # one set of sweep buffers per thread, reused from direction to direction: fresh memory
     # costs more than the sweeps on a virtual machine that hands freed pages back to its host
-    # (docs/decisions.md#memory-reused-across-the-stick-fillers-sweeps-2026-12-04)
+    # (docs/decisions.md, "Fresh memory: the meshing's temporaries")
     spare: queue.SimpleQueue = queue.SimpleQueue()
     for _ in range(min(workers, len(STICK_DIRECTIONS))):
         spare.put([np.empty(volume.size, dtype=np.float32) for _ in range(2)])

@@ -54,8 +54,8 @@ def band_second_differences(keys: np.ndarray, shape: np.ndarray) -> sparse.csr_m
     strides = (shape[1] * shape[2], shape[2], 1)
     # 13 slots a row (the diagonal; per axis and side the neighbour and the one beyond), in the
     # order of their keys' offsets; an absent one keeps column −1. The entries are integers in
-    # [−4, 18]: int8 slots, int32 columns where they fit, so that the matrix's temporaries take
-    # a fifth of the memory (docs/decisions.md#the-smoothings-matrix-in-less-memory-2026-12-04)
+    # [−4, 18]: int8 slots, and int32 columns where they fit, take a fifth of the memory of
+    # float64 and int64 ones (docs/decisions.md, "Fresh memory: the meshing's temporaries")
     index = np.int32 if 13 * n < np.iinfo(np.int32).max else np.int64
     cols = np.full((n, 13), -1, dtype=index)
     vals = np.zeros((n, 13), dtype=np.int8)
