@@ -96,6 +96,30 @@ def test_nearest_distance_hand_worked() -> None:
         nearest_distance_mm(points, np.zeros((2, 2)))
     with pytest.raises(UltronError, match="points_mm"):
         nearest_distance_mm(np.array([[np.nan, 0.0, 0.0]]), targets)
+    # a bound: a neighbour exactly at it counts, one beyond it is +inf
+    np.testing.assert_array_equal(
+        nearest_distance_mm(points, targets, within_mm=math.sqrt(3)), [0.0, np.inf, math.sqrt(3)]
+    )
+    np.testing.assert_array_equal(nearest_distance_mm(points, targets, 0.0), [0.0, np.inf, np.inf])
+    with pytest.raises(UltronError, match="within_mm"):
+        nearest_distance_mm(points, targets, within_mm=math.nan)
+
+
+def test_nearest_distance_is_brute_force_on_clustered_points() -> None:
+    """Clustered targets (as labelled echoes are) against scattered points: the exact minimum
+    over every pair, with and without a bound at an exact pair distance."""
+    rng = np.random.default_rng(5)
+    centres = rng.uniform(-20, 20, (6, 3))
+    targets = (centres[:, None] + rng.normal(0, 0.5, (6, 200, 3))).reshape(-1, 3)
+    points = rng.uniform(-25, 25, (500, 3))
+    pairwise = np.sqrt(((points[:, None] - targets[None]) ** 2).sum(-1))
+    exact = pairwise.min(axis=1)
+    np.testing.assert_allclose(nearest_distance_mm(points, targets), exact, rtol=1e-12)
+    bound = float(np.median(exact))
+    bounded = nearest_distance_mm(points, targets, within_mm=bound)
+    np.testing.assert_array_equal(bounded <= bound, exact <= bound)
+    np.testing.assert_allclose(bounded[exact <= bound], exact[exact <= bound], rtol=1e-12)
+    assert np.isinf(bounded[exact > bound]).all()
 
 
 def test_surface_evidence_summary_and_attributes() -> None:

@@ -341,7 +341,8 @@ def observe_surface(
         slab_half_thickness_mm, config.max_incidence_deg, config.min_transmission, support,
     )  # fmt: skip
     if labelled_surface_mm is not None and config.label_support_mm > 0:
-        near = nearest_distance_mm(vertices, labelled_surface_mm) <= config.label_support_mm
+        support_mm = config.label_support_mm
+        near = nearest_distance_mm(vertices, labelled_surface_mm, support_mm) <= support_mm
         info["label_supported_vertices"] = int(np.count_nonzero(near & ~observed))
         observed = observed | near
     if config.surface == "all":
