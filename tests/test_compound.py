@@ -24,6 +24,7 @@ from ultron.mesh.holes import (
     fill_holes_nearest,
     fill_holes_stick,
     filled_box,
+    nearest_back,
 )
 from ultron.mesh.image_compounding import (
     ImageCompoundingConfig,
@@ -156,6 +157,26 @@ def test_stick_hole_filling_equals_walking_every_stick(seed):
     expected, expected_new = _stick_fill_by_walking(volume, filled, length)
     assert new.any() and np.array_equal(new, expected_new)
     np.testing.assert_allclose(out, expected, rtol=1e-5, atol=1e-4)
+
+
+def test_nearest_back_writes_into_reused_buffers():
+    """A sweep into buffers left dirty by another direction equals one into fresh memory (the
+    stick filler reuses them); buffers of another size or type are refused by name."""
+    rng = np.random.default_rng(3)
+    filled = rng.random((6, 7, 5)) < 0.2
+    volume = np.where(filled, rng.random(filled.shape) * 10, 0).astype(np.float32)
+    buffers = [np.full(volume.size, 7.0, dtype=np.float32) for _ in range(2)]
+    for direction in ((1, -1, 0), (0, 0, 1), (-1, 1, 1)):
+        fresh = nearest_back(volume, filled, direction)
+        reused = nearest_back(volume, filled, direction, buffers)
+        for a, b in zip(fresh, reused, strict=True):
+            assert np.array_equal(a, b) and np.shares_memory(b, buffers[0]) != np.shares_memory(
+                b, buffers[1]
+            )
+    with pytest.raises(UltronInputError, match="out"):
+        nearest_back(volume, filled, (1, 0, 0), [np.zeros(volume.size, np.float64)] * 2)
+    with pytest.raises(UltronInputError, match="out"):
+        nearest_back(volume, filled, (1, 0, 0), [np.zeros(3, np.float32)] * 2)
 
 
 @pytest.mark.parametrize("seed", [0, 1])
