@@ -50,7 +50,7 @@ import time
 from pathlib import Path
 
 from long_sweep import GIB, run_stage
-from ultron.atomic import write_text
+from ultron.atomic import write_json
 from ultron.methods.catalog import FIELD_METHODS
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "ultrabones-fibula"
@@ -158,7 +158,7 @@ def timed(name: str, command: list[str], done: Path, args, log: dict) -> dict:
         text = (args.out / "logs" / f"{stage}.log").read_text(encoding="utf-8", errors="replace")
         errors = [line for line in text.splitlines() if line.startswith("error:")]
         log[name] = {"error": errors[-1] if errors else text.strip().splitlines()[-1]}
-    save_json(args.out / STAGES, log)
+    write_json(args.out / STAGES, log, default=float)
     return log[name]
 
 
@@ -228,11 +228,6 @@ def seed_means(rows: list[dict]) -> list[str]:
     return lines
 
 
-def save_json(path: Path, obj: dict) -> None:
-    """``obj`` as JSON at ``path``, atomically (NumPy scalars written as floats)."""
-    write_text(path, json.dumps(obj, indent=2, default=float) + "\n")
-
-
 def run_rows(args, methods: list[str], log: dict, result: dict) -> list[dict]:
     """Every label condition × method (module doc, step 3). Each row is printed as soon as it
     is scored and ``OUT/real_fibula.json`` rewritten (atomically, ``"complete": false``), so a
@@ -250,7 +245,7 @@ def run_rows(args, methods: list[str], log: dict, result: dict) -> list[dict]:
                 row["metrics"] = evaluate(args, out / "mesh.ply")
             rows.append(row)
             print(f"[{name}] scored: {table_row(row)}", flush=True)
-            save_json(args.out / "real_fibula.json", {**result, "complete": False})
+            write_json(args.out / "real_fibula.json", {**result, "complete": False}, default=float)
     return rows
 
 
@@ -301,7 +296,7 @@ def main() -> None:
         field_stage = timed("fit field", command, args.out / "field" / "field.json", args, log)
     result["field_stage"] = field_stage
     rows = run_rows(args, methods, log, result)
-    save_json(args.out / "real_fibula.json", {**result, "complete": True})
+    write_json(args.out / "real_fibula.json", {**result, "complete": True}, default=float)
     print_table(rows, field_stage)
     print(f"\nbenchmark wall time {time.perf_counter() - started:.0f} s; {args.out}")
 

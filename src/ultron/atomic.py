@@ -25,7 +25,7 @@ import re
 import shutil
 import tempfile
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any, BinaryIO
 
@@ -185,9 +185,10 @@ def write_text(path: str | Path, text: str) -> None:
     write_bytes(path, text.encode("utf-8"))
 
 
-def write_json(path: str | Path, obj: Any) -> None:
-    """Atomically write ``obj`` as indented JSON (trailing newline) to ``path``."""
-    write_text(path, json.dumps(obj, indent=2, sort_keys=False) + "\n")
+def write_json(path: str | Path, obj: Any, default: Callable[[Any], Any] | None = None) -> None:
+    """Atomically write ``obj`` as indented JSON (trailing newline) to ``path``; ``default``
+    as ``json.dumps``' (e.g. ``float`` for NumPy scalars)."""
+    write_text(path, json.dumps(obj, indent=2, sort_keys=False, default=default) + "\n")
 
 
 def save_npy(path: str | Path, array: np.ndarray) -> None:
