@@ -26,9 +26,16 @@ from ultron.fields import (
     build_field,
 )
 from ultron.models import load_field
-from ultron.models.field_dir import TRANSMISSION_CHECK
+from ultron.models.field_dir import TRANSMISSION_CHECK, check_field_out
 from ultron.render import RenderConfig, pixel_points_mm, render_properties
-from ultron.train import FieldTrainConfig, field_preset, fit_field, resample_frames
+from ultron.train import (
+    FieldTrainConfig,
+    confidence_cache,
+    field_preset,
+    fit_field,
+    resample_frames,
+)
+from ultron.train.confidence_cache import CONFIDENCE_CACHE
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -259,6 +266,39 @@ def test_checkpoint_round_trip_and_exact_resume(tmp_path: Path) -> None:
     assert [json.loads(line)["step"] for line in log] == [1, 5, 10, 15, 20]  # first, every 5th
     with pytest.raises(UltronInputError, match="different configuration"):
         fit_field(data, quick_config(iterations=30, seed=1), tmp_path / "resumed")
+
+
+def test_a_resumed_fit_reads_its_confidence_maps(tmp_path: Path, monkeypatch) -> None:
+    data, config = tiny_dataset(12), quick_config(iterations=12)
+    assert config.confidence_prior_weight > 0
+    whole = fit_field(data, config, tmp_path / "whole")
+    assert not (tmp_path / "whole" / CONFIDENCE_CACHE).exists()  # removed when the fit ends
+
+    def interrupt_at(step: int):
+        def interrupt(entry: dict) -> None:
+            if entry["step"] == step:
+                raise KeyboardInterrupt
+
+        return interrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        fit_field(data, config, tmp_path / "cut", progress=interrupt_at(11))
+    with pytest.raises(KeyboardInterrupt):  # before the first checkpoint: the maps alone
+        fit_field(data, config, tmp_path / "early", progress=interrupt_at(3))
+    assert [p.name for p in (tmp_path / "early").iterdir()] == [CONFIDENCE_CACHE]
+    assert check_field_out(tmp_path / "early", tmp_path / "data") == tmp_path / "early"
+
+    def computed_again(*args, **kwargs):
+        raise AssertionError("the resumed fit solved its confidence maps again")
+
+    monkeypatch.setattr(confidence_cache, "confidence_maps", computed_again)
+    poses = data.all_poses()[:3]
+    for cut in ("cut", "early"):
+        resumed = fit_field(data, config, tmp_path / cut)
+        np.testing.assert_array_equal(resumed.render(poses, seed=3), whole.render(poses, seed=3))
+    assert not (tmp_path / "cut" / CONFIDENCE_CACHE).exists()
+    with pytest.raises(AssertionError, match="solved its confidence maps again"):
+        fit_field(data, config, tmp_path / "cut", resume=False)  # none kept: computed afresh
 
 
 def test_api_maps_and_pixel_theta_transmission(tmp_path: Path) -> None:

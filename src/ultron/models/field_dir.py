@@ -6,9 +6,11 @@ held-out frames, the step reached, the dataset's content hash and where it was f
 ``checkpoint.pt`` (model, optimiser and batch-generator state, step and iterations; CPU
 tensors, so it loads on any device), ``train_log.jsonl`` (one JSON object per logged update)
 and ``theta_stats.json`` (θ's per-channel statistics, written when the fit ends), and on a
-simulated dataset ``transmission_check.json`` (the fitted T against the true one). Every write
-is atomic; the log is written before the checkpoint and field.json, so it may run ahead of a
-checkpoint after a kill, never behind (:func:`read_train_log` drops what runs ahead).
+simulated dataset ``transmission_check.json`` (the fitted T against the true one); while a fit
+runs, ``confidence_maps.npz`` (:mod:`ultron.train.confidence_cache`; removed when it ends).
+Every write is atomic; the log is written before the checkpoint and field.json, so it may run
+ahead of a checkpoint after a kill, never behind (:func:`read_train_log` drops what runs
+ahead).
 """
 
 from __future__ import annotations
@@ -30,6 +32,8 @@ FIELD_JSON = "field.json"
 CHECKPOINT = "checkpoint.pt"
 THETA_STATS = "theta_stats.json"
 TRAIN_LOG = "train_log.jsonl"
+#: The fit's confidence maps while it runs (:mod:`ultron.train.confidence_cache`).
+CONFIDENCE_CACHE = "confidence_maps.npz"
 #: Written at the end of a fit on a dataset with the simulator's true transmission (every
 #: annotated sweep has ``transmission.npy``): the fitted field's T against it
 #: (:mod:`ultron.train.transmission_check`). Diagnostic only; no reader of a field needs it.
@@ -135,7 +139,8 @@ def read_train_log(out: Path, step: int) -> list[dict[str, Any]]:
 
 def check_field_out(out: str | Path, dataset_dir: str | Path, option: str = "--out") -> Path:
     """Refuse (one line naming ``out``) a FIELD_DIR to write that is not new, empty or an
-    earlier fit's (it holds field.json, checkpoint.pt or train_log.jsonl), or that is or holds
+    earlier fit's (it holds field.json, checkpoint.pt, train_log.jsonl or, from a fit stopped
+    before its first checkpoint, confidence_maps.npz), or that is or holds
     the dataset; creates nothing. A subdirectory of the dataset is fine (its sweeps are listed
     by name). The rule of :func:`ultron.pipeline.rundir.check_run_dir`: an output directory
     belongs to one kind of output."""
@@ -147,7 +152,7 @@ def check_field_out(out: str | Path, dataset_dir: str | Path, option: str = "--o
         )
     if not out.is_dir() or not any(out.iterdir()):
         return out
-    if any((out / name).exists() for name in (FIELD_JSON, CHECKPOINT, TRAIN_LOG)):
+    if any((out / n).exists() for n in (FIELD_JSON, CHECKPOINT, TRAIN_LOG, CONFIDENCE_CACHE)):
         return out
     what = (
         "an ultron run (run.json)" if (out / "run.json").exists() else "no field of an earlier fit"

@@ -59,6 +59,7 @@ from ultron.models.field_dir import (
 from ultron.models.fitted import FittedField, ThetaStatistics, probe_to_dict
 from ultron.parallel import default_workers
 from ultron.render.renderer import RenderConfig
+from ultron.train.confidence_cache import CONFIDENCE_CACHE
 from ultron.train.field_batch import (
     FieldObjective,
     batch_inputs,
@@ -272,18 +273,19 @@ def _resume(
 
 
 def _prepare(
-    dataset: SweepDataset, config: FieldTrainConfig, progress: Progress | None = None
+    dataset: SweepDataset, config: FieldTrainConfig, out: Path, progress: Progress | None = None
 ) -> tuple[FrameSet, UnitCube, AcousticField, FieldConfig]:
     """The fit's frames (with confidence maps where the prior needs them, as many at a time as
     :func:`~ultron.parallel.default_workers`: torch's threads (``--threads``), at most the
     cores: a ``progress`` with a ``stage(name, done, total)``
-    method is told as they are computed), unit cube and freshly initialised field (in training
-    mode) with its resolved configuration."""
+    method is told as they are computed; kept in ``out`` until the fit ends, so that a resumed
+    fit reads them: :mod:`ultron.train.confidence_cache`), unit cube and freshly initialised
+    field (in training mode) with its resolved configuration."""
     frames = FrameSet.from_dataset(dataset, config.fit_shape, config.holdout_every)
     if config.confidence_prior_weight > 0:
         stage = getattr(progress, "stage", None)
         report = None if stage is None else (lambda done, n: stage("confidence maps", done, n))
-        frames = frames.with_confidence(report, workers=default_workers())
+        frames = frames.with_confidence(report, default_workers(), out / CONFIDENCE_CACHE)
     cube, extent = field_cube(dataset.all_poses(), frames.probe, config.orientation)
     pixel_mm = min(frames.probe.axial_spacing_mm, frames.probe.lateral_spacing_mm)
     module, resolved = build_field(config.field, cube.half_extent_mm, pixel_mm, config.seed, extent)
@@ -418,7 +420,7 @@ def fit_field(
     device = resolve_device(device, "device")
     dataset_sha256 = dataset.content_hash()
     resuming = resume and check_resumable(out, config, dataset_sha256)
-    frames, cube, module, resolved = _prepare(dataset, config, progress)
+    frames, cube, module, resolved = _prepare(dataset, config, out, progress)
     frames, module = frames.to(device), module.to(device)
     optimizer = make_optimizer(module, config.lr)
     generator = torch.Generator().manual_seed(config.seed)
@@ -444,6 +446,7 @@ def fit_field(
     atomic.write_json(out / THETA_STATS, stats.to_dict())
     fitted = replace_stats(run.fitted, stats)
     record_transmission_check(dataset, fitted, out)  # simulated data: T against the true T
+    (out / CONFIDENCE_CACHE).unlink(missing_ok=True)  # the fit is whole: no resume needs them
     return fitted
 
 

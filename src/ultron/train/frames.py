@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, replace
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -13,6 +14,7 @@ import torch.nn.functional as F
 from ultron.data.dataset import ProbeGeometry, SweepDataset
 from ultron.data.resolution import lit_column_range
 from ultron.errors import argument_error
+from ultron.train.confidence_cache import cached_confidence_maps
 from ultron.train.losses import psnr
 from ultron.train.visibility import confidence_maps
 
@@ -104,12 +106,21 @@ class FrameSet:
         return slice(*(self.lit_columns or (0, self.probe.width_px)))
 
     def with_confidence(
-        self, report: Callable[[int, int], None] | None = None, workers: int = 1
+        self,
+        report: Callable[[int, int], None] | None = None,
+        workers: int = 1,
+        cache: Path | None = None,
     ) -> FrameSet:
         """These frames with their ultrasound confidence maps (at the fitting resolution,
         :func:`ultron.train.visibility.confidence_maps` with its default settings, ``workers``
-        frames at a time); ``report`` is told (frames done, frames) as they are computed."""
-        maps = confidence_maps(self.images.cpu().numpy(), workers=workers, report=report)
+        frames at a time); ``report`` is told (frames done, frames) as they are computed.
+        ``cache``: a file that keeps them (:mod:`ultron.train.confidence_cache`), read when it
+        holds these frames' maps, else written."""
+        images = self.images.cpu().numpy()
+        if cache is None:
+            maps = confidence_maps(images, workers=workers, report=report)
+        else:
+            maps, _ = cached_confidence_maps(images, cache, workers=workers, report=report)
         confidence = torch.from_numpy(maps.astype(np.float32)).to(self.images.device)
         return replace(self, confidence=confidence)
 

@@ -115,7 +115,7 @@ class VisibilityConfig:
     def parameters(self) -> dict[str, Any]:
         """The chosen source's parameters, as recorded in run.json and the model metadata."""
         if self.source == "confidence":
-            return {**asdict(self.confidence), "implementation": _monai_version()}
+            return {**asdict(self.confidence), "implementation": solver_description()}
         if self.source == "labels":
             return asdict(self.labels)
         if self.source == ORACLE:
@@ -162,7 +162,8 @@ def visibility_config(visibility: str = "field", oracle: bool = False) -> Visibi
     return VisibilityConfig(ORACLE if oracle else visibility)
 
 
-def _monai_version() -> str:
+def solver_description() -> str:
+    """What computes :func:`confidence_map`: MONAI's release and the solve (for records)."""
     from importlib.metadata import PackageNotFoundError, version
 
     try:
