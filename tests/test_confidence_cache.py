@@ -120,3 +120,15 @@ def test_invalid_frames_name_the_argument(tmp_path: Path) -> None:
     with pytest.raises(UltronInputError, match="images"):
         cached_confidence_maps(np.zeros((24, 16), np.float32), tmp_path / "c.npz")
     assert not (tmp_path / "c.npz").exists()
+
+
+def test_a_file_that_cannot_be_written_is_a_warning(tmp_path: Path, monkeypatch) -> None:
+    def full_disk(*args, **kwargs):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(confidence_cache, "write_cached_maps", full_disk)
+    images, path = frames(), tmp_path / "c.npz"
+    with pytest.warns(RuntimeWarning, match=r"c\.npz: confidence maps not kept \(No space left"):
+        maps, read = cached_confidence_maps(images, path)
+    assert not read and not path.exists()
+    np.testing.assert_array_equal(maps, confidence_maps(images))

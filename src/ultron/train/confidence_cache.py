@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import warnings
 import zipfile
 from collections.abc import Callable
 from dataclasses import asdict
@@ -84,7 +85,8 @@ def cached_confidence_maps(
 ) -> tuple[np.ndarray, bool]:
     """:func:`~ultron.train.visibility.confidence_maps` of ``images`` (N, H, W), read from
     ``path`` when it holds this very computation's result, else computed and written there.
-    Returns (maps, whether they were read). ``report`` is told (N, N) when they are read."""
+    Returns (maps, whether they were read). ``report`` is told (N, N) when they are read. A
+    file that cannot be written (a full disk) is a ``RuntimeWarning``, not an error."""
     images = np.asarray(images)
     if images.ndim != 3:
         raise argument_error("images", f"expected (N, H, W) frames, got shape {images.shape}")
@@ -96,7 +98,11 @@ def cached_confidence_maps(
             report(len(images), len(images))
         return maps, True
     maps = confidence_maps(images, cfg, workers=workers, report=report)
-    write_cached_maps(Path(path), key, maps)
+    try:
+        write_cached_maps(Path(path), key, maps)
+    except OSError as exc:  # a full disk: the fit goes on, its maps are only not kept
+        message = f"{path}: confidence maps not kept ({exc.strerror or exc}); a resumed fit"
+        warnings.warn(f"{message} solves them again", RuntimeWarning, stacklevel=2)
     return maps, False
 
 
