@@ -18,9 +18,9 @@ result, only fail to save time.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
-import warnings
 import zipfile
 from collections.abc import Callable
 from dataclasses import asdict
@@ -86,7 +86,7 @@ def cached_confidence_maps(
     """:func:`~ultron.train.visibility.confidence_maps` of ``images`` (N, H, W), read from
     ``path`` when it holds this very computation's result, else computed and written there.
     Returns (maps, whether they were read). ``report`` is told (N, N) when they are read. A
-    file that cannot be written (a full disk) is a ``RuntimeWarning``, not an error."""
+    file that cannot be written (a full disk) is not an error: the maps are only not kept."""
     images = np.asarray(images)
     if images.ndim != 3:
         raise argument_error("images", f"expected (N, H, W) frames, got shape {images.shape}")
@@ -98,11 +98,11 @@ def cached_confidence_maps(
             report(len(images), len(images))
         return maps, True
     maps = confidence_maps(images, cfg, workers=workers, report=report)
-    try:
+    # A file that cannot be written (a full disk, ``ulimit -f``) is skipped without a word:
+    # the maps are only not kept, and the fit's own next write (its checkpoint) meets the
+    # same limit and says so in the command's one error line.
+    with contextlib.suppress(OSError):
         write_cached_maps(Path(path), key, maps)
-    except OSError as exc:  # a full disk: the fit goes on, its maps are only not kept
-        message = f"{path}: confidence maps not kept ({exc.strerror or exc}); a resumed fit"
-        warnings.warn(f"{message} solves them again", RuntimeWarning, stacklevel=2)
     return maps, False
 
 

@@ -273,19 +273,23 @@ def _resume(
 
 
 def _prepare(
-    dataset: SweepDataset, config: FieldTrainConfig, out: Path, progress: Progress | None = None
+    dataset: SweepDataset,
+    config: FieldTrainConfig,
+    progress: Progress | None = None,
+    out: Path | None = None,
 ) -> tuple[FrameSet, UnitCube, AcousticField, FieldConfig]:
     """The fit's frames (with confidence maps where the prior needs them, as many at a time as
     :func:`~ultron.parallel.default_workers`: torch's threads (``--threads``), at most the
-    cores: a ``progress`` with a ``stage(name, done, total)``
-    method is told as they are computed; kept in ``out`` until the fit ends, so that a resumed
-    fit reads them: :mod:`ultron.train.confidence_cache`), unit cube and freshly initialised
-    field (in training mode) with its resolved configuration."""
+    cores: a ``progress`` with a ``stage(name, done, total)`` method is told as they are
+    computed; kept in ``out``, when given, until the fit ends, so that a resumed fit reads
+    them: :mod:`ultron.train.confidence_cache`), unit cube and freshly initialised field (in
+    training mode) with its resolved configuration."""
     frames = FrameSet.from_dataset(dataset, config.fit_shape, config.holdout_every)
     if config.confidence_prior_weight > 0:
         stage = getattr(progress, "stage", None)
         report = None if stage is None else (lambda done, n: stage("confidence maps", done, n))
-        frames = frames.with_confidence(report, default_workers(), out / CONFIDENCE_CACHE)
+        cache = None if out is None else out / CONFIDENCE_CACHE
+        frames = frames.with_confidence(report, default_workers(), cache)
     cube, extent = field_cube(dataset.all_poses(), frames.probe, config.orientation)
     pixel_mm = min(frames.probe.axial_spacing_mm, frames.probe.lateral_spacing_mm)
     module, resolved = build_field(config.field, cube.half_extent_mm, pixel_mm, config.seed, extent)
@@ -420,7 +424,7 @@ def fit_field(
     device = resolve_device(device, "device")
     dataset_sha256 = dataset.content_hash()
     resuming = resume and check_resumable(out, config, dataset_sha256)
-    frames, cube, module, resolved = _prepare(dataset, config, out, progress)
+    frames, cube, module, resolved = _prepare(dataset, config, progress, out)
     frames, module = frames.to(device), module.to(device)
     optimizer = make_optimizer(module, config.lr)
     generator = torch.Generator().manual_seed(config.seed)
