@@ -240,3 +240,35 @@ def test_gathered_background_above_the_fixture_bone_is_in_front(dataset):
     pixels = gather_labelled_pixels(dataset, select_label_frames(dataset, 0.1, seed=1))
     front = pixels.in_front_of_bone()
     np.testing.assert_array_equal(front, (pixels.col == 1) & (pixels.row == 1))
+
+
+def test_world_mm_is_each_pixel_through_its_own_frames_pose():
+    """Hand-worked: p = ((c − W/2)·W_mm/W, r·D_mm/H, 0) mapped by R·p + t of the pixel's own
+    frame, for pixels of two sweeps in shuffled frame order, whole and as a subset."""
+    probe = ProbeGeometry(5.0, 4.0, 4, 5)  # 1 mm pixels both ways
+    rng = np.random.default_rng(3)
+    sweeps = []
+    for name in ("a", "b"):
+        rotations = [np.linalg.qr(rng.normal(size=(3, 3)))[0] for _ in range(4)]
+        poses = np.stack([make_pose(r, rng.normal(size=3) * 10) for r in rotations])
+        labels = np.zeros((4, 4, 5), dtype=np.uint8)
+        sweeps.append(Sweep(name, "row", np.zeros((4, 4, 5), np.uint8), poses, labels))
+    dataset = SweepDataset(probe, sweeps)
+    n = 40
+    pixels = LabelledPixels(
+        sweep_index=rng.integers(0, 2, n),
+        frame=rng.integers(0, 4, n),
+        row=rng.integers(0, 4, n),
+        col=rng.integers(0, 5, n),
+        label=np.zeros(n, dtype=np.uint8),
+    )
+    every = np.stack([s.probe_to_world for s in dataset.sweeps])  # (2, 4, 4, 4)
+    pose = every[pixels.sweep_index, pixels.frame]
+    local = np.stack([pixels.col - 2.5, pixels.row * 1.0, np.zeros(n)], axis=1)
+    expected = np.einsum("nij,nj->ni", pose[:, :3, :3], local) + pose[:, :3, 3]
+    np.testing.assert_allclose(pixels.world_mm(dataset), expected, rtol=0, atol=1e-12)
+    subset = np.array([7, 3, 31, 3, 0])
+    np.testing.assert_allclose(
+        pixels.world_mm(dataset, subset), expected[subset], rtol=0, atol=1e-12
+    )
+    assert pixels.world_mm(dataset, np.zeros(0, dtype=np.int64)).shape == (0, 3)

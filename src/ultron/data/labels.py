@@ -179,7 +179,9 @@ class LabelledPixels:
 
     def world_mm(self, dataset: SweepDataset, subset: np.ndarray | None = None) -> np.ndarray:
         """World positions (M, 3) float64 mm of these pixels (or of ``subset`` indices), each
-        through its own frame's ``probe_to_world``."""
+        through its own frame's ``probe_to_world``: one :func:`apply_pose` per frame, on its
+        pixels (a pose per pixel would gather M 4 × 4 matrices first; a frame's pixels at a time
+        keeps the temporaries small: docs/decisions.md, "Fresh memory")."""
         import torch
 
         index = np.arange(len(self)) if subset is None else np.asarray(subset, dtype=np.int64)
@@ -188,14 +190,20 @@ class LabelledPixels:
             sel = np.flatnonzero(self.sweep_index[index] == sweep_index)
             if sel.size == 0:
                 continue
-            pick = index[sel]
-            probe = probe_points_mm(
-                torch.as_tensor(self.row[pick], dtype=torch.float64),
-                torch.as_tensor(self.col[pick], dtype=torch.float64),
-                dataset.probe,
-            )
-            poses = torch.as_tensor(sweep.probe_to_world[self.frame[pick]], dtype=torch.float64)
-            out[sel] = apply_pose(poses, probe[:, None, :])[:, 0].numpy()
+            frames = self.frame[index[sel]]
+            if np.any(frames[1:] < frames[:-1]):  # gathered pixels come frame by frame already
+                order = np.argsort(frames, kind="stable")
+                sel, frames = sel[order], frames[order]
+            bounds = np.flatnonzero(np.r_[True, frames[1:] != frames[:-1], True])
+            poses = torch.as_tensor(sweep.probe_to_world[frames[bounds[:-1]]], dtype=torch.float64)
+            for pose, a, b in zip(poses, bounds[:-1], bounds[1:], strict=True):
+                pick = index[sel[a:b]]
+                probe = probe_points_mm(
+                    torch.as_tensor(self.row[pick], dtype=torch.float64),
+                    torch.as_tensor(self.col[pick], dtype=torch.float64),
+                    dataset.probe,
+                )
+                out[sel[a:b]] = apply_pose(pose[None], probe[None])[0].numpy()
         return out
 
     def in_front_of_bone(self) -> np.ndarray:
