@@ -1,6 +1,6 @@
 """The field fit's confidence maps kept on disk while it runs, so that a resumed fit reads them
-instead of solving them again (on the real fibula's 985 frames the maps are ≈ 70 s of a
-≈ 260 s fit on two cores; docs/decisions.md, "Confidence maps kept for a resumed fit").
+instead of solving them again (one sparse factorisation a frame: a large share of a long
+sweep's fit; figures in docs/decisions.md, "Confidence maps kept for a resumed fit").
 
 One file in the fit's FIELD_DIR, :data:`CONFIDENCE_CACHE`, an uncompressed ``.npz`` (no
 pickles) of two arrays::
