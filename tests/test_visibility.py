@@ -21,6 +21,7 @@ from ultron.data.truth import TRANSMISSION_FILE, load_true_transmission
 from ultron.errors import UltronInputError
 from ultron.fields import FieldConfig, GridFieldConfig
 from ultron.methods.ultron_method import UltronConfig, occupancy_training_data
+from ultron.models.fitted import TransmissionMaps
 from ultron.pipeline.model_io import load_network
 from ultron.pipeline.presets import preset_request
 from ultron.pipeline.run import ReconstructionRequest, reconstruct
@@ -248,6 +249,46 @@ def test_field_source_equals_the_pre_refactor_values(fitted_case):
     local = np.searchsorted(frames, pixels.frame)
     np.testing.assert_array_equal(maps[local, pixels.row, pixels.col], t.numpy())
     np.testing.assert_array_equal(maps[:, 0], 1.0)  # exclusive: T = 1 at the face
+
+
+def test_frames_kept_by_stage_two_are_read_not_rendered(fitted_case, monkeypatch):
+    """The T that field_theta_transmission keeps is each frame's whole T, as frame_transmission
+    renders it; given them, frame_transmission renders only the other frames (bit for bit the
+    same result: a frame's T does not depend on the frames rendered with it)."""
+    dataset, fitted = fitted_case["dataset"], fitted_case["fitted"]
+    selection = select_label_frames(dataset, 0.3, 0)
+    kept = TransmissionMaps()
+    data = occupancy_training_data(dataset, fitted, selection, keep=kept)
+    labelled = np.unique(gather_labelled_pixels(dataset, selection).frame)
+    assert (
+        sorted(kept.maps) == ["row"]
+        and np.flatnonzero(kept.kept["row"]).tolist() == labelled.tolist()
+    )
+    assert kept.n_frames == len(labelled) and kept.get("row", 10) is None
+    config = VisibilityConfig()
+    every = frame_transmission(config, dataset, "row", fitted=fitted)
+    for frame in labelled:
+        np.testing.assert_array_equal(kept.get("row", frame), every[frame])
+    rendered_frames = []
+    original = type(fitted).pixel_theta_transmission
+
+    def counting(self, poses, frame_index, *args, **kwargs):
+        rendered_frames.extend(np.unique(np.asarray(frame_index)).tolist())
+        return original(self, poses, frame_index, *args, **kwargs)
+
+    monkeypatch.setattr(type(fitted), "pixel_theta_transmission", counting)
+    told = []
+    again = frame_transmission(
+        config, dataset, "row", fitted=fitted, rendered=kept, advance=lambda d, n: told.append(d)
+    )
+    np.testing.assert_array_equal(again, every)
+    assert sorted(rendered_frames) == sorted(set(range(10)) - set(labelled.tolist()))
+    assert told[0] == len(labelled) and told[-1] == 10
+    assert data.transmission.shape[0] == len(gather_labelled_pixels(dataset, selection))
+    with pytest.raises(UltronInputError, match="transmission"):
+        kept.add("row", [0, 1], torch.zeros(3, 24, 16), n_frames=10)
+    with pytest.raises(UltronInputError, match="frames"):
+        kept.add("row", [10], torch.zeros(1, 24, 16), n_frames=10)
 
 
 def test_whole_frame_sources_agree_with_the_pixel_lookup(fitted_case):

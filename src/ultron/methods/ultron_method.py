@@ -76,6 +76,7 @@ from ultron.mesh.observed import (
     observe_surface,
 )
 from ultron.mesh.occupancy_mesh import MeshingConfig, elevation_half_thickness_mm, mesh_occupancy
+from ultron.models.fitted import TransmissionMaps
 from ultron.timing import Advanced, StageTimer
 from ultron.train.fit_checkpoint import (
     OCCUPANCY_FIT,
@@ -238,6 +239,7 @@ def occupancy_training_data(
     context: ThetaContextConfig | None = None,
     outer_side_mm: float = 0.0,
     advance: Advanced | None = None,
+    keep: TransmissionMaps | None = None,
 ) -> OccupancyTrainingData:
     """Per labelled pixel: f's input g(x) (:func:`~ultron.fields.context.theta_features` with
     ``context``, default θ and its neighbours at 1 and 2 mm), T (detached) from ``visibility``
@@ -247,12 +249,13 @@ def occupancy_training_data(
     background, the unsure pixels directly above each band of bone labels within that distance
     (:func:`~ultron.data.labels.gather_labelled_pixels`). ``advance`` is told how many of g(x)'s
     θ queries are done (:func:`~ultron.fields.context.theta_features`). The data marks the
-    background labels in front of their scanline's first bone label (``in_front``)."""
+    background labels in front of their scanline's first bone label (``in_front``). ``keep``,
+    when given, keeps the field's T of every labelled frame (the observed crop reads them)."""
     if fitted.theta_stats is None:
         raise UltronInputError("field", "theta_stats", "the field has no θ statistics (refit it)")
     fitted.check_probe(dataset.probe)
     pixels = gather_labelled_pixels(dataset, selection, outer_side_mm=outer_side_mm)
-    theta, field_t = field_theta_transmission(dataset, fitted, pixels)
+    theta, field_t = field_theta_transmission(dataset, fitted, pixels, keep)
     transmission = pixel_transmission(
         visibility or VisibilityConfig(), dataset, pixels, truth=truth, field_transmission=field_t
     )
@@ -295,6 +298,7 @@ def keep_observed_surface(
     truth: Mapping[str, np.ndarray] | None = None,
     advance: Advanced | None = None,
     selection: FrameSelection | None = None,
+    rendered: TransmissionMaps | None = None,
 ) -> SurfaceObservation:
     """Which vertices of ``mesh`` some frame observed, and the part kept (module docstring,
     step 5; :func:`~ultron.mesh.observed.observe_surface`). ``advance`` is told the frames
@@ -303,7 +307,8 @@ def keep_observed_surface(
     ``config.observed.label_support_mm`` (None: the labels do not count), with the bridges
     between them (:func:`labelled_support_points_mm`).
 
-    Each frame's T comes from the oracle (diagnostic runs) or the fitted field; the elevational
+    Each frame's T comes from the oracle (diagnostic runs) or the fitted field (read from
+    ``rendered`` for the frames stage 2 rendered already: :func:`train_ultron`); the elevational
     slab is the one the field-of-view mask uses (0.75 × the frame gap, ≥ one voxel of the
     meshing grid, ``voxel_mm``).
     """
@@ -311,12 +316,13 @@ def keep_observed_surface(
     maps = support = labelled = None
     if len(mesh.faces):
         visibility = replace(config.visibility, source=source)
+        kept = rendered if source == "field" else None  # the field's own T, already rendered
         total, maps = dataset.n_frames, []
         for sweep in dataset.sweeps:
             offset = sum(m.shape[0] for m in maps)
             counted = None if advance is None else (lambda d, _, o=offset: advance(o + d, total))
             maps.append(frame_transmission(visibility, dataset, sweep.name, fitted=fitted,
-                                           truth=truth, advance=counted))  # fmt: skip
+                                           truth=truth, advance=counted, rendered=kept))  # fmt: skip
         if config.echo_support is not None:
             support = echo_support_maps(dataset, config.echo_support)
         if selection is not None and config.observed.label_support_mm > 0:
@@ -354,6 +360,9 @@ class Stage2Fit:
     label_loss: float
     data_info: dict[str, Any]
     checkpoint: FitCheckpoint | None = None
+    #: The field's T of the labelled frames, rendered for the training data and read again by
+    #: the observed crop (:func:`keep_observed_surface`); None: none kept.
+    transmission: TransmissionMaps | None = None
 
 
 def train_ultron(
@@ -381,11 +390,12 @@ def train_ultron(
         loss=loss,
         network=config.context.network(config.occupancy.network, len(fitted.channels)),
     )
+    rendered = TransmissionMaps()
     with timer.stage("labels"):
         selection = select_label_frames(dataset, label_fraction, seed)
         data = occupancy_training_data(
             dataset, fitted, selection, config.visibility, truth, config.context,
-            config.label_outer_side_mm, timer.counter("θ queries"),
+            config.label_outer_side_mm, timer.counter("θ queries"), rendered,
         )  # fmt: skip
     with timer.stage("occupancy_fit"):
         device = fitted.device if device is None else device
@@ -396,7 +406,7 @@ def train_ultron(
         fitted_loss = label_loss(network, data, occupancy_config)
     data_info = data.summary(occupancy_config.observed_transmission)
     return Stage2Fit(
-        fitted, selection, occupancy_config, network, log, fitted_loss, data_info, saved
+        fitted, selection, occupancy_config, network, log, fitted_loss, data_info, saved, rendered
     )
 
 
@@ -442,7 +452,7 @@ def mesh_ultron(
     with timer.stage("mesh_observed"):
         observation = keep_observed_surface(
             mesh, dataset, fitted, config, grid.voxel_mm, truth, timer.counter("frames"),
-            selection,
+            selection, trained.transmission,
         )  # fmt: skip
     if compounded is not None and config.label_fusion.surface_gap_mm is not None:
         with timer.stage("mesh_label_surface"):

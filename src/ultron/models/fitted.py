@@ -21,7 +21,9 @@ is the commit point, and its ``step`` is the authority on the progress (:class:`
 
 from __future__ import annotations
 
+import dataclasses
 import math
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -261,6 +263,7 @@ class FittedField:
         cols: np.ndarray | torch.Tensor,
         chunk_frames: int = 8,
         probe: ProbeGeometry | None = None,
+        on_frames: Callable[[np.ndarray, torch.Tensor], None] | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """θ (P, C) and T (P,) at pixels (frame_index, rows, cols) of frames ``probe_to_world``.
 
@@ -272,6 +275,8 @@ class FittedField:
         dataset's native grid when the field was fitted at a reduced ``fit_shape``; it must have
         the field's width and depth in mm. T is then accumulated at that grid's step Δ (α is per
         mm; β is per sample, as in Ultra-NeRF, so a much finer grid counts a reflector more often).
+        ``on_frames``, when given, is told (frame indices (k,), T (k, H, W) on the field's
+        device) of every chunk of whole frames rendered (:class:`TransmissionMaps` keeps them).
         """
         poses = self._poses(probe_to_world)
         grid = self.probe if probe is None else probe
@@ -318,7 +323,54 @@ class FittedField:
             f, r, c = (i.to(self.device) for i in (local, row_idx[sel], col_idx[sel]))
             theta[sel] = rendered.properties.stack()[f, r, c].cpu()
             transmission[sel] = rendered.transmission[f, r, c].cpu()
+            if on_frames is not None:
+                on_frames(frames.numpy(), rendered.transmission)
         return theta, transmission
+
+
+@dataclass
+class TransmissionMaps:
+    """A fitted field's T of whole frames (H, W) float32, kept per sweep as a stage renders them
+    (:meth:`FittedField.pixel_theta_transmission`'s ``on_frames``), so that a later stage on the
+    same field and pixel grid reads them instead of rendering them again (stage 2 renders its
+    labelled frames; the observed crop needs every frame's T).
+
+    Each sweep's maps live in one (n_frames, H, W) array, made at its first frame: its pages are
+    backed only as frames are written, and one block, unlike a small array per frame, never
+    holds the allocator's heap above the stages' large temporaries (docs/decisions.md)."""
+
+    maps: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
+    kept: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
+
+    def add(
+        self, sweep: str, frames: Sequence[int], transmission: torch.Tensor, n_frames: int
+    ) -> None:
+        """Keep ``transmission`` (k, H, W) of ``frames`` (k,) of ``sweep`` (of ``n_frames``)."""
+        values = transmission.detach().cpu().numpy()
+        index = np.asarray(frames, dtype=np.int64)
+        if values.ndim != 3 or values.shape[0] != index.size:
+            raise argument_error(
+                "transmission", f"expected ({index.size}, H, W), got {values.shape}"
+            )
+        if index.size and (index.min() < 0 or index.max() >= n_frames):
+            raise argument_error("frames", f"indices must lie in [0, {n_frames})")
+        if sweep not in self.maps:
+            self.maps[sweep] = np.empty((n_frames, *values.shape[1:]), dtype=np.float32)
+            self.kept[sweep] = np.zeros(n_frames, dtype=bool)
+        self.maps[sweep][index] = values
+        self.kept[sweep][index] = True
+
+    def get(self, sweep: str, frame: int) -> np.ndarray | None:
+        """The kept T of ``frame`` of ``sweep``, or None."""
+        kept = self.kept.get(sweep)
+        if kept is None or not 0 <= frame < kept.size or not kept[frame]:
+            return None
+        return self.maps[sweep][frame]
+
+    @property
+    def n_frames(self) -> int:
+        """How many frames are kept, over every sweep."""
+        return int(sum(np.count_nonzero(kept) for kept in self.kept.values()))
 
 
 def check_finite_weights(module: torch.nn.Module, where: str | Path, field: str) -> None:

@@ -37,6 +37,7 @@ from ultron.data.labels import LabelledPixels
 from ultron.data.truth import TRANSMISSION_FILE, load_true_transmission
 from ultron.data.validation import LABEL_TARGET, LABEL_UNANNOTATED, validate_labels
 from ultron.errors import UltronError, UltronInputError, argument_error
+from ultron.models.fitted import TransmissionMaps
 
 #: Sources selectable with ``--visibility``; ``oracle`` is the diagnostic one.
 VISIBILITY_SOURCES = ("field", "confidence", "labels")
@@ -174,7 +175,7 @@ def solver_description() -> str:
 
 # ---------------------------------------------------------------------------------- sources
 def field_theta_transmission(
-    dataset: SweepDataset, fitted, pixels: LabelledPixels
+    dataset: SweepDataset, fitted, pixels: LabelledPixels, keep: TransmissionMaps | None = None
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """θ (P, C) and the field's T (P,) at labelled pixels, one rendering pass per sweep.
 
@@ -182,6 +183,8 @@ def field_theta_transmission(
     exclusive, along the pixel's own scanline, without gradient
     (:meth:`~ultron.models.fitted.FittedField.pixel_theta_transmission` on the dataset's pixel
     grid, which is the field's unless the field was fitted at a reduced ``fit_shape``).
+    ``keep``, when given, keeps the T of every whole frame rendered (for
+    :func:`frame_transmission`'s ``rendered``).
     """
     fitted.check_probe(dataset.probe)
     theta = torch.zeros(len(pixels), len(fitted.channels))
@@ -190,12 +193,18 @@ def field_theta_transmission(
         sel = np.flatnonzero(pixels.sweep_index == sweep_index)
         if sel.size == 0:
             continue
+        kept = (
+            None
+            if keep is None
+            else functools.partial(keep.add, sweep.name, n_frames=sweep.n_frames)
+        )
         t, tr = fitted.pixel_theta_transmission(
             sweep.probe_to_world,
             pixels.frame[sel],
             pixels.row[sel],
             pixels.col[sel],
             probe=dataset.probe,
+            on_frames=kept,
         )
         theta[sel], transmission[sel] = t, tr
     return theta, transmission
@@ -370,11 +379,15 @@ def frame_transmission(
     fitted=None,
     truth: Mapping[str, np.ndarray] | None = None,
     advance: Callable[[int, int], None] | None = None,
+    rendered: TransmissionMaps | None = None,
 ) -> np.ndarray:
     """T (n, H, W) float32 of whole frames ``frames`` (default: all) of one sweep.
 
-    ``field`` needs ``fitted`` (any frame; ``advance``, when given, is told the frames rendered
-    so far and n after each chunk of frames); ``confidence`` works for any frame; ``labels``
+    ``field`` needs ``fitted`` (any frame; ``advance``, when given, is told the frames had so
+    far and n after each chunk of frames); the frames that ``rendered`` holds (the same field's
+    T, kept by :func:`field_theta_transmission`) are read from it, the others rendered (the
+    same T either way: a frame's T does not depend on the frames rendered with it; checked in
+    tests/test_visibility.py); ``confidence`` works for any frame; ``labels``
     needs the sweep's labels (NaN on scanlines without an annotated pixel); ``oracle`` takes
     ``truth[sweep_name]`` (:func:`load_oracle_truth`), else the sweep's ``true_transmission``.
     """
@@ -386,15 +399,23 @@ def frame_transmission(
             raise argument_error("fitted", "the 'field' visibility needs a fitted acoustic field")
         fitted.check_probe(dataset.probe)
         out = np.empty((index.size, height, width), dtype=np.float32)
-        for start in range(0, index.size, _T_CHUNK_FRAMES):  # bounds the pixel index arrays
-            chunk = index[start : start + _T_CHUNK_FRAMES]
-            f, r, c = np.meshgrid(chunk, np.arange(height), np.arange(width), indexing="ij")
+        kept = [None if rendered is None else rendered.get(sweep.name, i) for i in index]
+        for position, t in enumerate(kept):
+            if t is not None:
+                out[position] = t
+        todo = np.array([k for k, t in enumerate(kept) if t is None], dtype=np.int64)
+        done = index.size - todo.size
+        if advance is not None and done:
+            advance(done, index.size)
+        for start in range(0, todo.size, _T_CHUNK_FRAMES):  # bounds the pixel index arrays
+            at = todo[start : start + _T_CHUNK_FRAMES]
+            f, r, c = np.meshgrid(index[at], np.arange(height), np.arange(width), indexing="ij")
             _, t = fitted.pixel_theta_transmission(
                 sweep.probe_to_world, f.ravel(), r.ravel(), c.ravel(), probe=dataset.probe
             )
-            out[start : start + chunk.size] = t.numpy().reshape(chunk.size, height, width)
+            out[at] = t.numpy().reshape(at.size, height, width)
             if advance is not None:
-                advance(start + chunk.size, index.size)
+                advance(done + start + at.size, index.size)
         return out
     if config.source == "confidence":
         maps = [confidence_map(sweep.images[i], config.confidence) for i in index]
