@@ -19,7 +19,6 @@ result, only fail to save time.
 from __future__ import annotations
 
 import contextlib
-import hashlib
 import json
 import zipfile
 from collections.abc import Callable
@@ -27,10 +26,12 @@ from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from ultron import atomic
 from ultron.errors import argument_error
 from ultron.models.field_dir import CONFIDENCE_CACHE
+from ultron.train.fit_checkpoint import fit_fingerprint
 from ultron.train.visibility import ConfidenceConfig, confidence_maps, solver_description
 
 #: Names the file's layout (bumped when it changes; another format is never read).
@@ -41,7 +42,7 @@ def confidence_key(images: np.ndarray, config: ConfidenceConfig) -> str:
     """The JSON key of the maps of ``images`` (N, H, W) under ``config``: the format, the
     frames' dtype, shape and SHA-256, the config's parameters and the solver."""
     images = np.ascontiguousarray(images)
-    digest = hashlib.sha256(memoryview(images).cast("B")).hexdigest()
+    digest = fit_fingerprint([torch.from_numpy(images)], {})  # SHA-256 of shape, dtype, bytes
     return json.dumps(
         {
             "format": FORMAT,
