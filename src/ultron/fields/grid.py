@@ -297,11 +297,7 @@ class GridField(AcousticField):
                 parts.append(sampled[0, :, 0] * sampled[1, :, 0] * sampled[2, :, 0])  # (C, N)
         if self.volume is not None:
             where = torch.stack([x, y, z], dim=-1)[None, None, None]
-            parts.append(
-                F.grid_sample(
-                    self.volume, where, mode="bilinear", padding_mode="border", align_corners=True
-                )[0, :, 0, 0]
-            )
+            parts.append(threaded_read(self.volume, where)[0, :, 0, 0])
         feats = torch.cat(parts, dim=0).transpose(0, 1)
         return feats.reshape(*shape, feats.shape[-1])
 
@@ -366,8 +362,53 @@ class GridField(AcousticField):
 
 
 def _bilinear(planes: torch.Tensor, coords: torch.Tensor) -> torch.Tensor:
-    """``grid_sample`` of (B, C, rows, cols) planes at (B, 1, N, 2) unit coordinates."""
-    return F.grid_sample(planes, coords, mode="bilinear", padding_mode="border", align_corners=True)
+    """``grid_sample`` of (B, C, rows, cols) planes at (B, 1, N, 2) unit coordinates, or of a
+    (1, C, D, H, W) volume at (1, 1, 1, N, 3) ones (:func:`threaded_read`)."""
+    return threaded_read(planes, coords)
+
+
+def threaded_read(values: torch.Tensor, where: torch.Tensor) -> torch.Tensor:
+    """``grid_sample`` (bilinear, border, ``align_corners``) of ``values`` (1, C, *grid) at
+    ``where`` (1, 1, [1,] N, d), read on every torch CPU thread when nothing needs a gradient.
+
+    torch's CPU kernels share one call's work out over its batch: a single plane or volume
+    (batch 1) is read on one thread, and more slowly with two threads than with one (figures
+    in docs/decisions.md, "Reading the grid field on every thread"). So without autograd, on
+    the CPU, with more than one thread and enough points, the N points are cut into one run
+    per thread and read as a batch of that many views of ``values`` (``expand``: no copy),
+    then put back in their order. Each point is computed by the same arithmetic as in one
+    call, so the result is the same bit for bit. Otherwise (a fit's forward, whose backward
+    would sum the runs' gradients in another order; an accelerator; one thread; few points; a
+    batch of several grids) it is one plain call."""
+    threads = torch.get_num_threads()
+    n, dims = where.shape[-2], where.shape[-1]
+    if (
+        threads < 2
+        or values.shape[0] != 1
+        or values.device.type != "cpu"
+        or n < _POINTS_PER_THREAD * threads
+        or (torch.is_grad_enabled() and (values.requires_grad or where.requires_grad))
+    ):
+        return F.grid_sample(
+            values, where, mode="bilinear", padding_mode="border", align_corners=True
+        )
+    run = -(-n // threads)
+    flat = where.reshape(n, dims)
+    if run * threads != n:  # pad with the grid's centre, read and dropped
+        flat = torch.cat([flat, flat.new_zeros(run * threads - n, dims)])
+    ones = (1,) * (where.ndim - 3)
+    grids = values.expand(threads, *values.shape[1:])
+    read = F.grid_sample(
+        grids, flat.reshape(threads, *ones, run, dims), mode="bilinear", padding_mode="border",
+        align_corners=True,
+    )  # fmt: skip
+    # (threads, C, *ones, run) → (1, C, *ones, threads · run), the points in their order
+    read = read.movedim(0, -2).reshape(1, values.shape[1], *ones, run * threads)
+    return read[..., :n]
+
+
+#: Points a thread reads at least before :func:`threaded_read` shares a read out.
+_POINTS_PER_THREAD = 4096
 
 
 def _window_draw(
