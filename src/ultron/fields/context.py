@@ -139,12 +139,18 @@ def theta_features(
             "centre",
             f"expected ({points.shape[0]}, {len(stats.channels)}), got {tuple(centre.shape)}",
         )
-    parts = [stats.normalise(centre.float())]
     offsets = stencil_offsets_mm(config)
+    width = len(stats.channels)
+    # each block written into its columns: no list of blocks joined at the end, whose copy
+    # doubled the stage's peak (every labelled pixel of a long sweep: 1.75 GB a copy)
+    features = torch.empty(points.shape[0], width * (1 + len(offsets)), dtype=torch.float32)
+    features[:, :width] = stats.normalise(centre.float())
     if advance is not None:
         advance(1, 1 + len(offsets))
-    for k, offset in enumerate(offsets, 2):
-        parts.append(stats.normalise(fitted.query(points + offset).stack()))
+    shifted = torch.empty_like(points) if len(offsets) else points
+    for k, offset in enumerate(offsets, 1):
+        torch.add(points, offset, out=shifted)
+        features[:, k * width : (k + 1) * width] = stats.normalise(fitted.query(shifted).stack())
         if advance is not None:
-            advance(k, 1 + len(offsets))
-    return torch.cat(parts, dim=-1).float()
+            advance(k + 1, 1 + len(offsets))
+    return features
