@@ -286,14 +286,14 @@ class GridField(AcousticField):
             coords = [torch.stack(pair, dim=-1)[None, None] for pair in ((x, y), (x, z), (y, z))]
             for level in self.planes:
                 xy, xz, yz = (
-                    _bilinear(plane[None], where)[0, :, 0]
+                    threaded_read(plane[None], where)[0, :, 0]
                     for plane, where in zip(level, coords, strict=True)
                 )  # (C, N) each
                 parts.append(xy * xz * yz)
         else:
             coords = torch.stack([x, y, x, z, y, z], dim=-1).view(-1, 3, 2).transpose(0, 1)[:, None]
             for plane in self.planes:
-                sampled = _bilinear(plane, coords)  # (3, C, 1, N)
+                sampled = threaded_read(plane, coords)  # (3, C, 1, N): one call
                 parts.append(sampled[0, :, 0] * sampled[1, :, 0] * sampled[2, :, 0])  # (C, N)
         if self.volume is not None:
             where = torch.stack([x, y, z], dim=-1)[None, None, None]
@@ -361,15 +361,10 @@ class GridField(AcousticField):
         return [list(level) if self.per_axis else [level] for level in self.planes]
 
 
-def _bilinear(planes: torch.Tensor, coords: torch.Tensor) -> torch.Tensor:
-    """``grid_sample`` of (B, C, rows, cols) planes at (B, 1, N, 2) unit coordinates, or of a
-    (1, C, D, H, W) volume at (1, 1, 1, N, 3) ones (:func:`threaded_read`)."""
-    return threaded_read(planes, coords)
-
-
 def threaded_read(values: torch.Tensor, where: torch.Tensor) -> torch.Tensor:
-    """``grid_sample`` (bilinear, border, ``align_corners``) of ``values`` (1, C, *grid) at
-    ``where`` (1, 1, [1,] N, d), read on every torch CPU thread when nothing needs a gradient.
+    """``grid_sample`` (bilinear, border, ``align_corners``) of ``values`` (B, C, *grid) at
+    ``where`` (B, 1, [1,] N, d); a single grid (B = 1) is read on every torch CPU thread when
+    nothing needs a gradient.
 
     torch's CPU kernels share one call's work out over its batch: a single plane or volume
     (batch 1) is read on one thread, and more slowly with two threads than with one (figures
