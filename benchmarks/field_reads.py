@@ -19,11 +19,13 @@ from __future__ import annotations
 
 import argparse
 import statistics
+import sys
 import time
 
 import torch
 
 import ultron.fields.grid as grid
+from ultron.errors import UltronError
 from ultron.models.fitted import load_field
 
 
@@ -45,7 +47,11 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
-    fitted = load_field(args.field_dir)
+    try:
+        fitted = load_field(args.field_dir)
+    except UltronError as exc:  # one line naming the file, exit 2, as the commands do
+        print(f"error: {exc}", file=sys.stderr)
+        raise SystemExit(2) from None
     points = cube_points(fitted, args.points, args.seed)
     longest = int(points.std(0).argmax())  # the world axis along which the points spread most
     orders = {"drawn": points, "sorted": points[torch.argsort(points[:, longest])]}
