@@ -99,6 +99,8 @@ def test_ultron_end_to_end(tiny: Path, tmp_path: Path, monkeypatch):
     run = _check_outputs(tmp_path / "out", with_metrics=True)
     assert run["field_cached"] is False
     assert run["n_bone_pixels"] > 0
+    # label_loss scores every pixel of fewer than 2¹⁸: every input is computed
+    assert run["n_inputs_computed"] == run["n_labelled_pixels"] < 2**18
     assert run["transmission_source"] == "field" and run["diagnostic"] is False
     assert 0 <= run["transmission_stats"]["background_mean"] <= 1
     assert run["echo_support"] is True and run["faces_kept"] <= run["faces_extracted"]

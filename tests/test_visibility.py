@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
+from functools import partial
 
 import numpy as np
 import pytest
@@ -20,6 +22,7 @@ from ultron.data.labels import (
 from ultron.data.truth import TRANSMISSION_FILE, load_true_transmission
 from ultron.errors import UltronInputError
 from ultron.fields import FieldConfig, GridFieldConfig
+from ultron.methods import ultron_method
 from ultron.methods.ultron_method import UltronConfig, occupancy_training_data
 from ultron.models.fitted import TransmissionMaps
 from ultron.pipeline.model_io import load_network
@@ -27,7 +30,7 @@ from ultron.pipeline.presets import preset_request
 from ultron.pipeline.run import ReconstructionRequest, reconstruct
 from ultron.render import RenderConfig, pixel_points_mm, render_properties
 from ultron.train import FieldTrainConfig, fit_field
-from ultron.train.occupancy import OccupancyTrainConfig
+from ultron.train.occupancy import OccupancyTrainConfig, rows_read
 from ultron.train.visibility import (
     ConfidenceConfig,
     LabelTransmissionConfig,
@@ -135,6 +138,26 @@ def test_training_data_reads_the_unsure_gap_above_a_band_as_background(fitted_ca
 
 
 # ------------------------------------------------------------------------------ labels
+def test_training_data_computes_the_inputs_the_fit_reads_only(fitted_case, monkeypatch):
+    dataset, fitted = fitted_case["dataset"], fitted_case["fitted"]
+    selection = select_label_frames(dataset, 0.5, 0)
+    full = occupancy_training_data(dataset, fitted, selection)
+    n = len(full.labels)
+    # label_loss's pick scores every pixel of a dataset this small: score every 40th instead
+    monkeypatch.setattr(ultron_method, "rows_read", partial(rows_read, max_points=n // 40))
+    reads = OccupancyTrainConfig(iters=3, batch_size=64, seed=1)
+    part = occupancy_training_data(dataset, fitted, selection, reads=reads)
+    rows = rows_read(n, 64, 3, 1, max_points=n // 40)
+    assert part.input_rows is not None and len(part.inputs) == len(rows) < n / 3
+    assert torch.equal(part.input_rows >= 0, torch.isin(torch.arange(n), rows))
+    # the same inputs up to the last bits of the field's batched query
+    torch.testing.assert_close(part.inputs_at(rows), full.inputs[rows], rtol=0, atol=1e-5)
+    assert torch.equal(part.transmission, full.transmission)
+    assert torch.equal(part.labels, full.labels) and torch.equal(part.in_front, full.in_front)
+    every = occupancy_training_data(dataset, fitted, selection, reads=replace(reads, iters=200))
+    assert every.input_rows is None and torch.equal(every.inputs, full.inputs)
+
+
 def test_label_transmission_hand_worked():
     # columns: two bone runs; bone deep down; no bone; nothing annotated; a run ended by 255
     labels = np.array(

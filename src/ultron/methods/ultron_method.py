@@ -90,6 +90,7 @@ from ultron.train.occupancy import (
     OccupancyTrainingData,
     fit_occupancy,
     label_loss,
+    rows_read,
 )
 from ultron.train.visibility import (
     VisibilityConfig,
@@ -240,6 +241,7 @@ def occupancy_training_data(
     outer_side_mm: float = 0.0,
     advance: Advanced | None = None,
     keep: TransmissionMaps | None = None,
+    reads: OccupancyTrainConfig | None = None,
 ) -> OccupancyTrainingData:
     """Per labelled pixel: f's input g(x) (:func:`~ultron.fields.context.theta_features` with
     ``context``, default θ and its neighbours at 1 and 2 mm), T (detached) from ``visibility``
@@ -250,7 +252,9 @@ def occupancy_training_data(
     (:func:`~ultron.data.labels.gather_labelled_pixels`). ``advance`` is told how many of g(x)'s
     θ queries are done (:func:`~ultron.fields.context.theta_features`). The data marks the
     background labels in front of their scanline's first bone label (``in_front``). ``keep``,
-    when given, keeps the field's T of every labelled frame (the observed crop reads them)."""
+    when given, keeps the field's T of every labelled frame (the observed crop reads them).
+    ``reads``, the settings of the fit to come, limits g(x) to the pixels that fit reads
+    (:func:`~ultron.train.occupancy.rows_read`) when it reads fewer than all."""
     if fitted.theta_stats is None:
         raise UltronInputError("field", "theta_stats", "the field has no θ statistics (refit it)")
     fitted.check_probe(dataset.probe)
@@ -259,12 +263,22 @@ def occupancy_training_data(
     transmission = pixel_transmission(
         visibility or VisibilityConfig(), dataset, pixels, truth=truth, field_transmission=field_t
     )
-    world = torch.from_numpy(pixels.world_mm(dataset))
+    rows = input_rows = None
+    if reads is not None:
+        rows = rows_read(len(pixels), reads.batch_size, reads.iters, reads.seed)
+        if len(rows) == len(pixels):  # every pixel read: the whole query, as without reads
+            rows = None
+        else:
+            theta = theta[rows]
+            input_rows = torch.full((len(pixels),), -1, dtype=torch.int64)
+            input_rows[rows] = torch.arange(len(rows))
+    world = torch.from_numpy(pixels.world_mm(dataset, None if rows is None else rows.numpy()))
     inputs = theta_features(fitted, world, context or ThetaContextConfig(), theta, advance)
     labels = torch.from_numpy(pixels.label.astype(np.uint8))
     shadow = in_labelled_shadow(dataset, pixels)
     front = torch.from_numpy(pixels.in_front_of_bone())
-    return OccupancyTrainingData(inputs, transmission.detach().float(), labels, shadow, front)
+    transmission = transmission.detach().float()
+    return OccupancyTrainingData(inputs, transmission, labels, shadow, front, input_rows)
 
 
 def occupancy_function(fitted, network: OccupancyNetwork, context: ThetaContextConfig):
@@ -395,7 +409,7 @@ def train_ultron(
         selection = select_label_frames(dataset, label_fraction, seed)
         data = occupancy_training_data(
             dataset, fitted, selection, config.visibility, truth, config.context,
-            config.label_outer_side_mm, timer.counter("θ queries"), rendered,
+            config.label_outer_side_mm, timer.counter("θ queries"), rendered, occupancy_config,
         )  # fmt: skip
     with timer.stage("occupancy_fit"):
         device = fitted.device if device is None else device
@@ -465,6 +479,7 @@ def mesh_ultron(
         "n_label_frames": selection.n_frames,
         "n_labelled_pixels": trained.data_info["n_labelled_pixels"],
         "n_bone_pixels": trained.data_info["n_bone_pixels"],
+        "n_inputs_computed": trained.data_info["n_inputs_computed"],
         **config.visibility.to_dict(),
         "theta_context": config.context.to_dict(),
         "label_outer_side_mm": config.label_outer_side_mm,

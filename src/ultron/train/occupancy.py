@@ -51,15 +51,23 @@ from ultron.arguments import check_count
 from ultron.device import resolve_device
 from ultron.errors import argument_error
 from ultron.fields.occupancy import OccupancyNetwork, OccupancyNetworkConfig
-from ultron.train.fit_checkpoint import (
-    FitCheckpoint,
-    FitState,
-    MinibatchOrder,
-    fit_fingerprint,
-    resumable,
-)
+from ultron.train.fit_checkpoint import FitCheckpoint, FitState, fit_fingerprint, resumable
 from ultron.train.loop import Progress, run_training
-from ultron.train.visibility import transmission_summary
+from ultron.train.occupancy_data import (
+    LABEL_LOSS_POINTS,
+    OccupancyAnchor,
+    OccupancyTrainingData,
+    label_loss_pick,
+    minibatch_orders,
+    rows_read,
+)
+
+__all__ = [  # the data's names, re-exported: stage 2's one import
+    "LABEL_LOSS_POINTS",
+    "OccupancyAnchor",
+    "OccupancyTrainingData",
+    "rows_read",
+]
 
 LOSSES = ("ultron", "bce")
 #: How the compensated loss treats background labels: scaled by T (``weighted``, the paper's
@@ -223,83 +231,6 @@ def parse_positive_weight(text: str) -> float | None:
     return value
 
 
-@dataclass(frozen=True)
-class OccupancyTrainingData:
-    """Precomputed per-pixel inputs (P, D), transmission T (P,) and labels y (P,) ∈ {0, 1};
-    ``labelled_shadow`` (P,) bool, when given, marks the pixels in the labels' own shadow
-    (:func:`ultron.train.visibility.in_labelled_shadow`) — a diagnostic the fit does not read;
-    ``in_front`` (P,) bool, when given, the background labels in front of their scanline's
-    first bone label (:meth:`~ultron.data.labels.LabelledPixels.in_front_of_bone`), which the
-    ``front`` negatives count whatever T says (:data:`NEGATIVES`)."""
-
-    inputs: torch.Tensor
-    transmission: torch.Tensor
-    labels: torch.Tensor
-    labelled_shadow: torch.Tensor | None = None
-    in_front: torch.Tensor | None = None
-
-    def __post_init__(self) -> None:
-        n = self.labels.shape[0]
-        masks = {"labelled_shadow": self.labelled_shadow, "in_front": self.in_front}
-        given = {name: mask for name, mask in masks.items() if mask is not None}
-        if (
-            self.inputs.ndim != 2
-            or self.inputs.shape[0] != n
-            or self.transmission.shape != (n,)
-            or any(mask.shape != (n,) for mask in given.values())
-        ):
-            extra = "".join(f", {name} {tuple(mask.shape)}" for name, mask in given.items())
-            raise argument_error(
-                "training data",
-                f"inputs {tuple(self.inputs.shape)}, transmission {tuple(self.transmission.shape)}"
-                f"{extra} and labels {tuple(self.labels.shape)} do not match",
-            )
-        if self.in_front is not None and self.in_front.dtype != torch.bool:
-            raise argument_error("in_front", f"expected a bool tensor, got {self.in_front.dtype}")
-        if n == 0:
-            raise argument_error("training data", "no labelled pixels")
-
-    def summary(self, observed_transmission: float) -> dict[str, Any]:
-        """run.json's account of this data: its labelled and bone pixels and its transmission
-        statistics (:func:`~ultron.train.visibility.transmission_summary`)."""
-        summary = {
-            "n_labelled_pixels": len(self.labels),
-            "n_bone_pixels": int(self.labels.sum()),
-            "transmission_stats": transmission_summary(
-                self.transmission, self.labels, self.labelled_shadow, observed_transmission
-            ),
-        }
-        if self.in_front is not None:  # how many the observed negatives keep against T
-            dark = self.in_front & (self.transmission < observed_transmission)
-            summary["n_background_in_front"] = int(self.in_front.sum())
-            summary["n_background_in_front_below_threshold"] = int(dark.sum())
-        return summary
-
-
-@dataclass(frozen=True)
-class OccupancyAnchor:
-    """Inputs (Q, D) of anchor points, the occupancy targets (Q,) in [0, 1] the fit is held to
-    there, and the term's weight λ ≥ 0 (module doc)."""
-
-    inputs: torch.Tensor
-    targets: torch.Tensor
-    weight: float = 1.0
-
-    def __post_init__(self) -> None:
-        if self.inputs.ndim != 2 or self.targets.shape != (self.inputs.shape[0],):
-            raise argument_error(
-                "anchor",
-                f"inputs {tuple(self.inputs.shape)} and targets {tuple(self.targets.shape)}"
-                " do not match",
-            )
-        if self.inputs.shape[0] == 0:
-            raise argument_error("anchor", "no anchor points")
-        if not (math.isfinite(self.weight) and self.weight >= 0):
-            raise argument_error("anchor.weight", f"expected a number ≥ 0, got {self.weight!r}")
-        if not bool(((self.targets >= 0) & (self.targets <= 1)).all()):
-            raise argument_error("anchor", "targets must lie in [0, 1]")
-
-
 def positive_class_weight(labels: torch.Tensor, config: OccupancyTrainConfig) -> float:
     """The configured ``positive_weight``; when it is None, n_neg / n_pos capped at
     ``max_positive_weight`` (1 when a class is absent)."""
@@ -338,7 +269,10 @@ def fit_occupancy(
     result is the uninterrupted fit's, bit for bit.
     """
     device = resolve_device(device, "device")
-    generator = torch.Generator().manual_seed(config.seed)
+    n_anchor = None if anchor is None else anchor.inputs.shape[0]
+    generator, orders = minibatch_orders(
+        data.labels.shape[0], config.batch_size, config.seed, n_anchor
+    )
     network = (network or _initial_network(config, data.inputs.shape[1])).to(device)
     inputs, transmission = data.inputs.to(device), data.transmission.to(device)
     in_front = _front_mask(data, config)
@@ -348,18 +282,17 @@ def fit_occupancy(
     gamma = config.final_lr_factor ** (1.0 / max(config.iters, 1))
     labels = data.labels.to(device, torch.float32)
     pos_weight = positive_class_weight(labels, config)
-    batches = MinibatchOrder(labels.shape[0], config.batch_size, generator)
-    orders = [batches]
+    batches = orders[0]
     if anchor is not None:
         anchor_inputs, anchor_targets = anchor.inputs.to(device), anchor.targets.to(device)
-        anchor_batches = MinibatchOrder(anchor_inputs.shape[0], config.batch_size, generator)
-        orders.append(anchor_batches)
+        anchor_batches = orders[1]
 
     def objective(step: int) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-        batch = next(batches).to(device)
+        drawn = next(batches)
+        batch = drawn.to(device)
         y = labels[batch]
         weight = torch.where(y > 0.5, pos_weight, 1.0)
-        f = network.occupancy(inputs[batch])
+        f = network.occupancy(inputs[data.input_index(drawn).to(device)])
         front = None if in_front is None else in_front[batch]
         loss = _loss(f, transmission[batch], y, weight, config, front)
         if anchor is None:
@@ -399,6 +332,8 @@ def _fingerprint(
     trained = {id(p) for p in parameters}
     names = [name for name, p in network.named_parameters() if id(p) in trained]
     tensors = [data.inputs, data.transmission, data.labels, *network.state_dict().values()]
+    if data.input_rows is not None:  # only data holding some pixels' inputs carries them
+        tensors.append(data.input_rows)
     front = _front_mask(data, config)
     if front is not None:  # only a fit that reads the mask depends on it
         tensors.append(front)
@@ -407,10 +342,6 @@ def _fingerprint(
         tensors += [anchor.inputs, anchor.targets]
         settings["anchor"] = anchor.weight
     return fit_fingerprint(tensors, settings)
-
-
-#: At most this many labelled pixels (evenly strided) score :func:`label_loss`.
-LABEL_LOSS_POINTS = 2**18
 
 
 def label_loss(
@@ -428,8 +359,7 @@ def label_loss(
     if isinstance(max_points, bool) or not isinstance(max_points, int) or max_points < 1:
         raise argument_error("max_points", f"expected a positive integer, got {max_points!r}")
     device = next(network.parameters()).device
-    n = data.labels.shape[0]
-    pick = torch.arange(0, n, max(1, math.ceil(n / max_points)))
+    pick = label_loss_pick(data.labels.shape[0], max_points)
     labels = data.labels.to(torch.float32)
     pos_weight = positive_class_weight(labels, config)
     in_front = _front_mask(data, config)
@@ -439,7 +369,7 @@ def label_loss(
             at = pick[start : start + chunk]
             y = labels[at].to(device)
             weight = torch.where(y > 0.5, pos_weight, 1.0)
-            f = network.occupancy(data.inputs[at].to(device))
+            f = network.occupancy(data.inputs_at(at).to(device))
             front = None if in_front is None else in_front[at].to(device)
             loss = _loss(f, data.transmission[at].to(device), y, weight, config, front)
             total += float(loss) * len(at)
