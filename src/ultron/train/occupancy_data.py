@@ -2,8 +2,8 @@
 transmission T and label, and the anchor of a fine-tune; and which of the pixels a fit reads.
 
 A fit of ``iters`` minibatches of ``batch_size`` reads at most iters·batch_size pixels (plus
-:func:`label_loss_pick`'s); a long recording can label more (the default fit draws 6.1 M; the
-auto labels of a real fibula's 985 frames are 8.6 M pixels). :func:`rows_read` replays the
+:func:`label_loss_pick`'s); a long recording with every frame labelled can hold more.
+:func:`rows_read` replays the
 fit's seeded draws, so that g(x) — the stage's dearest part, a field query per pixel and
 stencil neighbour — is computed only for the pixels the fit reads (``input_rows``): the fit
 draws the same batches and sees the same inputs as with every pixel's, up to the last bits of
