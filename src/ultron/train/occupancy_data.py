@@ -3,11 +3,11 @@ transmission T and label, and the anchor of a fine-tune; and which of the pixels
 
 A fit of ``iters`` minibatches of ``batch_size`` reads at most iters·batch_size pixels (plus
 :func:`label_loss_pick`'s); a long recording with every frame labelled can hold more.
-:func:`rows_read` replays the
-fit's seeded draws, so that g(x) — the stage's dearest part, a field query per pixel and
-stencil neighbour — is computed only for the pixels the fit reads (``input_rows``): the fit
-draws the same batches and sees the same inputs as with every pixel's, up to the last bits of
-the field's batched query (docs/decisions.md, "Stage 2's inputs only where the fit reads them").
+:func:`rows_read` replays the fit's seeded draws, so that g(x) — the stage's dearest part, a
+field query per pixel and stencil neighbour — is computed only for the pixels the fit reads
+(``input_rows``): the fit draws the same batches and sees the same inputs as with every
+pixel's, up to the last bits of the field's batched query (docs/decisions.md, "Stage 2's
+inputs only where the fit reads them").
 """
 
 from __future__ import annotations
