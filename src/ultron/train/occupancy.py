@@ -62,13 +62,6 @@ from ultron.train.occupancy_data import (
     rows_read,
 )
 
-__all__ = [  # the data's names, re-exported: stage 2's one import
-    "LABEL_LOSS_POINTS",
-    "OccupancyAnchor",
-    "OccupancyTrainingData",
-    "rows_read",
-]
-
 LOSSES = ("ultron", "bce")
 #: How the compensated loss treats background labels: scaled by T (``weighted``, the paper's
 #: BCE(T·f, y)) or kept at full weight where T ≥ ``observed_transmission`` and dropped
@@ -412,3 +405,24 @@ def _loss(
     if config.loss == "ultron":
         return attenuation_compensated_bce(f, transmission, y, weight)
     return binary_cross_entropy(f, y, weight)
+
+
+__all__ = [  # with the data's names (train/occupancy_data.py): stage 2's one import
+    "EPSILON",
+    "LABEL_LOSS_POINTS",
+    "LOG_EVERY",
+    "LOSSES",
+    "NEGATIVES",
+    "OBSERVED_TRANSMISSION",
+    "OccupancyAnchor",
+    "OccupancyTrainConfig",
+    "OccupancyTrainingData",
+    "attenuation_compensated_bce",
+    "binary_cross_entropy",
+    "fit_occupancy",
+    "label_loss",
+    "observed_negatives_bce",
+    "parse_positive_weight",
+    "positive_class_weight",
+    "rows_read",
+]
