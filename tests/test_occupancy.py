@@ -20,6 +20,7 @@ from ultron.train.occupancy import (
     fit_occupancy,
     label_loss,
     observed_negatives_bce,
+    occupancy_in,
     parse_positive_weight,
     positive_class_weight,
 )
@@ -225,6 +226,35 @@ def test_network_learns_a_separable_rule():
         predicted = network.occupancy(data.inputs) > 0.5
     accuracy = (predicted == data.labels.bool()).float().mean()
     assert accuracy > 0.95
+
+
+def test_occupancy_in_bfloat16_is_mixed_precision_and_float32_is_exact():
+    network = OccupancyNetwork(SMALL)
+    inputs = _separable_data(256).inputs
+    exact = network.occupancy(inputs)
+    assert torch.equal(occupancy_in(network, inputs, "float32"), exact)
+    mixed = occupancy_in(network, inputs, "bfloat16")
+    assert mixed.dtype == torch.float32 and not torch.equal(mixed, exact)
+    # bfloat16 products: 8 bits of mantissa, a few parts in a thousand on f
+    torch.testing.assert_close(mixed, exact, rtol=0, atol=2e-2)
+    with pytest.raises(UltronInputError, match="precision"):
+        occupancy_in(network, inputs, "float16")
+    with pytest.raises(UltronInputError, match="precision"):
+        OccupancyTrainConfig(precision="half")
+
+
+def test_a_bfloat16_fit_learns_the_rule_and_keeps_float32_weights():
+    data = _separable_data()
+    config = OccupancyTrainConfig(iters=300, batch_size=512, lr=1e-3, loss="bce", seed=1,
+                                  network=SMALL, precision="bfloat16")  # fmt: skip
+    network, log = fit_occupancy(data, config)
+    assert all(p.dtype == torch.float32 for p in network.parameters())
+    assert log[-1]["loss"] < 0.5 * log[0]["loss"]
+    with torch.no_grad():
+        accuracy = ((network.occupancy(data.inputs) > 0.5) == data.labels.bool()).float().mean()
+    assert accuracy > 0.95
+    exact, _ = fit_occupancy(data, replace(config, precision="float32"))
+    assert not torch.equal(network.trunk.output.weight, exact.trunk.output.weight)
 
 
 def test_compensated_loss_ignores_shadowed_negatives():

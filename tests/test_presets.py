@@ -138,6 +138,13 @@ def test_request_takes_the_preset_and_options_win():
     fast = preset_request()
     assert fast.method_config == UltronConfig(occupancy=OccupancyTrainConfig(seed=fast.seed))
     assert preset_request(method="on").method_config == ONConfig()
+    assert preset_request().method_config.occupancy.precision == "float32"
+    bf16 = preset_request(occupancy_precision="bfloat16").method_config.occupancy
+    assert bf16.precision == "bfloat16" and bf16.iters == 1500  # the preset's other settings
+    on_bf16 = preset_request(method="on", occupancy_precision="bfloat16").method_config
+    assert on_bf16.occupancy.precision == "bfloat16"
+    with pytest.raises(UltronInputError, match="precision"):
+        preset_request(occupancy_precision="half")
     assert fast.method == "ultron" and fast.label_fraction == 0.1
     assert preset_field_config("paper", 1).iterations == 75_000
     assert preset_field_config("paper", 1, 10).iterations == 10

@@ -39,6 +39,7 @@ def _field_progress():
     metavars={"field": "FIELD_DIR", "label_support": "MM"},
     aliases=RUN_ALIASES
     | {"iters": "occupancy_iters", "oracle": "oracle_transmission"}
+    | {"precision": "occupancy_precision"}
     | {"label_support_mm": "label_support"},
     documented_by=("ultron.pipeline.presets:preset_request",),
 )
@@ -51,6 +52,7 @@ def reconstruct(
     seed: int = 0,
     field_iters: int | None = None,
     occupancy_iters: int | None = None,
+    occupancy_precision: str | None = None,
     points: int = 100_000,
     preset: str = "fast",
     visibility: str = "field",
@@ -88,6 +90,7 @@ def reconstruct(
 
     request = preset_request(  # checks every option it takes
         preset, method, label_fraction, seed, points=points, occupancy_iters=occupancy_iters,
+        occupancy_precision=occupancy_precision,
         visibility=visibility, oracle=oracle_transmission, surface=surface,
         theta_context=theta_context, positive_weight=positive_weight, negatives=negatives,
         echo_support=echo_support, label_support_mm=label_support, label_bridges=label_bridges,

@@ -99,6 +99,7 @@ def preset_request(
     *,
     points: int = 100_000,
     occupancy_iters: int | None = None,
+    occupancy_precision: str | None = None,
     visibility: str = "field",
     oracle: bool = False,
     surface: str | None = None,
@@ -123,6 +124,9 @@ def preset_request(
             y), whole surface, RoCoSDF's paper settings; for a GPU). Options given win.
         occupancy_iters: Occupancy iterations of ultron* and on (default: the preset's: 1500;
             paper: 50000).
+        occupancy_precision: Arithmetic of the occupancy fit of ultron* and on: float32, or
+            bfloat16 (mixed precision: faster where the CPU multiplies bfloat16 natively,
+            AVX512-BF16 or AMX, and on GPUs; slower elsewhere) (default: float32).
         visibility: Source of the loss's transmission T (ultron*): field (the fitted
             acoustic field), confidence (the frame's ultrasound confidence map) or labels
             (the annotation's first bone run per scanline).
@@ -165,11 +169,14 @@ def preset_request(
     base = pipeline_preset(preset, seed)
     occupancy, on = base.ultron.occupancy, base.on
     changes = {"negatives": negatives, "iters": occupancy_iters}
+    changes["precision"] = occupancy_precision
     occupancy = replace(occupancy, **{k: v for k, v in changes.items() if v is not None})
     if positive_weight is not None:  # "balanced" parses to None: n_background / n_bone
         occupancy = replace(occupancy, positive_weight=parse_positive_weight(positive_weight))
-    if occupancy_iters is not None:
-        on = replace(on, occupancy=replace(on.occupancy, iters=occupancy_iters))
+    shared = {"iters": occupancy_iters, "precision": occupancy_precision}
+    if any(value is not None for value in shared.values()):
+        on_occupancy = {k: v for k, v in shared.items() if v is not None}
+        on = replace(on, occupancy=replace(on.occupancy, **on_occupancy))
     ultron = _with_options(
         replace(base.ultron, occupancy=occupancy, visibility=source), theta_context,
         echo_support, label_fusion,

@@ -81,6 +81,13 @@ NEGATIVES = ("weighted", "observed", "front")
 #: and the simulated annotator's threshold (:mod:`ultron.mesh.observed`), not tuned.
 OBSERVED_TRANSMISSION = 0.3
 EPSILON = 1e-6
+#: The arithmetic of the fit's network passes: ``float32`` throughout (the default), or
+#: ``bfloat16`` mixed precision — the linear layers' products in bfloat16 under
+#: :func:`torch.autocast`, the weights, the optimiser, the logits' sigmoid and the loss in float32
+#: (:func:`occupancy_in`). Faster on a CPU with native bfloat16 products (AVX512-BF16, AMX) or
+#: a GPU; elsewhere it can be slower. Measured in
+#: docs/decisions.md#occupancy-fit-in-bfloat16-an-option-trainoccupancypy.
+PRECISIONS = ("float32", "bfloat16")
 
 
 #: Updates between the entries of the loss log.
@@ -175,6 +182,7 @@ class OccupancyTrainConfig:
     observed_transmission: float = OBSERVED_TRANSMISSION
     seed: int = 0
     network: OccupancyNetworkConfig = field(default_factory=OccupancyNetworkConfig)
+    precision: str = "float32"
 
     def __post_init__(self) -> None:
         if self.loss not in LOSSES:
@@ -192,6 +200,10 @@ class OccupancyTrainConfig:
             math.isfinite(self.positive_weight) and self.positive_weight > 0
         ):
             raise argument_error("positive_weight", f"expected > 0, got {self.positive_weight}")
+        if self.precision not in PRECISIONS:
+            raise argument_error(
+                "precision", f"expected one of {PRECISIONS}, got {self.precision!r}"
+            )
         if self.negatives not in NEGATIVES:
             raise argument_error(
                 "negatives", f"expected one of {NEGATIVES}, got {self.negatives!r}"
@@ -285,15 +297,14 @@ def fit_occupancy(
         batch = drawn.to(device)
         y = labels[batch]
         weight = torch.where(y > 0.5, pos_weight, 1.0)
-        f = network.occupancy(inputs[data.input_index(drawn).to(device)])
+        f = occupancy_in(network, inputs[data.input_index(drawn).to(device)], config.precision)
         front = None if in_front is None else in_front[batch]
         loss = _loss(f, transmission[batch], y, weight, config, front)
         if anchor is None:
             return loss, {"loss": loss.detach()}
         held = next(anchor_batches).to(device)
-        kept = binary_cross_entropy(
-            network.occupancy(anchor_inputs[held]), anchor_targets[held].float()
-        )
+        held_f = occupancy_in(network, anchor_inputs[held], config.precision)
+        kept = binary_cross_entropy(held_f, anchor_targets[held].float())
         return loss + anchor.weight * kept, {"loss": loss.detach(), "anchor": kept.detach()}
 
     fit = FitState([network], [optimiser], generator, orders)
@@ -311,6 +322,20 @@ def fit_occupancy(
     )  # fmt: skip
     network.eval()
     return network, fit.log
+
+
+def occupancy_in(network: OccupancyNetwork, inputs: torch.Tensor, precision: str) -> torch.Tensor:
+    """σ(f_ω(inputs)) with f_ω's passes in ``precision`` (:data:`PRECISIONS`): for ``bfloat16``
+    the network runs under :func:`torch.autocast` on the inputs' device and its logits are
+    cast to float32 before the sigmoid, so that f near 0 and 1 keeps float32's resolution in
+    the loss; ``float32`` is :meth:`OccupancyNetwork.occupancy` itself."""
+    if precision not in PRECISIONS:
+        raise argument_error("precision", f"expected one of {PRECISIONS}, got {precision!r}")
+    if precision == "float32":
+        return network.occupancy(inputs)
+    with torch.autocast(device_type=inputs.device.type, dtype=torch.bfloat16):
+        logits = network(inputs)
+    return torch.sigmoid(logits.float())
 
 
 def _fingerprint(
@@ -414,6 +439,7 @@ __all__ = [  # with the data's names (train/occupancy_data.py): stage 2's one im
     "LOSSES",
     "NEGATIVES",
     "OBSERVED_TRANSMISSION",
+    "PRECISIONS",
     "OccupancyAnchor",
     "OccupancyTrainConfig",
     "OccupancyTrainingData",
@@ -422,6 +448,7 @@ __all__ = [  # with the data's names (train/occupancy_data.py): stage 2's one im
     "fit_occupancy",
     "label_loss",
     "observed_negatives_bce",
+    "occupancy_in",
     "parse_positive_weight",
     "positive_class_weight",
     "rows_read",
