@@ -4,9 +4,10 @@ Builds UltrON's default f_ω (θ and its stencil neighbours: 39 inputs, width 12
 seeded synthetic training data, then times ``fit_occupancy`` for ``--iters`` steps at the
 default batch in each precision (``OccupancyTrainConfig.precision``), alternately,
 ``--repeats`` times each. Prints the median milliseconds per step of each, their ratio, the
-largest difference between the two trained networks' f on the data, and whether this CPU
-reports native bfloat16 products (AVX512-BF16 or AMX in /proc/cpuinfo): without them
-bfloat16 is emulated and can be the slower one.
+largest difference between the two trained networks' f on the data, the CPU's bfloat16 flags
+(/proc/cpuinfo) and whether oneDNN multiplies bfloat16 natively here
+(:func:`ultron.device.native_bfloat16`, which ``ONEDNN_MAX_CPU_ISA`` can cap): without that,
+torch emulates bfloat16 and it is by far the slower one.
 
 Usage::
 
@@ -23,12 +24,13 @@ from pathlib import Path
 
 import torch
 
+from ultron.device import native_bfloat16
 from ultron.fields.context import ThetaContextConfig
 from ultron.fields.occupancy import OccupancyNetworkConfig
 from ultron.train.occupancy import OccupancyTrainConfig, OccupancyTrainingData, fit_occupancy
 
 
-def native_bfloat16() -> str:
+def cpu_flags() -> str:
     """The bfloat16 flags /proc/cpuinfo lists (``none``; ``unknown`` off Linux)."""
     info = Path("/proc/cpuinfo")
     if not info.exists():
@@ -58,8 +60,8 @@ def main() -> None:
     network = ThetaContextConfig().network(OccupancyNetworkConfig(), 3)
     data = synthetic_data(args.pixels, network.in_dim, args.seed)
     base = OccupancyTrainConfig(iters=args.iters, network=network, seed=args.seed)
-    print(f"{args.iters} steps of batch {base.batch_size}, {args.threads} threads; "
-          f"native bfloat16: {native_bfloat16()}")  # fmt: skip
+    print(f"{args.iters} steps of batch {base.batch_size}, {args.threads} threads; CPU flags: "
+          f"{cpu_flags()}; oneDNN native bfloat16: {native_bfloat16(torch.device('cpu'))}")  # fmt: skip
     timings: dict[str, list[float]] = {"float32": [], "bfloat16": []}
     trained = {}
     for _ in range(args.repeats):

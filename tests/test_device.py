@@ -10,6 +10,9 @@ from __future__ import annotations
 
 import io
 import json
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -21,7 +24,13 @@ from field_configs import quick_field_config
 from strict_device import StrictDevices
 from ultron.cli.main import app
 from ultron.data.geometry import UnitCube
-from ultron.device import cpu_state, describe_device, module_device, resolve_device
+from ultron.device import (
+    cpu_state,
+    describe_device,
+    module_device,
+    native_bfloat16,
+    resolve_device,
+)
 from ultron.errors import UltronInputError
 from ultron.fields.factory import build_field
 from ultron.render.renderer import RenderConfig, render_field
@@ -322,3 +331,15 @@ def test_map_chunks_equals_one_call_and_keeps_no_graph():
     for bad in (0, -1, 1.5, True):
         with pytest.raises(UltronInputError, match="chunk"):
             map_chunks(lambda x: x, inputs, bad)
+
+
+def test_native_bfloat16_follows_onednn_and_its_isa_cap():
+    test = getattr(torch.ops.mkldnn, "_is_mkldnn_bf16_supported", None)
+    expected = bool(test()) if test is not None else False
+    assert native_bfloat16(torch.device("cpu")) is expected
+    assert native_bfloat16(torch.device("meta")) is True  # no emulation to warn of
+    # oneDNN capped at AVX2 has no bfloat16 products, whatever this CPU has
+    code = "import torch; from ultron.device import native_bfloat16 as n; print(n(torch.device('cpu')))"
+    env = {**os.environ, "ONEDNN_MAX_CPU_ISA": "AVX2"}
+    capped = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True)
+    assert capped.returncode == 0 and capped.stdout.strip() == "False"

@@ -96,6 +96,19 @@ def describe_device(device: torch.device) -> dict[str, Any]:
     return record
 
 
+def native_bfloat16(device: torch.device) -> bool:
+    """Whether ``device`` multiplies bfloat16 natively. On a CPU this is oneDNN's own test
+    (AVX512-BF16 or AMX, and not capped by ``ONEDNN_MAX_CPU_ISA``; False where this torch
+    lacks the test); on CUDA :func:`torch.cuda.is_bf16_supported`; elsewhere True. Without
+    native products torch emulates them, far more slowly than float32."""
+    if device.type == "cpu":
+        test = getattr(torch.ops.mkldnn, "_is_mkldnn_bf16_supported", None)
+        return bool(test()) if test is not None else False
+    if device.type == "cuda":
+        return bool(torch.cuda.is_bf16_supported())
+    return True
+
+
 def module_device(module: torch.nn.Module) -> torch.device:
     """The device of ``module``'s first parameter or buffer (the CPU for one without any)."""
     first = next(itertools.chain(module.parameters(), module.buffers()), None)

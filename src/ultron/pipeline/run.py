@@ -28,7 +28,7 @@ from ultron.data.labels import (
     selection_warnings,
 )
 from ultron.data.units import units_warnings
-from ultron.device import describe_device, resolve_device
+from ultron.device import describe_device, native_bfloat16, resolve_device
 from ultron.errors import argument_error
 from ultron.mesh.export import load_mesh, save_mesh, save_volume_nifti
 from ultron.methods.evidence import evidence_summary, reconstruction_evidence, with_observation
@@ -317,7 +317,26 @@ def preflight(
         vertices = None if reference is None else reference.vertices
         for line in selection_warnings(dataset, selection) + units_warnings(dataset, vertices):
             warn(line)
+        for line in precision_warnings(config, request.device):
+            warn(line)
     return dataset, references, truth
+
+
+def precision_warnings(config: Any, device: str) -> list[str]:
+    """A line when ``config``'s occupancy fit (a method config with an ``occupancy``
+    :class:`~ultron.train.occupancy.OccupancyTrainConfig`) runs in bfloat16 on a device
+    without native bfloat16 products (:func:`~ultron.device.native_bfloat16`)."""
+    occupancy = getattr(config, "occupancy", None)
+    if getattr(occupancy, "precision", "float32") != "bfloat16":
+        return []
+    resolved = resolve_device(device, "device")
+    if native_bfloat16(resolved):
+        return []
+    return [
+        f"--occupancy-precision bfloat16: {resolved} has no native bfloat16 products "
+        "(AVX512-BF16 or AMX); torch emulates them and the occupancy fit runs many times "
+        "slower than in float32 (docs/reconstruct.md)"
+    ]
 
 
 def field_candidates(
