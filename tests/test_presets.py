@@ -258,14 +258,15 @@ def test_cli_label_fusion_flag_reaches_the_request(tmp_path: Path, monkeypatch):
 def test_a_bfloat16_fit_without_native_products_is_warned_of(monkeypatch):
     import ultron.pipeline.run as run
 
+    cpu = torch.device("cpu")
     bf16 = preset_request(occupancy_precision="bfloat16").method_config
     monkeypatch.setattr(run, "native_bfloat16", lambda device: False)
-    (line,) = run.precision_warnings(bf16, "cpu")
+    (line,) = run.precision_warnings(bf16, cpu)
     assert line.startswith("--occupancy-precision bfloat16: cpu has no native bfloat16")
     on = preset_request(method="on", occupancy_precision="bfloat16").method_config
-    assert len(run.precision_warnings(on, "cpu")) == 1
-    assert run.precision_warnings(preset_request().method_config, "cpu") == []  # float32
+    assert len(run.precision_warnings(on, cpu)) == 1
+    assert run.precision_warnings(preset_request().method_config, cpu) == []  # float32
     compounding = preset_request(method="compounding").method_config  # no occupancy fit
-    assert run.precision_warnings(compounding, "cpu") == []
+    assert run.precision_warnings(compounding, cpu) == []
     monkeypatch.setattr(run, "native_bfloat16", lambda device: True)
-    assert run.precision_warnings(bf16, "cpu") == []
+    assert run.precision_warnings(bf16, cpu) == []

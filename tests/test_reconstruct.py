@@ -232,6 +232,32 @@ def test_on_end_to_end(tiny: Path, tmp_path: Path):
     assert summary["metrics"]["mean"]["mad"] < 4.0
 
 
+def test_a_bfloat16_fit_without_native_products_warns_before_any_work(tiny: Path, tmp_path: Path,
+                                                                      monkeypatch):  # fmt: skip
+    from dataclasses import replace
+
+    import ultron.pipeline.run as run_module
+    from ultron.methods.on_method import ONConfig
+
+    monkeypatch.setattr(run_module, "native_bfloat16", lambda device: False)
+    on = ONConfig()
+    on = replace(on, occupancy=replace(on.occupancy, iters=20, precision="bfloat16"))
+    request = ReconstructionRequest(method="on", label_fraction=1.0, method_config=on,
+                                    metrics=FAST_METRICS)  # fmt: skip
+    events: list[tuple[str, str]] = []
+    reconstruct(tiny, request, tmp_path / "out", warn=lambda line: events.append(("warn", line)),
+                announce=lambda stage, *_: events.append(("stage", stage)))  # fmt: skip
+    assert [line for kind, line in events if kind == "warn" and "bfloat16" in line] == [
+        "--occupancy-precision bfloat16: cpu has no native bfloat16 products (AVX512-BF16 or"
+        " AMX); torch emulates them and the occupancy fit runs many times slower than in"
+        " float32 (docs/reconstruct.md)"
+    ]
+    warned = next(k for k, (kind, _) in enumerate(events) if kind == "warn")
+    assert warned < events.index(("stage", "labels"))  # before any work after loading
+    run = json.loads((tmp_path / "out" / "run.json").read_text())
+    assert run["occupancy_config"]["precision"] == "bfloat16"
+
+
 def test_on_rejects_the_compensated_loss():
     from ultron.methods.on_method import ONConfig
 

@@ -168,15 +168,13 @@ def preset_request(
         )
     base = pipeline_preset(preset, seed)
     occupancy, on = base.ultron.occupancy, base.on
-    changes = {"negatives": negatives, "iters": occupancy_iters}
-    changes["precision"] = occupancy_precision
-    occupancy = replace(occupancy, **{k: v for k, v in changes.items() if v is not None})
+    given = {"iters": occupancy_iters, "precision": occupancy_precision}  # ultron* and on
+    shared = {k: v for k, v in given.items() if v is not None}
+    own = {} if negatives is None else {"negatives": negatives}
+    occupancy = replace(occupancy, **shared, **own)
     if positive_weight is not None:  # "balanced" parses to None: n_background / n_bone
         occupancy = replace(occupancy, positive_weight=parse_positive_weight(positive_weight))
-    shared = {"iters": occupancy_iters, "precision": occupancy_precision}
-    if any(value is not None for value in shared.values()):
-        on_occupancy = {k: v for k, v in shared.items() if v is not None}
-        on = replace(on, occupancy=replace(on.occupancy, **on_occupancy))
+    on = replace(on, occupancy=replace(on.occupancy, **shared))
     ultron = _with_options(
         replace(base.ultron, occupancy=occupancy, visibility=source), theta_context,
         echo_support, label_fusion,

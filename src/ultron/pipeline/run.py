@@ -20,6 +20,8 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, cast
 
+import torch
+
 from ultron import atomic
 from ultron.data.dataset import SweepDataset
 from ultron.data.labels import (
@@ -246,6 +248,8 @@ def reconstruct(
             max_memory_gib, warn,
         )  # fmt: skip
     device = resolve_device(request.device, "device")
+    for line in precision_warnings(request.method_config, device) if warn else ():
+        warn(line)  # before any work, after the pre-flight checks as preflight's own warnings
     extra: dict[str, Any] = {"device": describe_device(device)}
     if method.needs_field:
         result, field_extra = run_on_fields(
@@ -317,23 +321,18 @@ def preflight(
         vertices = None if reference is None else reference.vertices
         for line in selection_warnings(dataset, selection) + units_warnings(dataset, vertices):
             warn(line)
-        for line in precision_warnings(config, request.device):
-            warn(line)
     return dataset, references, truth
 
 
-def precision_warnings(config: Any, device: str) -> list[str]:
+def precision_warnings(config: Any, device: torch.device) -> list[str]:
     """A line when ``config``'s occupancy fit (a method config with an ``occupancy``
-    :class:`~ultron.train.occupancy.OccupancyTrainConfig`) runs in bfloat16 on a device
+    :class:`~ultron.train.occupancy.OccupancyTrainConfig`) runs in bfloat16 on ``device``
     without native bfloat16 products (:func:`~ultron.device.native_bfloat16`)."""
     occupancy = getattr(config, "occupancy", None)
-    if getattr(occupancy, "precision", "float32") != "bfloat16":
-        return []
-    resolved = resolve_device(device, "device")
-    if native_bfloat16(resolved):
+    if getattr(occupancy, "precision", "float32") != "bfloat16" or native_bfloat16(device):
         return []
     return [
-        f"--occupancy-precision bfloat16: {resolved} has no native bfloat16 products "
+        f"--occupancy-precision bfloat16: {device} has no native bfloat16 products "
         "(AVX512-BF16 or AMX); torch emulates them and the occupancy fit runs many times "
         "slower than in float32 (docs/reconstruct.md)"
     ]
