@@ -373,3 +373,24 @@ def test_a_recording_without_bone_is_warned_about_and_refused_before_any_work(tm
         assert len(lines) == 1 and lines[0].startswith(f"error: {tmp_path / 'd'}: labels:")
         assert "contain no bone pixel" in lines[0] and "Traceback" not in result.output
         assert not out.exists() and not (tmp_path / "d" / "field").exists()
+
+
+def test_reconstruct_names_the_automatic_labels_a_fraction_leaves_unread(phantom_copy: Path):
+    """After ``label --auto`` every frame has labels, so the default fraction (0.1) would drop
+    nine in ten of them unseen: the run warns, naming how many it reads and the option that
+    reads them all, and goes on (no line at a fraction of 1: ``tests/test_labels.py``)."""
+    labelled = runner.invoke(app, ["label", str(phantom_copy), "--auto", "--replace"])
+    assert labelled.exit_code == 0, labelled.output
+    n_annotated = sum(len(s.labelled_frames) for s in SweepDataset.load(phantom_copy).sweeps)
+    out = phantom_copy.parent / "run"
+    result = runner.invoke(
+        app,
+        ["reconstruct", str(phantom_copy), "--method", "compounding", "--points", "2000",
+         "--out", str(out)],
+    )  # fmt: skip
+    assert result.exit_code == 0, result.output
+    (line,) = [line for line in result.stderr.splitlines() if "annotated frames" in line]
+    assert line.startswith("warning: label fraction 0.1 reads ")
+    assert f"of the {n_annotated} annotated frames (automatic labels of sweep(s)" in line
+    assert "--label-fraction 1 reads every one" in line
+    assert (out / "mesh.ply").is_file()

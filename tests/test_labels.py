@@ -16,6 +16,7 @@ from ultron.data.labels import (
     select_label_frames,
     selection_warnings,
     surface_outer_side,
+    unused_label_warnings,
 )
 from ultron.errors import UltronInputError
 
@@ -88,6 +89,28 @@ def test_a_sweep_left_without_labels_is_named(dataset):
     assert min(len(f) for n, f in enough.frames.items() if n != "d") >= 1
     assert selection_warnings(with_blank, enough) == []
     assert selection_warnings(dataset, select_label_frames(dataset, 0.1, seed=0)) == []
+
+
+def test_unused_labels_are_named_where_every_label_is_meant_to_count(dataset):
+    """147 of 150 frames annotated by hand: a fraction is the experiment, no line. The same
+    labels marked automatic: 10 % reads 15 of 147, the other 132 named. Hand labels on 20 of
+    150 frames (under half): 10 % reads 2, the other 18 named. A fraction of 1 never warns."""
+    tenth = select_label_frames(dataset, 0.1, seed=0)
+    assert unused_label_warnings(dataset, tenth) == []
+    auto = SweepDataset(dataset.probe, dataset.sweeps, metadata={"auto_labels": {"a": {}}})
+    assert unused_label_warnings(auto, select_label_frames(auto, 0.1, seed=0)) == [
+        "label fraction 0.1 reads 15 of the 147 annotated frames (automatic labels of sweep(s)"
+        " a); the other 132 are not used. --label-fraction 1 reads every one (a fraction below"
+        " 1 hides labels, for experiments such as the paper's 10 %)"
+    ]
+    assert unused_label_warnings(auto, select_label_frames(auto, 1.0, seed=0)) == []
+    hand = sweep_with_labels("a", 60, tuple(range(20, 60)))
+    sparse = SweepDataset(dataset.probe, [hand, sweep_with_labels("c", 90, tuple(range(90)))])
+    (line,) = unused_label_warnings(sparse, select_label_frames(sparse, 0.1, seed=0))
+    assert line.startswith("label fraction 0.1 reads 2 of the 20 annotated frames (20 of the 150")
+    assert "the other 18 are not used" in line
+    half = SweepDataset(dataset.probe, [sweep_with_labels("a", 60, tuple(range(30)))])
+    assert unused_label_warnings(half, select_label_frames(half, 0.1, seed=0)) == []
 
 
 def test_gathered_pixels_skip_255(dataset):

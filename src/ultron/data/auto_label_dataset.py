@@ -154,11 +154,13 @@ def check_labelling(
     sweeps: Sequence[str] | None = None,
     replace: bool = False,
     option: str = "sweeps",
+    what: str = "automatic labels",
 ) -> tuple[SweepDataset, list[str]]:
     """Load the dataset at ``root`` and check that the chosen ``sweeps`` (default: all) exist,
     have no labels unless ``replace``, and can be written; returns the dataset and the names.
-    A sweep that already has labels is an error naming it and ``--replace``; an unknown sweep
-    one naming it and ``option`` (the argument that chose it)."""
+    A sweep that already has labels is an error naming it, ``--replace`` and ``what`` would
+    overwrite them; an unknown sweep one naming it and ``option`` (the argument that chose
+    it)."""
     root = Path(root)
     dataset = SweepDataset.load(root)
     names = _chosen_sweeps(dataset, root, sweeps, option)
@@ -169,7 +171,7 @@ def check_labelling(
                     root / name / "labels.npy",
                     "labels",
                     f"sweep {name!r} already has labels; pass --replace to overwrite them"
-                    " with automatic labels",
+                    f" with {what}",
                 )
     _check_writable(root, names)
     return dataset, names
@@ -249,11 +251,17 @@ def label_checked_sweeps(
         dataset.sweep(summary.name).labels = labels
         records[summary.name] = _record(cfg, summary)
     dataset.metadata = {**dataset.metadata, METADATA_KEY: records}
+    save_dataset_json(root, dataset)
+    return summaries
+
+
+def save_dataset_json(root: Path, dataset: SweepDataset) -> None:
+    """Write ``root/dataset.json`` of ``dataset`` (its metadata changed), atomically, after the
+    sweeps' files it names."""
     reference = dataset.reference.name if dataset.reference is not None else None
     visible = dataset.reference_visible_path
     meta = dataset.to_json(reference, visible.name if visible is not None else None)
     atomic.write_json(root / "dataset.json", meta)
-    return summaries
 
 
 def auto_label_records(dataset: SweepDataset) -> dict[str, dict[str, Any]]:

@@ -299,18 +299,13 @@ def read_plus(
     frames = frames[world.valid]
     wanted = signal_columns(frames) if columns == "signal" else columns
     frames, clip, kept = _narrowed(frames, clip, wanted, seq.path)  # type: ignore[arg-type]
-    calibration = plus_config.image_to[probe_frame].copy()
-    if clip is not None:
-        calibration[:3, 3] += clip[0][0] * calibration[:3, 0] + clip[0][1] * calibration[:3, 1]
+    calibration = clipped_calibration(plus_config.image_to[probe_frame], clip)
     height, width = frames.shape[1:]
     label = f"Transform Image → {probe_frame}"
     fit = fit_image_plane(calibration, width, height, plus_config.path, label)
     poses = world.probe_to_world[world.valid] @ fit.dataset_probe_to_probe(width)
     shape = downsampled_shape(height, width, downsample)
-    resampled = fit.residual_max_mm > RESAMPLE_RESIDUAL_MM
-    if resampled:  # the rigid map places pixels off PLUS's: move the grey levels instead
-        frames = resample_to_rigid(frames, calibration, fit)
-    images = downsample_frames(frames, shape)
+    images, resampled = on_sweep_grid(frames, calibration, fit, shape)
     probe = ProbeGeometry(width * fit.spacing_mm[0], height * fit.spacing_mm[1], *shape)
     sweep = Sweep(name=name, kind=kind, images=images, probe_to_world=poses)
     report = PlusImportReport(
@@ -332,6 +327,70 @@ def read_plus(
     )
     metadata = _import_metadata(seq, plus_config, report, np.flatnonzero(world.valid))
     return sweep, probe, replace(report, metadata=metadata)
+
+
+def clipped_calibration(image_to_probe: np.ndarray, clip: tuple | None) -> np.ndarray:
+    """The Image → Probe matrix of the clipped frames: PLUS's ``image_to_probe`` of the whole
+    frame with its origin moved to the clip rectangle's (``((i0, j0), (w, h))``; None: none)."""
+    calibration = np.array(image_to_probe, dtype=np.float64)
+    if clip is not None:
+        calibration[:3, 3] += clip[0][0] * calibration[:3, 0] + clip[0][1] * calibration[:3, 1]
+    return calibration
+
+
+def on_sweep_grid(
+    frames: np.ndarray, calibration: np.ndarray, fit: ImagePlaneFit, shape: tuple[int, int]
+) -> tuple[np.ndarray, bool]:
+    """uint8 clipped, MF ``frames`` on the sweep's pixel grid: resampled onto the rigid fit's
+    grid where the fit moves a pixel by more than :data:`RESAMPLE_RESIDUAL_MM` (then True),
+    then area-downsampled to ``shape``."""
+    resampled = fit.residual_max_mm > RESAMPLE_RESIDUAL_MM
+    if resampled:  # the rigid map places pixels off PLUS's: move the grey levels instead
+        frames = resample_to_rigid(frames, calibration, fit)
+    return downsample_frames(frames, shape), resampled
+
+
+def frames_as_imported(
+    frames: np.ndarray, record: dict[str, Any], shape: tuple[int, int], where: str | Path
+) -> np.ndarray:
+    """uint8 (N, H, W) ``frames`` of a recording, MF-oriented and of its whole frame size, taken
+    the way :func:`read_plus` took its B-mode (``record``: the import's provenance,
+    ``dataset.json``'s ``metadata.imports.<sweep>``): the imported frames kept, clipped to the
+    recorded (narrowed) clip rectangle, resampled where it resampled, downsampled to ``shape``,
+    the sweep's image shape. Anything of the recording (a mask per frame) then lies on the
+    sweep's pixels as its B-mode does. A frame count or size that does not fit the record is an
+    error naming ``where``."""
+    kept = np.asarray(record["frames"], dtype=np.int64)
+    n, height, width = frames.shape
+    expected = record.get("file_frames")
+    if (expected is not None and n != expected) or n <= int(kept.max(initial=-1)):
+        wanted = expected if expected is not None else f"at least {int(kept.max()) + 1}"
+        raise UltronInputError(
+            where, "frames", f"{n} frames; the recording ({record.get('sequence')}) has {wanted}"
+        )
+    file_shape = record.get("file_shape")
+    if file_shape is not None and (height, width) != tuple(file_shape):
+        raise UltronInputError(
+            where, "frames", f"frames of {height} × {width} pixels (rows × columns); the"
+            f" recording's are {file_shape[0]} × {file_shape[1]}",
+        )  # fmt: skip
+    clip = record.get("clip")
+    if clip is not None:
+        (i0, j0), (w, h) = clip["origin"], clip["size"]
+        if i0 + w > width or j0 + h > height:
+            raise UltronInputError(
+                where, "frames", f"frames of {height} × {width} pixels cannot hold the import's"
+                f" clip rectangle (origin {i0}, {j0}, size {w} × {h})",
+            )  # fmt: skip
+        frames = frames[:, j0 : j0 + h, i0 : i0 + w]
+        clip = ((i0, j0), (w, h))
+    frames = np.ascontiguousarray(frames[kept])
+    calibration = clipped_calibration(np.asarray(record["image_to_probe"]), clip)
+    fit = fit_image_plane(
+        calibration, frames.shape[2], frames.shape[1], where, "metadata.imports.image_to_probe"
+    )
+    images, _ = on_sweep_grid(frames, calibration, fit, shape)
+    return images
 
 
 def _import_metadata(
@@ -356,5 +415,7 @@ def _import_metadata(
         "resampled_to_rigid_grid": report.resampled,
         "downsample": report.downsample,
         "frames": frames.tolist(),
+        "file_frames": report.n_frames_file,
+        "file_shape": list(report.file_shape),
         "skipped": report.skipped,
     }

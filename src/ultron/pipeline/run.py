@@ -28,6 +28,7 @@ from ultron.data.labels import (
     check_selection_has_bone,
     select_label_frames,
     selection_warnings,
+    unused_label_warnings,
 )
 from ultron.data.units import units_warnings
 from ultron.device import describe_device, native_bfloat16, resolve_device
@@ -319,7 +320,8 @@ def preflight(
     if warn is not None:  # after the pre-flight checks: a refused run prints its error alone
         reference = references[0]
         vertices = None if reference is None else reference.vertices
-        for line in selection_warnings(dataset, selection) + units_warnings(dataset, vertices):
+        lines = selection_warnings(dataset, selection) + unused_label_warnings(dataset, selection)
+        for line in lines + units_warnings(dataset, vertices):
             warn(line)
     return dataset, references, truth
 

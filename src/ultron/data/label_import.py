@@ -1,0 +1,241 @@
+"""A person's bone segmentation as a sweep's labels: ``ultron label DATASET --masks MASKS``.
+
+An annotator segments bone in the frames of the recording itself, in 3D Slicer or any other
+tool, as one 2D mask per frame: ``MASKS`` is a ``.npy`` integer array (N, H, W) or a folder of
+``0.png, 1.png, …`` (grey, one per frame). The masks are read in the frames' own geometry:
+
+- a sweep imported from PLUS / Slicer (``import-plus``): the recording's whole frames, every
+  frame of the file (skipped ones included), in MF orientation — row 0 at the transducer face,
+  columns towards the probe's marked side, as PLUS and Slicer display B-mode
+  (``orientation`` declares another of PLUS's orientations). They are then taken through the
+  steps the import took the B-mode (:func:`~ultron.data.plus_import.frames_as_imported`: the
+  frames kept, the clip rectangle, the columns kept, the resampling onto the rigid pixel grid,
+  the downsampling), so each label lies on the pixel whose echo the annotator marked;
+- any other sweep: the sweep's own frames, (N, H, W) of its ``images.npy``.
+
+Labels follow the annotation convention the simulator's annotator and the paper use: bone
+(:data:`~ultron.data.validation.LABEL_TARGET`) where the mask is bone, background everywhere
+else in an annotated frame (acoustic shadow included: the compensated loss decides what it
+costs), and 255 in a frame nobody annotated, in pixels the mask marks unsure
+(``unsure_value``), and in pixels of the sweep that the recording's frame does not cover. A
+sweep pixel that the resampling or downsampling draws from several mask pixels takes the label
+of the larger share of the known ones: bone where at least half of its known part is bone,
+unsure where less than half of it is known.
+
+Which frames are annotated: with ``annotated="nonempty"`` (the default) the frames whose mask
+holds some bone or unsure pixel — a segmentation sequence holds an empty mask for every frame
+nobody painted; with ``"all"`` every frame, an empty mask meaning "no bone here".
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ultron import atomic
+from ultron.data.auto_label_dataset import METADATA_KEY as AUTO_LABELS_KEY
+from ultron.data.auto_label_dataset import check_labelling, save_dataset_json
+from ultron.data.dataset import SweepDataset
+from ultron.data.importers import read_png_frames
+from ultron.data.plus import orientation_flips
+from ultron.data.plus_import import frames_as_imported
+from ultron.data.validation import (
+    LABEL_BACKGROUND,
+    LABEL_TARGET,
+    LABEL_UNANNOTATED,
+    input_file,
+    load_npy,
+    validate_labels,
+)
+from ultron.errors import UltronInputError, argument_error
+
+#: ``dataset.json``'s metadata key recording, per sweep, the masks its labels came from.
+METADATA_KEY = "label_imports"
+#: What ``annotated`` may say.
+ANNOTATED = ("nonempty", "all")
+#: A mask value's share, in 1/255, at or above which a resampled pixel takes it (one half).
+_HALF = 128
+
+
+@dataclass(frozen=True)
+class MaskImportConfig:
+    """How a mask reads as labels (module doc).
+
+    Attributes:
+        bone_value: The mask value that marks bone (default: every value other than 0 and
+            unsure_value).
+        unsure_value: A mask value that marks pixels the annotator leaves unsure (label 255;
+            default: none).
+        annotated: nonempty (frames whose mask marks something are annotated, the others
+            unsure) or all (every frame is annotated; an empty mask means no bone).
+        orientation: PLUS's orientation of the masks of a PLUS sweep: MF (row 0 at the
+            transducer, as PLUS and Slicer display B-mode), MN, UF or UN.
+    """
+
+    bone_value: int | None = None
+    unsure_value: int | None = None
+    annotated: str = "nonempty"
+    orientation: str = "MF"
+
+    def __post_init__(self) -> None:
+        for name in ("bone_value", "unsure_value"):
+            value = getattr(self, name)
+            if value is not None and (
+                isinstance(value, bool) or not isinstance(value, int) or not 0 < value < 2**16
+            ):
+                raise argument_error(name, f"expected an integer in [1, 65535], got {value!r}")
+        if self.bone_value is not None and self.bone_value == self.unsure_value:
+            raise argument_error("unsure_value", "must differ from bone_value")
+        if self.annotated not in ANNOTATED:
+            raise argument_error(
+                "annotated", f"expected one of {', '.join(ANNOTATED)}, got {self.annotated!r}"
+            )
+        orientation_flips(self.orientation, "argument", "orientation")
+
+
+@dataclass(frozen=True)
+class MaskImportSummary:
+    """What an import wrote into one sweep."""
+
+    sweep: str
+    frames: int
+    annotated_frames: int
+    bone: float
+    background: float
+    unsure: float
+    replaced: bool
+
+    def lines(self, root: str | Path) -> list[str]:
+        """The command's report: where the labels went and what they hold."""
+        return [
+            f"{Path(root) / self.sweep / 'labels.npy'}: {self.annotated_frames} of {self.frames}"
+            f" frames annotated; bone {100 * self.bone:.2f} %, background"
+            f" {100 * self.background:.1f} %, unsure {100 * self.unsure:.1f} % of the pixels"
+            + (" (replaced the sweep's labels)" if self.replaced else "")
+        ]
+
+
+def read_masks(path: str | Path) -> np.ndarray:
+    """The masks at ``path``: a ``.npy`` integer array (N, H, W) or a folder of ``0.png,
+    1.png, …``; anything else is an error naming the file."""
+    path = Path(path)
+    if path.is_dir():
+        masks = read_png_frames(path)
+    else:
+        input_file(path, "MASKS")
+        if path.suffix.lower() != ".npy":
+            raise UltronInputError(
+                path, "MASKS", "expected a .npy array (N, H, W) or a folder of 0.png, 1.png, …"
+            )
+        masks = load_npy(path, "masks")
+    if masks.ndim != 3 or min(masks.shape) < 1:
+        raise UltronInputError(path, "masks", f"expected shape (N, H, W), got {masks.shape}")
+    if masks.dtype.kind not in "uib":
+        raise UltronInputError(path, "masks", f"expected integer values, got dtype {masks.dtype}")
+    if masks.dtype.kind == "i" and masks.size and int(masks.min()) < 0:
+        raise UltronInputError(path, "masks", f"negative value {int(masks.min())}")
+    return masks
+
+
+def mask_labels(masks: np.ndarray, config: MaskImportConfig) -> np.ndarray:
+    """uint8 labels of ``masks`` in their own geometry (module doc): 1, 0 or 255."""
+    unsure = np.zeros(masks.shape, dtype=bool)
+    if config.unsure_value is not None:
+        unsure = masks == config.unsure_value
+    if config.bone_value is None:
+        bone = (masks != 0) & ~unsure
+    else:
+        bone = masks == config.bone_value
+    labels = np.where(bone, LABEL_TARGET, LABEL_BACKGROUND).astype(np.uint8)
+    labels[unsure] = LABEL_UNANNOTATED
+    if config.annotated == "nonempty":
+        labels[~(bone | unsure).any(axis=(1, 2))] = LABEL_UNANNOTATED
+    return labels
+
+
+def labels_on_sweep(
+    labels: np.ndarray, record: dict[str, Any], shape: tuple[int, int], where: str | Path
+) -> np.ndarray:
+    """MF ``labels`` of a recording's whole frames on a PLUS sweep's pixels: the bone share and
+    the known share (0–255) taken through the import's steps
+    (:func:`~ultron.data.plus_import.frames_as_imported`), then read as the module doc says."""
+    known = np.where(labels != LABEL_UNANNOTATED, 255, 0).astype(np.uint8)
+    bone = np.where(labels == LABEL_TARGET, 255, 0).astype(np.uint8)
+    known = frames_as_imported(known, record, shape, where).astype(np.int32)
+    bone = frames_as_imported(bone, record, shape, where).astype(np.int32)
+    out = np.where(2 * bone >= known, LABEL_TARGET, LABEL_BACKGROUND).astype(np.uint8)
+    out[known < _HALF] = LABEL_UNANNOTATED
+    return out
+
+
+def sweep_mask_labels(
+    dataset: SweepDataset, sweep: str, masks: np.ndarray, config: MaskImportConfig, where: Path
+) -> np.ndarray:
+    """The labels ``masks`` give sweep ``sweep`` of ``dataset`` (module doc)."""
+    target = dataset.sweep(sweep)
+    record = (dataset.metadata.get("imports") or {}).get(sweep)
+    if isinstance(record, dict) and record.get("source") == "plus":
+        flip_columns, flip_rows = orientation_flips(config.orientation, where, "orientation")
+        masks = masks[:, :: -1 if flip_rows else 1, :: -1 if flip_columns else 1]
+        labels = labels_on_sweep(mask_labels(masks, config), record, target.images.shape[1:], where)
+    else:
+        if masks.shape != target.images.shape:
+            raise UltronInputError(
+                where, "masks", f"shape {masks.shape}; sweep {sweep!r} has frames of"
+                f" {target.images.shape} (N, H, W), which masks of a sweep not imported from"
+                " PLUS must match",
+            )  # fmt: skip
+        labels = mask_labels(masks, config)
+    validate_labels(labels, where, "labels")
+    return labels
+
+
+def import_mask_labels(
+    root: str | Path,
+    sweep: str,
+    masks_path: str | Path,
+    config: MaskImportConfig | None = None,
+    replace: bool = False,
+) -> MaskImportSummary:
+    """Write the labels of the masks at ``masks_path`` into sweep ``sweep`` of the dataset at
+    ``root``: ``labels.npy`` atomically, then ``dataset.json`` with the masks' provenance under
+    ``metadata.label_imports.<sweep>`` (an automatic-labels record of the sweep is dropped: its
+    labels are a person's now). Everything is checked before anything is written; a sweep that
+    has labels is refused unless ``replace``."""
+    config = config or MaskImportConfig()
+    if not isinstance(config, MaskImportConfig):
+        raise argument_error("config", f"expected a MaskImportConfig, got {type(config).__name__}")
+    root, masks_path = Path(root), Path(masks_path)
+    dataset, (name,) = check_labelling(root, [sweep], replace, "--sweeps", what="the masks")
+    labels = sweep_mask_labels(dataset, name, read_masks(masks_path), config, masks_path)
+    if not (labels == LABEL_TARGET).any():
+        raise UltronInputError(
+            masks_path, "masks", f"no bone pixel reaches sweep {name!r}'s frames (bone_value"
+            f" {config.bone_value if config.bone_value is not None else 'any non-zero'})",
+        )  # fmt: skip
+    replaced = dataset.sweep(name).labels is not None
+    atomic.save_npy(root / name / "labels.npy", labels)
+    metadata = dict(dataset.metadata)
+    auto = {k: v for k, v in (metadata.get(AUTO_LABELS_KEY) or {}).items() if k != name}
+    metadata.pop(AUTO_LABELS_KEY, None)
+    if auto:
+        metadata[AUTO_LABELS_KEY] = auto
+    imports = dict(metadata.get(METADATA_KEY) or {})
+    imports[name] = {"masks": str(masks_path.resolve()), "config": asdict(config)}
+    dataset.metadata = {**metadata, METADATA_KEY: imports}
+    dataset.sweep(name).labels = labels
+    save_dataset_json(root, dataset)
+    annotated = int((labels != LABEL_UNANNOTATED).any(axis=(1, 2)).sum())
+    n = labels.size
+    return MaskImportSummary(
+        name,
+        int(labels.shape[0]),
+        annotated,
+        float((labels == LABEL_TARGET).sum() / n),
+        float((labels == LABEL_BACKGROUND).sum() / n),
+        float((labels == LABEL_UNANNOTATED).sum() / n),
+        replaced,
+    )

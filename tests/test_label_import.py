@@ -1,0 +1,249 @@
+"""``ultron label --masks``: a person's segmentation as a sweep's labels — on a sweep of the
+dataset's own frames, and on a PLUS sweep through every step its import took (orientation,
+skipped frames, clip rectangle, blank columns, the rigid grid of a sheared calibration,
+downsampling); the frames annotated, bone and unsure values; bad input."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from plus_synthetic import calibration, recording, to_file_orientation, write_config, write_mha
+from test_bad_input_corpus import runner
+from ultron.cli.main import app
+from ultron.data.dataset import ProbeGeometry, Sweep, SweepDataset
+from ultron.data.label_import import MaskImportConfig, mask_labels
+from ultron.errors import UltronInputError
+
+#: Grey levels of the synthetic recording: tissue and the bone's echo band.
+TISSUE, ECHO = 30, 240
+
+
+def _files(root: Path) -> dict[str, bytes]:
+    return {
+        str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()
+    }
+
+
+def _label(*args: str):
+    return runner.invoke(app, ["label", *args], terminal_width=400)
+
+
+@pytest.fixture
+def own_frames(tmp_path: Path) -> Path:
+    """A dataset of one simulated-style sweep (5 frames of 6 × 8) without labels."""
+    rng = np.random.default_rng(0)
+    poses = np.repeat(np.eye(4)[None], 5, axis=0)
+    poses[:, 2, 3] = np.arange(5.0)
+    images = rng.integers(0, 256, size=(5, 6, 8), dtype=np.uint8)
+    SweepDataset(ProbeGeometry(8.0, 6.0, 6, 8), [Sweep("s", "row", images, poses)]).save(
+        tmp_path / "d"
+    )
+    return tmp_path / "d"
+
+
+def test_mask_values_frames_and_unsure_read_as_the_convention():
+    """Bone where the mask is bone, background elsewhere in an annotated frame, 255 in an
+    empty frame (nonempty) or nowhere (all), and where the mask says unsure."""
+    masks = np.zeros((3, 2, 3), dtype=np.uint16)
+    masks[0, 0, 1] = 7
+    masks[0, 1, 2] = 300
+    masks[2, 1, 0] = 9
+    labels = mask_labels(masks, MaskImportConfig())
+    assert labels[0].tolist() == [[0, 1, 0], [0, 0, 1]]
+    assert (labels[1] == 255).all() and labels[2].tolist() == [[0, 0, 0], [1, 0, 0]]
+    every = mask_labels(masks, MaskImportConfig(annotated="all"))
+    assert (every[1] == 0).all() and np.array_equal(every[0], labels[0])
+    valued = mask_labels(masks, MaskImportConfig(bone_value=7, unsure_value=9))
+    assert valued[0].tolist() == [[0, 1, 0], [0, 0, 0]]
+    assert valued[2].tolist() == [[0, 0, 0], [255, 0, 0]]  # annotated: it marks something
+    assert (valued[1] == 255).all()
+
+
+@pytest.mark.parametrize(
+    ("changes", "name"),
+    [
+        ({"bone_value": 0}, "bone_value"),
+        ({"unsure_value": True}, "unsure_value"),
+        ({"bone_value": 3, "unsure_value": 3}, "unsure_value"),
+        ({"annotated": "some"}, "annotated"),
+        ({"orientation": "FM"}, "orientation"),
+    ],
+)
+def test_config_refuses_bad_values(changes, name):
+    with pytest.raises(UltronInputError, match=name):
+        MaskImportConfig(**changes)
+
+
+def test_masks_of_the_sweeps_own_frames(own_frames: Path, tmp_path: Path):
+    masks = np.zeros((5, 6, 8), dtype=np.uint8)
+    masks[1, 3:5, 2:6] = 255  # a 0/255 PNG-style mask
+    masks[3, 2, :] = 255
+    np.save(tmp_path / "m.npy", masks)
+    result = _label(str(own_frames), "--masks", str(tmp_path / "m.npy"))
+    assert result.exit_code == 0, result.output
+    assert "2 of 5 frames annotated" in result.output
+    data = SweepDataset.load(own_frames)
+    labels = data.sweep("s").labels
+    assert np.array_equal(labels[1], (masks[1] > 0).astype(np.uint8))
+    assert (labels[[0, 2, 4]] == 255).all()
+    record = data.metadata["label_imports"]["s"]
+    assert record["masks"] == str((tmp_path / "m.npy").resolve())
+    assert record["config"]["annotated"] == "nonempty"
+
+
+def test_masks_replace_automatic_labels_and_drop_their_record(own_frames: Path, tmp_path: Path):
+    """Replaced labels are a person's now: the sweep's ``auto_labels`` record goes, so that the
+    report no longer calls them automatic; without --replace nothing is written."""
+    meta_path = own_frames / "dataset.json"
+    meta = json.loads(meta_path.read_text())
+    meta.setdefault("metadata", {})["auto_labels"] = {"s": {"method": "x"}}
+    meta_path.write_text(json.dumps(meta))
+    np.save(own_frames / "s" / "labels.npy", np.full((5, 6, 8), 255, dtype=np.uint8))
+    meta["sweeps"][0]["labels"] = "labels.npy"
+    meta_path.write_text(json.dumps(meta))
+    masks = np.zeros((5, 6, 8), dtype=np.uint8)
+    masks[2, 4, 1:7] = 1
+    np.save(tmp_path / "m.npy", masks)
+    before = _files(own_frames)
+    refused = _label(str(own_frames), "--masks", str(tmp_path / "m.npy"))
+    assert refused.exit_code == 2
+    assert "already has labels; pass --replace to overwrite them with the masks" in refused.stderr
+    assert _files(own_frames) == before
+    result = _label(str(own_frames), "--masks", str(tmp_path / "m.npy"), "--replace")
+    assert result.exit_code == 0, result.output
+    assert "replaced the sweep's labels" in result.output
+    data = SweepDataset.load(own_frames)
+    assert "auto_labels" not in data.metadata and "s" in data.metadata["label_imports"]
+    assert int((data.sweep("s").labels == 1).sum()) == 6
+
+
+def _recording_with_an_echo(n: int = 5):
+    """Frames of tissue with a bright band (the bone's echo) and a stripe, blank columns at both sides,
+    frame 2 invalid; the masks mark the band, in MF, on every frame of the file."""
+    rec = recording(n=n, height=40, width=60)
+    rec.frames[:] = TISSUE
+    rec.frames[:, :, :3] = 0
+    rec.frames[:, :, 57:] = 0
+    masks = np.zeros(rec.frames.shape, dtype=np.uint8)
+    for k in range(n):
+        top = 14 + 2 * k
+        rec.frames[k, top : top + 6, 12 + k : 48 - k] = ECHO
+        masks[k, top : top + 6, 12 + k : 48 - k] = 1
+        rec.frames[k, :, 50:53] = ECHO  # down the whole depth: a shear moves its ends apart
+        masks[k, :, 50:53] = 1
+    rec.image_status = ["OK", "OK", "INVALID", "OK", "OK"][:n]
+    return rec, masks
+
+
+@pytest.mark.parametrize("downsample", ["1", "2"])
+def test_plus_masks_land_on_the_echo_they_mark(tmp_path: Path, downsample: str):
+    """A recording stored UN, with a sheared calibration (the frames are resampled onto the
+    rigid grid), a clip rectangle, blank columns and an invalid frame: the masks, drawn in MF on
+    the recording's frames, land on the imported echo. Where a label is known, bone ⇔ the
+    imported grey level is above the midpoint of tissue and echo (both went through the same
+    linear steps), but for ties at the band's edges."""
+    rec, masks = _recording_with_an_echo()
+    cal = calibration(spacing=(0.3, 0.3), shear_deg=4.0)
+    config = write_config(tmp_path / "c.xml", cal, clip=((1, 2), (58, 36)))
+    sequence = write_mha(tmp_path / "s.mha", rec, "UN")
+    out = tmp_path / "ds"
+    imported = runner.invoke(
+        app, ["import-plus", str(sequence), "--config", str(config), "--out", str(out),
+              "--downsample", downsample],
+    )  # fmt: skip
+    assert imported.exit_code == 0, imported.output
+    np.save(tmp_path / "m.npy", masks)
+    result = _label(str(out), "--masks", str(tmp_path / "m.npy"))
+    assert result.exit_code == 0, result.output
+    data = SweepDataset.load(out)
+    record = data.metadata["imports"]["s"]
+    assert record["resampled_to_rigid_grid"] and record["kept_columns"] is not None
+    images, labels = data.sweep("s").images, data.sweep("s").labels
+    assert labels.shape == images.shape and images.shape[0] == 4  # frame 2 was skipped
+    known = labels != 255
+    assert known.mean() > 0.9  # only the resampling's corners fall outside the recording
+    bright = images >= (TISSUE + ECHO) / 2
+    agree = (labels == 1) == bright
+    assert agree[known].mean() > 0.995
+    assert (labels == 1).sum() > 0.9 * bright[known].sum()
+    # the masks given in the file's own orientation give the same labels
+    np.save(tmp_path / "un.npy", to_file_orientation(masks, "UN"))
+    again = _label(str(out), "--masks", str(tmp_path / "un.npy"), "--orientation", "UN",
+                   "--replace")  # fmt: skip
+    assert again.exit_code == 0, again.output
+    assert np.array_equal(SweepDataset.load(out).sweep("s").labels, labels)
+
+
+def _plain_import(tmp_path: Path) -> tuple[Path, np.ndarray]:
+    """:func:`_recording_with_an_echo` imported with an exact calibration (no resampling) and
+    its masks."""
+    rec, masks = _recording_with_an_echo()
+    config = write_config(tmp_path / "c.xml", calibration())
+    out = tmp_path / "ds"
+    imported = runner.invoke(
+        app, ["import-plus", str(write_mha(tmp_path / "s.mha", rec)), "--config", str(config),
+              "--out", str(out)],
+    )  # fmt: skip
+    assert imported.exit_code == 0, imported.output
+    return out, masks
+
+
+def test_plus_masks_png_folder(tmp_path: Path):
+    """A folder of 0.png … (N − 1).png, one per frame of the recording, reads as the array."""
+    from PIL import Image
+
+    out, masks = _plain_import(tmp_path)
+    (tmp_path / "png").mkdir()
+    for k, mask in enumerate(masks):
+        Image.fromarray(mask * 255).save(tmp_path / "png" / f"{k}.png")
+    result = _label(str(out), "--masks", str(tmp_path / "png"))
+    assert result.exit_code == 0, result.output
+    data = SweepDataset.load(out)
+    expected = masks[[0, 1, 3, 4]][:, :, 3:57]  # the valid frames, the columns kept
+    assert np.array_equal(data.sweep("s").labels, expected)
+
+
+@pytest.mark.parametrize(
+    ("masks_of", "extra", "needle"),
+    [
+        (lambda m: m[:4], [], "4 frames; the recording (s.mha) has 5"),
+        (lambda m: m[:, :, :50], [], "frames of 40 × 50 pixels (rows × columns); the recording's"),
+        (lambda m: m * 0, [], "no bone pixel reaches sweep 's'"),
+        (lambda m: m.astype(np.float32), [], "expected integer values"),
+        (lambda m: m, ["--auto"], "pass exactly one of --auto and --masks"),
+        (lambda m: m, ["--bone-value", "0"], "--bone-value"),
+        (lambda m: m, ["--orientation", "XX"], "orientation"),
+        (lambda m: m, ["--sweeps", "t"], "'t'"),
+    ],
+)
+def test_bad_masks_are_refused_naming_what_and_nothing_is_written(
+    tmp_path: Path, masks_of, extra, needle
+):
+    out, masks = _plain_import(tmp_path)
+    np.save(tmp_path / "m.npy", masks_of(masks))
+    before = _files(out)
+    result = _label(str(out), "--masks", str(tmp_path / "m.npy"), *extra)
+    assert result.exit_code == 2, result.output
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error: ") and needle in lines[0], lines
+    assert _files(out) == before
+
+
+def test_masks_need_one_sweep_and_a_readable_file(own_frames: Path, tmp_path: Path):
+    with_two = SweepDataset.load(own_frames)
+    with_two.sweeps.append(
+        Sweep("t", "row", with_two.sweeps[0].images, with_two.sweeps[0].probe_to_world)
+    )
+    with_two.save(tmp_path / "two")
+    np.save(tmp_path / "m.npy", np.ones((5, 6, 8), dtype=np.uint8))
+    result = _label(str(tmp_path / "two"), "--masks", str(tmp_path / "m.npy"))
+    assert result.exit_code == 2 and "--sweeps NAME" in result.stderr
+    (tmp_path / "m.txt").write_text("1 2 3")
+    result = _label(str(own_frames), "--masks", str(tmp_path / "m.txt"))
+    assert result.exit_code == 2 and "expected a .npy array" in result.stderr
+    result = _label(str(own_frames))
+    assert result.exit_code == 2 and "pass exactly one of --auto and --masks" in result.stderr
