@@ -11,7 +11,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from plus_synthetic import calibration, recording, to_file_orientation, write_config, write_mha
+from plus_synthetic import (
+    Recording,
+    calibration,
+    recording,
+    to_file_orientation,
+    write_config,
+    write_mha,
+    write_nrrd,
+)
 from test_bad_input_corpus import runner
 from ultron.cli.main import app
 from ultron.data.dataset import ProbeGeometry, Sweep, SweepDataset
@@ -205,6 +213,29 @@ def test_plus_masks_png_folder(tmp_path: Path):
     data = SweepDataset.load(out)
     expected = masks[[0, 1, 3, 4]][:, :, 3:57]  # the valid frames, the columns kept
     assert np.array_equal(data.sweep("s").labels, expected)
+
+
+def test_plus_masks_as_a_labelmap_sequence(tmp_path: Path):
+    """A labelmap sequence as Slicer saves one: with its own orientation (UN here, whatever
+    --orientation says) or without one (then --orientation, MF by default), raw or compressed;
+    both give the labels of the same masks as an array."""
+    out, masks = _plain_import(tmp_path)
+    np.save(tmp_path / "m.npy", masks)
+    assert _label(str(out), "--masks", str(tmp_path / "m.npy")).exit_code == 0
+    expected = SweepDataset.load(out).sweep("s").labels
+    flipped = write_mha(tmp_path / "seg.seq.mha", Recording(masks, {}), "UN", compressed=True)
+    result = _label(str(out), "--masks", str(flipped), "--orientation", "MN", "--replace")
+    assert result.exit_code == 0, result.output
+    assert np.array_equal(SweepDataset.load(out).sweep("s").labels, expected)
+
+    def without_orientation(pairs):
+        return [pair for pair in pairs if "orientation" not in pair[0].lower()]
+
+    plain = write_nrrd(tmp_path / "seg.seq.nrrd", Recording(masks, {}), edit=without_orientation)
+    assert b"orientation" not in plain.read_bytes()
+    result = _label(str(out), "--masks", str(plain), "--replace")
+    assert result.exit_code == 0, result.output
+    assert np.array_equal(SweepDataset.load(out).sweep("s").labels, expected)
 
 
 @pytest.mark.parametrize(

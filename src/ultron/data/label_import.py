@@ -1,13 +1,15 @@
 """A person's bone segmentation as a sweep's labels: ``ultron label DATASET --masks MASKS``.
 
 An annotator segments bone in the frames of the recording itself, in 3D Slicer or any other
-tool, as one 2D mask per frame: ``MASKS`` is a ``.npy`` integer array (N, H, W) or a folder of
-``0.png, 1.png, …`` (grey, one per frame). The masks are read in the frames' own geometry:
+tool, as one 2D mask per frame: ``MASKS`` is a ``.npy`` integer array (N, H, W), a folder of
+``0.png, 1.png, …`` (grey, one per frame) or an 8-bit sequence file as PLUS and Slicer write
+them (a labelmap sequence). The masks are read in the frames' own geometry:
 
 - a sweep imported from PLUS / Slicer (``import-plus``): the recording's whole frames, every
   frame of the file (skipped ones included), in MF orientation — row 0 at the transducer face,
   columns towards the probe's marked side, as PLUS and Slicer display B-mode
-  (``orientation`` declares another of PLUS's orientations). They are then taken through the
+  (``orientation`` declares another of PLUS's orientations; a sequence file's own
+  ``UltrasoundImageOrientation`` wins). They are then taken through the
   steps the import took the B-mode (:func:`~ultron.data.plus_import.frames_as_imported`: the
   frames kept, the clip rectangle, the columns kept, the resampling onto the rigid pixel grid,
   the downsampling), so each label lies on the pixel whose echo the annotator marked;
@@ -40,7 +42,7 @@ from ultron.data.auto_label_dataset import METADATA_KEY as AUTO_LABELS_KEY
 from ultron.data.auto_label_dataset import check_labelling, save_dataset_json
 from ultron.data.dataset import SweepDataset
 from ultron.data.importers import read_png_frames
-from ultron.data.plus import orientation_flips
+from ultron.data.plus import SEQUENCE_SUFFIXES, orientation_flips, read_sequence
 from ultron.data.plus_import import frames_as_imported
 from ultron.data.validation import (
     LABEL_BACKGROUND,
@@ -72,7 +74,8 @@ class MaskImportConfig:
         annotated: nonempty (frames whose mask marks something are annotated, the others
             unsure) or all (every frame is annotated; an empty mask means no bone).
         orientation: PLUS's orientation of the masks of a PLUS sweep: MF (row 0 at the
-            transducer, as PLUS and Slicer display B-mode), MN, UF or UN.
+            transducer, as PLUS and Slicer display B-mode), MN, UF or UN (a sequence file's
+            own UltrasoundImageOrientation wins).
     """
 
     bone_value: int | None = None
@@ -118,18 +121,24 @@ class MaskImportSummary:
         ]
 
 
-def read_masks(path: str | Path) -> np.ndarray:
-    """The masks at ``path``: a ``.npy`` integer array (N, H, W) or a folder of ``0.png,
-    1.png, …``; anything else is an error naming the file."""
+def read_masks(path: str | Path, orientation: str = "MF") -> tuple[np.ndarray, str]:
+    """The masks at ``path`` and their orientation: a ``.npy`` integer array (N, H, W), a
+    folder of ``0.png, 1.png, …`` (both in ``orientation``) or an 8-bit sequence file as PLUS and
+    Slicer write them (a labelmap sequence: its own ``UltrasoundImageOrientation``, else
+    ``orientation``); anything else is an error naming the file."""
     path = Path(path)
     if path.is_dir():
         masks = read_png_frames(path)
+    elif path.name.lower().endswith(SEQUENCE_SUFFIXES):
+        sequence = read_sequence(path, orientation, "MASKS")
+        masks, orientation = sequence.pixels, sequence.orientation
     else:
         input_file(path, "MASKS")
         if path.suffix.lower() != ".npy":
             raise UltronInputError(
-                path, "MASKS", "expected a .npy array (N, H, W) or a folder of 0.png, 1.png, …"
-            )
+                path, "MASKS", "expected a .npy array (N, H, W), a folder of 0.png, 1.png, … or"
+                f" a sequence file ({', '.join(SEQUENCE_SUFFIXES)})",
+            )  # fmt: skip
         masks = load_npy(path, "masks")
     if masks.ndim != 3 or min(masks.shape) < 1:
         raise UltronInputError(path, "masks", f"expected shape (N, H, W), got {masks.shape}")
@@ -137,7 +146,7 @@ def read_masks(path: str | Path) -> np.ndarray:
         raise UltronInputError(path, "masks", f"expected integer values, got dtype {masks.dtype}")
     if masks.dtype.kind == "i" and masks.size and int(masks.min()) < 0:
         raise UltronInputError(path, "masks", f"negative value {int(masks.min())}")
-    return masks
+    return masks, orientation
 
 
 def mask_labels(masks: np.ndarray, config: MaskImportConfig) -> np.ndarray:
@@ -172,13 +181,20 @@ def labels_on_sweep(
 
 
 def sweep_mask_labels(
-    dataset: SweepDataset, sweep: str, masks: np.ndarray, config: MaskImportConfig, where: Path
+    dataset: SweepDataset,
+    sweep: str,
+    masks: np.ndarray,
+    config: MaskImportConfig,
+    where: Path,
+    orientation: str | None = None,
 ) -> np.ndarray:
-    """The labels ``masks`` give sweep ``sweep`` of ``dataset`` (module doc)."""
+    """The labels ``masks`` (in ``orientation``, default ``config.orientation``) give sweep
+    ``sweep`` of ``dataset`` (module doc)."""
     target = dataset.sweep(sweep)
     record = (dataset.metadata.get("imports") or {}).get(sweep)
     if isinstance(record, dict) and record.get("source") == "plus":
-        flip_columns, flip_rows = orientation_flips(config.orientation, where, "orientation")
+        orientation = orientation or config.orientation
+        flip_columns, flip_rows = orientation_flips(orientation, where, "orientation")
         masks = masks[:, :: -1 if flip_rows else 1, :: -1 if flip_columns else 1]
         labels = labels_on_sweep(mask_labels(masks, config), record, target.images.shape[1:], where)
     else:
@@ -210,7 +226,8 @@ def import_mask_labels(
         raise argument_error("config", f"expected a MaskImportConfig, got {type(config).__name__}")
     root, masks_path = Path(root), Path(masks_path)
     dataset, (name,) = check_labelling(root, [sweep], replace, "--sweeps", what="the masks")
-    labels = sweep_mask_labels(dataset, name, read_masks(masks_path), config, masks_path)
+    masks, orientation = read_masks(masks_path, config.orientation)
+    labels = sweep_mask_labels(dataset, name, masks, config, masks_path, orientation)
     if not (labels == LABEL_TARGET).any():
         raise UltronInputError(
             masks_path, "masks", f"no bone pixel reaches sweep {name!r}'s frames (bone_value"

@@ -405,16 +405,24 @@ def _read_metaimage_payload(
     return np.frombuffer(_inflate(blob, n_bytes, path), dtype=np.uint8)
 
 
-def _read_metaimage(path: Path) -> SequenceFile:
+def _orientation(plain: Mapping[str, str], default: str | None, path: Path, field: str) -> str:
+    """The file's ``UltrasoundImageOrientation``, else ``default`` (None: it is required)."""
+    orientation = _lookup(plain, "UltrasoundImageOrientation")
+    if orientation is None and default is not None:
+        orientation = default
+    orientation_flips(orientation, path, field)
+    return str(orientation)
+
+
+def _read_metaimage(path: Path, default_orientation: str | None = None) -> SequenceFile:
     fields, offset = read_metaimage_header(path)
     sizes, axes = _metaimage_layout(fields, path)
     n_frames = sizes[axes[2]] if axes[2] is not None else 1
     plain, frames = _split_frame_fields(fields, n_frames, path, "DimSize")
-    orientation = _lookup(plain, "UltrasoundImageOrientation")
-    orientation_flips(orientation, path, "UltrasoundImageOrientation")
+    orientation = _orientation(plain, default_orientation, path, "UltrasoundImageOrientation")
     flat = _read_metaimage_payload(plain, path, offset, math.prod(sizes))
     pixels = _arrange_frames(flat, sizes, axes)
-    return SequenceFile(path, pixels, str(orientation), plain, frames, "DimSize")
+    return SequenceFile(path, pixels, orientation, plain, frames, "DimSize")
 
 
 # --------------------------------------------------------------------------- NRRD
@@ -440,7 +448,7 @@ def _nrrd_header(path: Path, handle) -> dict[str, object]:
     return header
 
 
-def _read_nrrd(path: Path) -> SequenceFile:
+def _read_nrrd(path: Path, default_orientation: str | None = None) -> SequenceFile:
     import nrrd
 
     with path.open("rb") as handle:
@@ -455,8 +463,7 @@ def _read_nrrd(path: Path) -> SequenceFile:
         n_frames = sizes[axes[2]] if axes[2] is not None else 1
         text = {str(k): str(v) for k, v in header.items()}
         plain, frames = _split_frame_fields(text, n_frames, path, "sizes")
-        orientation = _lookup(plain, "UltrasoundImageOrientation")
-        orientation_flips(orientation, path, "ultrasound image orientation")
+        orientation = _orientation(plain, default_orientation, path, "ultrasound image orientation")
         try:
             data = nrrd.read_data(header, handle, str(path), index_order="F")
         except (nrrd.NRRDError, OSError, EOFError, zlib.error, ValueError) as exc:
@@ -467,21 +474,26 @@ def _read_nrrd(path: Path) -> SequenceFile:
             path, "data", f"truncated payload: {flat.size} of {math.prod(sizes)} values"
         )
     pixels = _arrange_frames(flat, sizes, axes)
-    return SequenceFile(path, pixels, str(orientation), plain, frames, "sizes")
+    return SequenceFile(path, pixels, orientation, plain, frames, "sizes")
 
 
-def read_sequence(path: str | Path) -> SequenceFile:
-    """Read a PLUS / Slicer sequence file (MetaImage or NRRD, by its ending)."""
+def read_sequence(
+    path: str | Path, default_orientation: str | None = None, field: str = "SEQUENCE"
+) -> SequenceFile:
+    """Read a PLUS / Slicer sequence file (MetaImage or NRRD, by its ending). A file without
+    ``UltrasoundImageOrientation`` (a labelmap sequence) takes ``default_orientation``; with
+    None (B-mode) it is an error. ``field`` names the file in messages about the file as a
+    whole."""
     path = Path(path)
-    input_file(path, "SEQUENCE")
+    input_file(path, field)
     lower = path.name.lower()
     try:
         if lower.endswith(_METAIMAGE_SUFFIXES):
-            return _read_metaimage(path)
+            return _read_metaimage(path, default_orientation)
         if lower.endswith((".nrrd", ".nhdr")):
-            return _read_nrrd(path)
+            return _read_nrrd(path, default_orientation)
     except OSError as exc:
-        raise UltronInputError(path, "SEQUENCE", f"cannot be read ({exc.strerror})") from None
+        raise UltronInputError(path, field, f"cannot be read ({exc.strerror})") from None
     raise UltronInputError(
-        path, "SEQUENCE", f"unknown file type; expected one of {', '.join(SEQUENCE_SUFFIXES)}"
+        path, field, f"unknown file type; expected one of {', '.join(SEQUENCE_SUFFIXES)}"
     )
