@@ -168,6 +168,29 @@ def test_real_file_frames_are_resampled_so_corners_land_where_plus_puts_them(rea
             assert np.linalg.norm(ours - theirs) < 0.3
 
 
+def test_real_file_masks_land_on_the_echo_they_mark(real_import, tmp_path: Path):
+    """``label --masks`` on the real recording (MFA, a 2.74° shear, blank columns): masks of
+    every 5th frame, a threshold of the file's frames standing in for an annotator, become
+    labels that agree with the same threshold of the imported (resampled) frames on ≥ 99 % of
+    the annotated pixels, and the other frames stay unsure."""
+    import shutil
+
+    out = tmp_path / "spine"
+    shutil.copytree(real_import[0], out)
+    masks = (read_sequence(PLUS_SEQUENCE).pixels > 180).astype(np.uint8)  # MFA: as MF
+    masks[np.arange(21) % 5 != 0] = 0
+    np.save(tmp_path / "m.npy", masks)
+    result = runner.invoke(app, ["label", str(out), "--masks", str(tmp_path / "m.npy")])
+    assert result.exit_code == 0, result.output
+    sweep = SweepDataset.load(out).sweeps[0]
+    annotated = (sweep.labels != 255).any(axis=(1, 2))
+    assert np.flatnonzero(annotated).tolist() == [0, 5, 10, 15, 20]
+    known = sweep.labels != 255
+    agree = (sweep.labels == 1) == (sweep.images > 180)
+    assert agree[known].mean() > 0.99
+    assert known[annotated].mean() > 0.98  # but the resampled grid's corners, outside the file
+
+
 # --------------------------------------------------------------------------- synthetic
 def _files(tmp: Path, rec: Recording, fmt: str, orientation="MF", compressed=False) -> Path:
     writer = write_mha if fmt == "mha" else write_nrrd
