@@ -238,6 +238,23 @@ def test_plus_masks_as_a_labelmap_sequence(tmp_path: Path):
     assert np.array_equal(SweepDataset.load(out).sweep("s").labels, expected)
 
 
+def test_a_plus_sweeps_own_labels_edited_come_back_as_they_are(tmp_path: Path):
+    """Masks of the sweep's shape, not the recording's, are the sweep's own labels edited (in
+    numpy, napari …): with the label values named they come back bit for bit."""
+    out, masks = _plain_import(tmp_path)
+    np.save(tmp_path / "m.npy", masks)
+    assert _label(str(out), "--masks", str(tmp_path / "m.npy")).exit_code == 0
+    edited = SweepDataset.load(out).sweep("s").labels.copy()
+    assert edited.shape != masks.shape
+    edited[1][edited[1] == 1] = 0  # the annotator takes frame 1's bone back
+    edited[3, :2] = 255
+    np.save(tmp_path / "edited.npy", edited)
+    result = _label(str(out), "--masks", str(tmp_path / "edited.npy"), "--bone-value", "1",
+                    "--unsure-value", "255", "--annotated", "all", "--replace")  # fmt: skip
+    assert result.exit_code == 0, result.output
+    assert np.array_equal(SweepDataset.load(out).sweep("s").labels, edited)
+
+
 @pytest.mark.parametrize(
     ("masks_of", "extra", "needle"),
     [

@@ -13,7 +13,8 @@ them (a labelmap sequence). The masks are read in the frames' own geometry:
   steps the import took the B-mode (:func:`~ultron.data.plus_import.frames_as_imported`: the
   frames kept, the clip rectangle, the columns kept, the resampling onto the rigid pixel grid,
   the downsampling), so each label lies on the pixel whose echo the annotator marked;
-- any other sweep: the sweep's own frames, (N, H, W) of its ``images.npy``.
+- any other sweep: the sweep's own frames, (N, H, W) of its ``images.npy``; so too masks of a
+  PLUS sweep that have the sweep's shape and not the recording's (its labels, edited).
 
 Labels follow the annotation convention the simulator's annotator and the paper use: bone
 (:data:`~ultron.data.validation.LABEL_TARGET`) where the mask is bone, background everywhere
@@ -189,10 +190,13 @@ def sweep_mask_labels(
     orientation: str | None = None,
 ) -> np.ndarray:
     """The labels ``masks`` (in ``orientation``, default ``config.orientation``) give sweep
-    ``sweep`` of ``dataset`` (module doc)."""
+    ``sweep`` of ``dataset`` (module doc): masks of a PLUS sweep's recording taken through the
+    import's steps; masks of the sweep's own frames, (N, H, W) of its ``images.npy``, as they
+    are — of a PLUS sweep too, when that is their shape and not the recording's (labels made
+    on the sweep and edited)."""
     target = dataset.sweep(sweep)
     record = (dataset.metadata.get("imports") or {}).get(sweep)
-    if isinstance(record, dict) and record.get("source") == "plus":
+    if _of_recording(masks.shape, target.images.shape, record):
         orientation = orientation or config.orientation
         flip_columns, flip_rows = orientation_flips(orientation, where, "orientation")
         masks = masks[:, :: -1 if flip_rows else 1, :: -1 if flip_columns else 1]
@@ -207,6 +211,18 @@ def sweep_mask_labels(
         labels = mask_labels(masks, config)
     validate_labels(labels, where, "labels")
     return labels
+
+
+def _of_recording(shape: tuple[int, ...], sweep_shape: tuple[int, ...], record: Any) -> bool:
+    """Whether masks of ``shape`` are read as a PLUS recording's (``record``: the sweep's import
+    provenance; None or another source: never): unless they have the sweep's shape and not the
+    recording's (a record without the recording's size: unless they have the sweep's)."""
+    if not (isinstance(record, dict) and record.get("source") == "plus"):
+        return False
+    if tuple(shape) != tuple(sweep_shape):
+        return True
+    frames, size = record.get("file_frames"), record.get("file_shape")
+    return frames is not None and size is not None and tuple(shape) == (frames, *size)
 
 
 def import_mask_labels(
