@@ -6,6 +6,7 @@ downsampling); the frames annotated, bone and unsure values; bad input."""
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -295,3 +296,23 @@ def test_masks_need_one_sweep_and_a_readable_file(own_frames: Path, tmp_path: Pa
     assert result.exit_code == 2 and "expected a .npy array" in result.stderr
     result = _label(str(own_frames))
     assert result.exit_code == 2 and "pass exactly one of --auto and --masks" in result.stderr
+
+
+def test_info_names_where_each_sweeps_labels_came_from(own_frames: Path, tmp_path: Path):
+    """none → masks (label --masks) → auto (label --auto --replace, which drops the masks'
+    record) → given (labels written with the dataset)."""
+    from ultron.data.label_import import label_sources
+
+    assert label_sources(SweepDataset.load(own_frames)) == {"s": "none"}
+    masks = np.zeros((5, 6, 8), dtype=np.uint8)
+    masks[2, 4, 1:7] = 1
+    np.save(tmp_path / "m.npy", masks)
+    assert _label(str(own_frames), "--masks", str(tmp_path / "m.npy")).exit_code == 0
+    info = runner.invoke(app, ["info", str(own_frames)], terminal_width=200)
+    assert info.exit_code == 0 and re.search(r"│ s +│ row +│ +5 │ +1 │ masks +│", info.output)
+    assert _label(str(own_frames), "--auto", "--replace").exit_code == 0
+    data = SweepDataset.load(own_frames)
+    assert label_sources(data) == {"s": "auto"} and "label_imports" not in data.metadata
+    data.metadata = {}
+    data.save(tmp_path / "plain")
+    assert label_sources(SweepDataset.load(tmp_path / "plain")) == {"s": "given"}

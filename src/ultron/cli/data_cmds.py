@@ -63,18 +63,20 @@ def info(dataset: Path) -> None:
     """
     from rich.table import Table
 
+    from ultron.data.label_import import label_sources
     from ultron.pipeline.dataset_info import dataset_info
 
     summary = dataset_info(dataset)
     data = summary.dataset
     table = Table(title=f"{dataset}")
-    for column in ("sweep", "kind", "frames", "labelled frames"):
+    for column in ("sweep", "kind", "frames", "labelled frames", "labels"):
         table.add_column(
-            column, justify="right" if column != "sweep" and column != "kind" else "left"
+            column, justify="right" if column in ("frames", "labelled frames") else "left"
         )
+    sources = label_sources(data)
     for sweep in data.sweeps:
         labelled = "—" if sweep.labels is None else str(len(sweep.labelled_frames))
-        table.add_row(sweep.name, sweep.kind, str(sweep.n_frames), labelled)
+        table.add_row(sweep.name, sweep.kind, str(sweep.n_frames), labelled, sources[sweep.name])
     console.print(table)
     print_lines(summary.lines())
     print_lines(summary.outlier_lines())

@@ -51,6 +51,9 @@ from ultron.errors import UltronInputError, argument_error
 
 #: ``dataset.json`` metadata key holding, per sweep, the record of its automatic labels.
 METADATA_KEY = "auto_labels"
+#: ``dataset.json``'s metadata key of the sweeps whose labels came from a person's masks
+#: (:mod:`ultron.data.label_import`): replaced by automatic labels, a sweep leaves it.
+MASKS_KEY = "label_imports"
 #: The per-frame quality summary written into each labelled sweep's folder.
 QUALITY_FILE = "auto_labels_quality.csv"
 #: How many frames to check a record and the CLI name at most.
@@ -244,6 +247,10 @@ def label_checked_sweeps(
         )
         summaries.append(summary)
     records = dict(dataset.metadata.get(METADATA_KEY) or {})
+    masks = {k: v for k, v in (dataset.metadata.get(MASKS_KEY) or {}).items() if k not in names}
+    dataset.metadata = {k: v for k, v in dataset.metadata.items() if k != MASKS_KEY}
+    if masks:  # a sweep labelled automatically now no longer holds a person's masks
+        dataset.metadata[MASKS_KEY] = masks
     for summary in summaries:
         labels, qualities = computed[summary.name]
         atomic.save_npy(root / summary.name / "labels.npy", labels)

@@ -39,8 +39,13 @@ from typing import Any
 import numpy as np
 
 from ultron import atomic
+from ultron.data.auto_label_dataset import MASKS_KEY as METADATA_KEY
 from ultron.data.auto_label_dataset import METADATA_KEY as AUTO_LABELS_KEY
-from ultron.data.auto_label_dataset import check_labelling, save_dataset_json
+from ultron.data.auto_label_dataset import (
+    auto_label_records,
+    check_labelling,
+    save_dataset_json,
+)
 from ultron.data.dataset import SweepDataset
 from ultron.data.importers import read_png_frames
 from ultron.data.plus import SEQUENCE_SUFFIXES, orientation_flips, read_sequence
@@ -55,8 +60,6 @@ from ultron.data.validation import (
 )
 from ultron.errors import UltronInputError, argument_error
 
-#: ``dataset.json``'s metadata key recording, per sweep, the masks its labels came from.
-METADATA_KEY = "label_imports"
 #: What ``annotated`` may say.
 ANNOTATED = ("nonempty", "all")
 #: A mask value's share, in 1/255, at or above which a resampled pixel takes it (one half).
@@ -272,3 +275,20 @@ def import_mask_labels(
         float((labels == LABEL_UNANNOTATED).sum() / n),
         replaced,
     )
+
+
+def label_sources(dataset: SweepDataset) -> dict[str, str]:
+    """Where each sweep's labels came from: ``auto`` (``label --auto``), ``masks`` (``label
+    --masks``), ``given`` (written with the dataset: the simulator's annotator, CT-derived
+    labels, a script) or ``none``."""
+    automatic = auto_label_records(dataset)
+    imported = dataset.metadata.get(METADATA_KEY) or {}
+    sources = {}
+    for sweep in dataset.sweeps:
+        if sweep.labels is None:
+            sources[sweep.name] = "none"
+        elif sweep.name in automatic:
+            sources[sweep.name] = "auto"
+        else:
+            sources[sweep.name] = "masks" if sweep.name in imported else "given"
+    return sources
