@@ -131,8 +131,8 @@ def test_masks_replace_automatic_labels_and_drop_their_record(own_frames: Path, 
 
 
 def _recording_with_an_echo(n: int = 5):
-    """Frames of tissue with a bright band (the bone's echo) and a stripe, blank columns at both sides,
-    frame 2 invalid; the masks mark the band, in MF, on every frame of the file."""
+    """Frames of tissue with a bright band (the bone's echo) and a stripe, blank columns at both
+    sides, frame 2 invalid; the masks mark band and stripe, in MF, on every frame of the file."""
     rec = recording(n=n, height=40, width=60)
     rec.frames[:] = TISSUE
     rec.frames[:, :, :3] = 0
@@ -237,6 +237,48 @@ def test_plus_masks_as_a_labelmap_sequence(tmp_path: Path):
     result = _label(str(out), "--masks", str(plain), "--replace")
     assert result.exit_code == 0, result.output
     assert np.array_equal(SweepDataset.load(out).sweep("s").labels, expected)
+
+
+@pytest.mark.parametrize("kind", ["MET_SHORT-lsb", "MET_USHORT-msb", "nrrd-short"])
+def test_a_16_bit_labelmap_sequence(tmp_path: Path, kind: str):
+    """Slicer's labelmaps are often 16-bit: a MetaImage of MET_SHORT / MET_USHORT (either byte
+    order) or a NRRD of shorts holding segment values 0, 2 (bone, --bone-value 2) and 300 (another
+    segment: background) gives the labels of the same masks as an 8-bit array."""
+    import nrrd
+
+    out, masks = _plain_import(tmp_path)
+    np.save(tmp_path / "m.npy", masks)
+    assert _label(str(out), "--masks", str(tmp_path / "m.npy")).exit_code == 0
+    expected = SweepDataset.load(out).sweep("s").labels
+    values = masks.astype(np.int16) * 2
+    values[:, 0, 20:30] = 300  # another segment, in every frame
+    path = tmp_path / "seg.seq.nrrd"
+    if kind == "nrrd-short":
+        header = {"kinds": ["domain", "domain", "list"], "ultrasound image orientation": "MF"}
+        nrrd.write(str(path), values.transpose(2, 1, 0), header)  # x fastest, then y, frames
+    else:
+        element, order = kind.split("-")
+        dtype = np.dtype("i2" if element == "MET_SHORT" else "u2").newbyteorder(
+            ">" if order == "msb" else "<"
+        )
+        path = write_mha(tmp_path / "seg.seq.mha", Recording(masks, {}))
+        text = path.read_bytes().split(b"ElementDataFile = LOCAL\n")[0].decode("latin-1")
+        text = text.replace("MET_UCHAR", element).replace(
+            "BinaryDataByteOrderMSB = False", f"BinaryDataByteOrderMSB = {order == 'msb'}"
+        )
+        path.write_bytes(
+            (text + "ElementDataFile = LOCAL\n").encode("latin-1") + values.astype(dtype).tobytes()
+        )
+    result = _label(str(out), "--masks", str(path), "--bone-value", "2", "--replace")
+    assert result.exit_code == 0, result.output
+    assert np.array_equal(SweepDataset.load(out).sweep("s").labels, expected)
+    # B-mode stays 8-bit: the same file is refused as a recording, naming the field
+    imported = runner.invoke(
+        app, ["import-plus", str(path), "--config", str(tmp_path / "c.xml"), "--out",
+              str(tmp_path / "other")],
+    )  # fmt: skip
+    needle = "expected uint8 (B-mode)" if kind == "nrrd-short" else "expected MET_UCHAR (8-bit"
+    assert imported.exit_code == 2 and needle in imported.stderr, imported.stderr
 
 
 def test_a_plus_sweeps_own_labels_edited_come_back_as_they_are(tmp_path: Path):

@@ -29,9 +29,9 @@ def label(
         dataset: Dataset directory (ultron-sweeps/1).
         auto: Detect bone automatically: the last dominant echo of each scanline, traced as
             one continuous surface.
-        masks: One mask per frame, as .npy (N, H, W), a folder of 0.png, 1.png, … or an 8-bit
-            labelmap sequence (.seq.nrrd, .mha, …): of a PLUS sweep, the recording's whole
-            frames (every frame of the file); of any other sweep, its frames
+        masks: One mask per frame, as .npy (N, H, W), a folder of 0.png, 1.png, … or an 8- or
+            16-bit labelmap sequence (.seq.nrrd, .mha, …): of a PLUS sweep, the recording's
+            whole frames (every frame of the file); of any other sweep, its frames
             (docs/auto-labels.md). Needs one sweep (--sweeps NAME).
         sweeps: Sweep to label (repeat, or comma-separate; default: all sweeps).
         replace: Overwrite the labels a sweep already has.

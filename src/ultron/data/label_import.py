@@ -2,8 +2,8 @@
 
 An annotator segments bone in the frames of the recording itself, in 3D Slicer or any other
 tool, as one 2D mask per frame: ``MASKS`` is a ``.npy`` integer array (N, H, W), a folder of
-``0.png, 1.png, …`` (grey, one per frame) or an 8-bit sequence file as PLUS and Slicer write
-them (a labelmap sequence). The masks are read in the frames' own geometry:
+``0.png, 1.png, …`` (grey, one per frame) or an 8- or 16-bit sequence file as PLUS and Slicer
+write them (a labelmap sequence). The masks are read in the frames' own geometry:
 
 - a sweep imported from PLUS / Slicer (``import-plus``): the recording's whole frames, every
   frame of the file (skipped ones included), in MF orientation — row 0 at the transducer face,
@@ -48,8 +48,9 @@ from ultron.data.auto_label_dataset import (
 )
 from ultron.data.dataset import SweepDataset
 from ultron.data.importers import read_png_frames
-from ultron.data.plus import SEQUENCE_SUFFIXES, orientation_flips, read_sequence
+from ultron.data.plus import SEQUENCE_SUFFIXES, read_sequence
 from ultron.data.plus_import import frames_as_imported
+from ultron.data.plus_orientation import orientation_flips
 from ultron.data.validation import (
     LABEL_BACKGROUND,
     LABEL_TARGET,
@@ -127,14 +128,14 @@ class MaskImportSummary:
 
 def read_masks(path: str | Path, orientation: str = "MF") -> tuple[np.ndarray, str]:
     """The masks at ``path`` and their orientation: a ``.npy`` integer array (N, H, W), a
-    folder of ``0.png, 1.png, …`` (both in ``orientation``) or an 8-bit sequence file as PLUS and
-    Slicer write them (a labelmap sequence: its own ``UltrasoundImageOrientation``, else
-    ``orientation``); anything else is an error naming the file."""
+    folder of ``0.png, 1.png, …`` (both in ``orientation``) or an 8- or 16-bit sequence file as
+    PLUS and Slicer write them (a labelmap sequence: its own ``UltrasoundImageOrientation``,
+    else ``orientation``); anything else is an error naming the file."""
     path = Path(path)
     if path.is_dir():
         masks = read_png_frames(path)
     elif path.name.lower().endswith(SEQUENCE_SUFFIXES):
-        sequence = read_sequence(path, orientation, "MASKS")
+        sequence = read_sequence(path, orientation, "MASKS", labelmap=True)
         masks, orientation = sequence.pixels, sequence.orientation
     else:
         input_file(path, "MASKS")

@@ -34,6 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ultron.data.plus_orientation import orientation_flips
 from ultron.data.validation import contained_path, input_file
 from ultron.errors import UltronInputError
 from ultron.memory import check_fits_in_memory
@@ -55,19 +56,6 @@ SEQUENCE_SUFFIXES = (
 )
 _METAIMAGE_SUFFIXES = (".mha", ".mhd")
 
-#: PLUS's orientation strings of B-mode frames → (flip columns, flip rows) to reach MF, the
-#: orientation PLUS holds B-mode frames in and its Image → Probe calibration refers to. First
-#: letter: image x (columns) towards the Marked or Unmarked side of the transducer; second:
-#: image y (rows) towards Far (deeper) or Near. A third letter (Ascending / Descending) orders
-#: the slices of a 3D frame: for 2D frames it changes nothing (PLUS: MFA = MF, UFD = UF).
-ORIENTATION_FLIPS: dict[str, tuple[bool, bool]] = {
-    **dict.fromkeys(("MF", "MFA", "MFD"), (False, False)),
-    **dict.fromkeys(("MN", "MNA", "MND"), (False, True)),
-    **dict.fromkeys(("UF", "UFA", "UFD"), (True, False)),
-    **dict.fromkeys(("UN", "UNA", "UND"), (True, True)),
-}
-#: PLUS's orientations of RF data (scanlines along image x) and 3D frames in slice-first order.
-RF_ORIENTATIONS = ("FM", "FU", "NM", "NU", "AMF")
 #: Image statuses and transform statuses that mean "valid".
 STATUS_OK = "OK"
 #: Image-status field names: MetaImage sequences write ``ImageStatus``, NRRD ones ``Status``.
@@ -77,6 +65,16 @@ _FRAME_FIELD = re.compile(r"^seq_frame(\d+)_(.+)$", re.IGNORECASE)
 _NAN_TOKEN = re.compile(r"^[-+]?nan(\(.*\))?$", re.IGNORECASE)
 _MAX_HEADER_LINE = 1 << 20
 _UINT8_NAMES = ("uchar", "unsigned char", "uint8", "uint8_t")
+#: What a labelmap sequence (``read_sequence(…, labelmap=True)``) may hold besides uint8: the
+#: MetaImage element types and NRRD types of 8- and 16-bit integers, as Slicer writes labelmaps.
+_LABELMAP_METAIMAGE = {"MET_UCHAR": "u1", "MET_CHAR": "i1", "MET_USHORT": "u2", "MET_SHORT": "i2"}
+_LABELMAP_NRRD = {
+    **dict.fromkeys(("signed char", "int8", "int8_t"), "i1"),
+    **dict.fromkeys(_UINT8_NAMES, "u1"),
+    **dict.fromkeys(("short", "short int", "signed short", "signed short int"), "i2"),
+    **dict.fromkeys(("int16", "int16_t"), "i2"),
+    **dict.fromkeys(("ushort", "unsigned short", "unsigned short int", "uint16", "uint16_t"), "u2"),
+}
 
 
 @dataclass(frozen=True)
@@ -164,31 +162,6 @@ def parse_matrix(text: str, where: str | Path, field: str) -> np.ndarray:
         except ValueError:
             raise UltronInputError(where, field, f"{token!r} is not a number") from None
     return np.array(values, dtype=np.float64).reshape(4, 4)
-
-
-def orientation_flips(orientation: str | None, where: str | Path, field: str) -> tuple[bool, bool]:
-    """(flip columns, flip rows) that bring frames of ``orientation`` to MF (see
-    :data:`ORIENTATION_FLIPS`); an unknown, missing or RF orientation is an error."""
-    if orientation is None:
-        raise UltronInputError(
-            where, field, f"missing; expected one of {', '.join(sorted(ORIENTATION_FLIPS))}"
-        )
-    key = orientation.strip().upper()
-    if key in ORIENTATION_FLIPS:
-        return ORIENTATION_FLIPS[key]
-    if key in RF_ORIENTATIONS:
-        raise UltronInputError(
-            where,
-            field,
-            f"{orientation!r} is PLUS's orientation of RF scanlines or slice-first 3D frames;"
-            " only B-mode frames (MF, MN, UF, UN and their 3-letter forms) can be imported",
-        )
-    raise UltronInputError(
-        where,
-        field,
-        f"unknown orientation {orientation!r}; expected one of"
-        f" {', '.join(sorted(ORIENTATION_FLIPS))}",
-    )
 
 
 def _split_frame_fields(
@@ -312,7 +285,9 @@ def _int_list(fields: Mapping[str, str], name: str, path: Path) -> list[int] | N
     return numbers
 
 
-def _metaimage_layout(fields: Mapping[str, str], path: Path) -> tuple[list[int], tuple]:
+def _metaimage_layout(
+    fields: Mapping[str, str], path: Path, labelmap: bool = False
+) -> tuple[list[int], tuple, np.dtype]:
     sizes = _int_list(fields, "DimSize", path)
     if sizes is None:
         raise UltronInputError(path, "DimSize", "missing: the frame size and count are unknown")
@@ -320,10 +295,15 @@ def _metaimage_layout(fields: Mapping[str, str], path: Path) -> tuple[list[int],
     if ndims is not None and ndims != [len(sizes)]:
         raise UltronInputError(path, "DimSize", f"has {len(sizes)} sizes but NDims is {ndims}")
     element = (_lookup(fields, "ElementType") or "").upper()
-    if element != "MET_UCHAR":
-        raise UltronInputError(
-            path, "ElementType", f"{element or 'missing'}; expected MET_UCHAR (8-bit B-mode)"
+    if element != "MET_UCHAR" and not (labelmap and element in _LABELMAP_METAIMAGE):
+        expected = (
+            "MET_UCHAR, MET_CHAR, MET_USHORT or MET_SHORT (a labelmap)"
+            if labelmap
+            else ("MET_UCHAR (8-bit B-mode)")
         )
+        raise UltronInputError(path, "ElementType", f"{element or 'missing'}; expected {expected}")
+    msb = (_lookup(fields, "BinaryDataByteOrderMSB") or "False").lower() == "true"
+    dtype = np.dtype(_LABELMAP_METAIMAGE[element]).newbyteorder(">" if msb else "<")
     channels = _lookup(fields, "ElementNumberOfChannels")
     if channels not in (None, "1"):
         raise UltronInputError(
@@ -333,7 +313,7 @@ def _metaimage_layout(fields: Mapping[str, str], path: Path) -> tuple[list[int],
         raise UltronInputError(path, "BinaryData", "only binary pixel data can be read")
     kinds = _lookup(fields, "Kinds")
     axes = _frame_axes(sizes, kinds.split() if kinds else None, path, "DimSize", "Kinds")
-    return sizes, axes
+    return sizes, axes, dtype
 
 
 def _payload_source(fields: Mapping[str, str], path: Path, offset: int) -> tuple[Path, int]:
@@ -414,19 +394,22 @@ def _orientation(plain: Mapping[str, str], default: str | None, path: Path, fiel
     return str(orientation)
 
 
-def _read_metaimage(path: Path, default_orientation: str | None = None) -> SequenceFile:
+def _read_metaimage(
+    path: Path, default_orientation: str | None = None, labelmap: bool = False
+) -> SequenceFile:
     fields, offset = read_metaimage_header(path)
-    sizes, axes = _metaimage_layout(fields, path)
+    sizes, axes, dtype = _metaimage_layout(fields, path, labelmap)
     n_frames = sizes[axes[2]] if axes[2] is not None else 1
     plain, frames = _split_frame_fields(fields, n_frames, path, "DimSize")
     orientation = _orientation(plain, default_orientation, path, "UltrasoundImageOrientation")
-    flat = _read_metaimage_payload(plain, path, offset, math.prod(sizes))
+    payload = _read_metaimage_payload(plain, path, offset, math.prod(sizes) * dtype.itemsize)
+    flat = payload.view(dtype).astype(dtype.newbyteorder("="))
     pixels = _arrange_frames(flat, sizes, axes)
     return SequenceFile(path, pixels, orientation, plain, frames, "DimSize")
 
 
 # --------------------------------------------------------------------------- NRRD
-def _nrrd_header(path: Path, handle) -> dict[str, object]:
+def _nrrd_header(path: Path, handle, labelmap: bool = False) -> dict[str, object]:
     import nrrd
 
     try:
@@ -441,18 +424,22 @@ def _nrrd_header(path: Path, handle) -> dict[str, object]:
             if name.upper().startswith("LIST") or "%" in name:
                 raise UltronInputError(path, key, f"{name!r}: only one data file is supported")
             contained_path(path.parent, name, path, key)
-    if str(header.get("type", "")).lower() not in _UINT8_NAMES:
+    kind = str(header.get("type", "")).lower()
+    if kind not in _UINT8_NAMES and not (labelmap and kind in _LABELMAP_NRRD):
+        expected = "8- or 16-bit integers (a labelmap)" if labelmap else "uint8 (B-mode)"
         raise UltronInputError(
-            path, "type", f"{header.get('type', 'missing')}; expected uint8 (B-mode)"
+            path, "type", f"{header.get('type', 'missing')}; expected {expected}"
         )
     return header
 
 
-def _read_nrrd(path: Path, default_orientation: str | None = None) -> SequenceFile:
+def _read_nrrd(
+    path: Path, default_orientation: str | None = None, labelmap: bool = False
+) -> SequenceFile:
     import nrrd
 
     with path.open("rb") as handle:
-        header = _nrrd_header(path, handle)
+        header = _nrrd_header(path, handle, labelmap)
         sizes = [int(s) for s in np.atleast_1d(header["sizes"])]
         if not sizes or min(sizes) < 1:
             raise UltronInputError(path, "sizes", f"expected positive sizes, got {sizes}")
@@ -468,7 +455,8 @@ def _read_nrrd(path: Path, default_orientation: str | None = None) -> SequenceFi
             data = nrrd.read_data(header, handle, str(path), index_order="F")
         except (nrrd.NRRDError, OSError, EOFError, zlib.error, ValueError) as exc:
             raise UltronInputError(path, "data", f"truncated or corrupt payload ({exc})") from None
-    flat = np.asarray(data, dtype=np.uint8).reshape(-1, order="F")
+    dtype = np.dtype(_LABELMAP_NRRD[str(header["type"]).lower()] if labelmap else np.uint8)
+    flat = np.asarray(data, dtype=dtype).reshape(-1, order="F")
     if flat.size != math.prod(sizes):
         raise UltronInputError(
             path, "data", f"truncated payload: {flat.size} of {math.prod(sizes)} values"
@@ -478,20 +466,24 @@ def _read_nrrd(path: Path, default_orientation: str | None = None) -> SequenceFi
 
 
 def read_sequence(
-    path: str | Path, default_orientation: str | None = None, field: str = "SEQUENCE"
+    path: str | Path,
+    default_orientation: str | None = None,
+    field: str = "SEQUENCE",
+    labelmap: bool = False,
 ) -> SequenceFile:
     """Read a PLUS / Slicer sequence file (MetaImage or NRRD, by its ending). A file without
     ``UltrasoundImageOrientation`` (a labelmap sequence) takes ``default_orientation``; with
     None (B-mode) it is an error. ``field`` names the file in messages about the file as a
-    whole."""
+    whole. B-mode must be uint8; a ``labelmap`` may hold 8- or 16-bit integers (Slicer's
+    labelmaps are often 16-bit), kept as they are."""
     path = Path(path)
     input_file(path, field)
     lower = path.name.lower()
     try:
         if lower.endswith(_METAIMAGE_SUFFIXES):
-            return _read_metaimage(path, default_orientation)
+            return _read_metaimage(path, default_orientation, labelmap)
         if lower.endswith((".nrrd", ".nhdr")):
-            return _read_nrrd(path, default_orientation)
+            return _read_nrrd(path, default_orientation, labelmap)
     except OSError as exc:
         raise UltronInputError(path, field, f"cannot be read ({exc.strerror})") from None
     raise UltronInputError(

@@ -41,7 +41,6 @@ from ultron.data.plus import (
     IMAGE_STATUS_FIELDS,
     STATUS_OK,
     SequenceFile,
-    orientation_flips,
     parse_matrix,
     read_sequence,
 )
@@ -54,6 +53,7 @@ from ultron.data.plus_geometry import (
     fit_image_plane,
     resample_to_rigid,
 )
+from ultron.data.plus_orientation import orientation_flips
 from ultron.data.resolution import signal_columns
 from ultron.data.validation import ROTATION_TOLERANCE, pose_errors
 from ultron.errors import UltronInputError, argument_error
