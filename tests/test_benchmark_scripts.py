@@ -183,3 +183,19 @@ def test_stage2_sparse_checks_against_issue_32s_targets(monkeypatch):
     assert not got["mean", 0.05]["met"]
     assert got["A", 0.01]["rise"] == pytest.approx(0.4) and got["A", 0.01]["target"] == 0.3
     assert bench.sparse_checks([_stage2_row("A", 0.05, field, 0.4)]) == []
+
+
+def test_mask_import_runs_at_a_small_size(monkeypatch, tmp_path, capsys):
+    """benchmarks/mask_import.py end to end on 12 frames of 40 × 60: both commands run, every
+    3rd frame is labelled, and the labels sit on the imported echo."""
+    import json
+
+    bench = _load("mask_import.py", monkeypatch)
+    argv = ["mask_import.py", "--out", str(tmp_path), "--frames", "12", "--height", "40",
+            "--width", "60", "--every", "3"]  # fmt: skip
+    monkeypatch.setattr(sys, "argv", argv)
+    bench.main()
+    figures = json.loads((tmp_path / "mask_import.json").read_text())
+    assert figures["annotated_frames"] == 4 and figures["agreement_on_annotated_pixels"] > 0.99
+    assert [row["stage"] for row in figures["stages"]] == ["import-plus", "label_--masks"]
+    assert "| label_--masks |" in capsys.readouterr().out

@@ -201,6 +201,29 @@ def _plain_import(tmp_path: Path) -> tuple[Path, np.ndarray]:
     return out, masks
 
 
+def test_masks_are_read_a_few_frames_at_a_time_with_the_same_labels(tmp_path: Path, monkeypatch):
+    """Memory-mapped masks mapped two frames at a time give the labels of one pass over all."""
+    import ultron.data.label_import as label_import
+
+    out, masks = _plain_import(tmp_path)
+    np.save(tmp_path / "m.npy", masks)
+    data = SweepDataset.load(out)
+    read, orientation = label_import.read_masks(tmp_path / "m.npy")
+    assert isinstance(read, np.memmap)
+    config = MaskImportConfig()
+    whole = label_import.sweep_mask_labels(data, "s", read, config, tmp_path, orientation)
+    own = np.where(whole == 1, 7, 0).astype(np.uint8)  # the sweep's own shape, as masks
+    own_whole = label_import.sweep_mask_labels(data, "s", own, config, tmp_path)
+    monkeypatch.setattr(label_import, "CHUNK_FRAMES", 2)
+    assert np.array_equal(
+        label_import.sweep_mask_labels(data, "s", read, config, tmp_path, orientation), whole
+    )
+    assert np.array_equal(
+        label_import.sweep_mask_labels(data, "s", own, config, tmp_path), own_whole
+    )
+    assert (own_whole == 1).sum() == (whole == 1).sum()
+
+
 def test_plus_masks_png_folder(tmp_path: Path):
     """A folder of 0.png … (N − 1).png, one per frame of the recording, reads as the array."""
     from PIL import Image

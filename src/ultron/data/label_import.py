@@ -49,7 +49,7 @@ from ultron.data.auto_label_dataset import (
 from ultron.data.dataset import SweepDataset
 from ultron.data.importers import read_png_frames
 from ultron.data.plus import SEQUENCE_SUFFIXES, read_sequence
-from ultron.data.plus_import import frames_as_imported
+from ultron.data.plus_import import check_recording_frames, frames_as_imported
 from ultron.data.plus_orientation import orientation_flips
 from ultron.data.validation import (
     LABEL_BACKGROUND,
@@ -57,7 +57,6 @@ from ultron.data.validation import (
     LABEL_UNANNOTATED,
     input_file,
     load_npy,
-    validate_labels,
 )
 from ultron.errors import UltronInputError, argument_error
 
@@ -65,6 +64,8 @@ from ultron.errors import UltronInputError, argument_error
 ANNOTATED = ("nonempty", "all")
 #: A mask value's share, in 1/255, at or above which a resampled pixel takes it (one half).
 _HALF = 128
+#: Frames of masks read and mapped at once (:func:`sweep_mask_labels`).
+CHUNK_FRAMES = 32
 
 
 @dataclass(frozen=True)
@@ -144,7 +145,7 @@ def read_masks(path: str | Path, orientation: str = "MF") -> tuple[np.ndarray, s
                 path, "MASKS", "expected a .npy array (N, H, W), a folder of 0.png, 1.png, … or"
                 f" a sequence file ({', '.join(SEQUENCE_SUFFIXES)})",
             )  # fmt: skip
-        masks = load_npy(path, "masks")
+        masks = load_npy(path, "masks", mmap=True)
     if masks.ndim != 3 or min(masks.shape) < 1:
         raise UltronInputError(path, "masks", f"expected shape (N, H, W), got {masks.shape}")
     if masks.dtype.kind not in "uib":
@@ -173,15 +174,21 @@ def mask_labels(masks: np.ndarray, config: MaskImportConfig) -> np.ndarray:
 def labels_on_sweep(
     labels: np.ndarray, record: dict[str, Any], shape: tuple[int, int], where: str | Path
 ) -> np.ndarray:
-    """MF ``labels`` of a recording's whole frames on a PLUS sweep's pixels: the bone share and
-    the known share (0–255) taken through the import's steps
+    """MF ``labels`` of K frames the import kept, of the recording's whole size, on a PLUS
+    sweep's pixels: the bone share and the known share (0–255) taken through the import's steps
     (:func:`~ultron.data.plus_import.frames_as_imported`), then read as the module doc says."""
+    out = np.full((len(labels), *shape), LABEL_UNANNOTATED, dtype=np.uint8)
+    annotated = (labels != LABEL_UNANNOTATED).any(axis=(1, 2))
+    if not annotated.any():  # frames nobody annotated stay unsure: nothing to resample
+        return out
+    labels = labels[annotated]
     known = np.where(labels != LABEL_UNANNOTATED, 255, 0).astype(np.uint8)
     bone = np.where(labels == LABEL_TARGET, 255, 0).astype(np.uint8)
     known = frames_as_imported(known, record, shape, where).astype(np.int32)
     bone = frames_as_imported(bone, record, shape, where).astype(np.int32)
-    out = np.where(2 * bone >= known, LABEL_TARGET, LABEL_BACKGROUND).astype(np.uint8)
-    out[known < _HALF] = LABEL_UNANNOTATED
+    mapped = np.where(2 * bone >= known, LABEL_TARGET, LABEL_BACKGROUND).astype(np.uint8)
+    mapped[known < _HALF] = LABEL_UNANNOTATED
+    out[annotated] = mapped
     return out
 
 
@@ -197,14 +204,24 @@ def sweep_mask_labels(
     ``sweep`` of ``dataset`` (module doc): masks of a PLUS sweep's recording taken through the
     import's steps; masks of the sweep's own frames, (N, H, W) of its ``images.npy``, as they
     are — of a PLUS sweep too, when that is their shape and not the recording's (labels made
-    on the sweep and edited)."""
+    on the sweep and edited). ``masks`` may be memory-mapped: they are read
+    :data:`CHUNK_FRAMES` frames at a time, so a recording of 10³ full-size frames needs no more
+    than a few of them in memory."""
     target = dataset.sweep(sweep)
     record = (dataset.metadata.get("imports") or {}).get(sweep)
+    labels = np.empty(target.images.shape, dtype=np.uint8)
     if _of_recording(masks.shape, target.images.shape, record):
-        orientation = orientation or config.orientation
-        flip_columns, flip_rows = orientation_flips(orientation, where, "orientation")
-        masks = masks[:, :: -1 if flip_rows else 1, :: -1 if flip_columns else 1]
-        labels = labels_on_sweep(mask_labels(masks, config), record, target.images.shape[1:], where)
+        check_recording_frames(masks.shape, record, where)
+        flip_columns, flip_rows = orientation_flips(
+            orientation or config.orientation, where, "orientation"
+        )
+        kept = np.asarray(record["frames"], dtype=np.int64)
+        for start in range(0, len(kept), CHUNK_FRAMES):
+            chunk = np.asarray(masks[kept[start : start + CHUNK_FRAMES]])
+            chunk = chunk[:, :: -1 if flip_rows else 1, :: -1 if flip_columns else 1]
+            labels[start : start + len(chunk)] = labels_on_sweep(
+                mask_labels(chunk, config), record, target.images.shape[1:], where
+            )
     else:
         if masks.shape != target.images.shape:
             raise UltronInputError(
@@ -212,9 +229,10 @@ def sweep_mask_labels(
                 f" {target.images.shape} (N, H, W), which masks of a sweep not imported from"
                 " PLUS must match",
             )  # fmt: skip
-        labels = mask_labels(masks, config)
-    validate_labels(labels, where, "labels")
-    return labels
+        for start in range(0, len(labels), CHUNK_FRAMES):
+            chunk = np.asarray(masks[start : start + CHUNK_FRAMES])
+            labels[start : start + len(chunk)] = mask_labels(chunk, config)
+    return labels  # 0, 1 and 255 by construction
 
 
 def _of_recording(shape: tuple[int, ...], sweep_shape: tuple[int, ...], record: Any) -> bool:

@@ -350,18 +350,15 @@ def on_sweep_grid(
     return downsample_frames(frames, shape), resampled
 
 
-def frames_as_imported(
-    frames: np.ndarray, record: dict[str, Any], shape: tuple[int, int], where: str | Path
-) -> np.ndarray:
-    """uint8 (N, H, W) ``frames`` of a recording, MF-oriented and of its whole frame size, taken
-    the way :func:`read_plus` took its B-mode (``record``: the import's provenance,
-    ``dataset.json``'s ``metadata.imports.<sweep>``): the imported frames kept, clipped to the
-    recorded (narrowed) clip rectangle, resampled where it resampled, downsampled to ``shape``,
-    the sweep's image shape. Anything of the recording (a mask per frame) then lies on the
-    sweep's pixels as its B-mode does. A frame count or size that does not fit the record is an
-    error naming ``where``."""
+def check_recording_frames(
+    shape: tuple[int, int, int], record: dict[str, Any], where: str | Path
+) -> None:
+    """Refuse (naming ``where``) frames of ``shape`` (N, H, W) as a PLUS sweep's recording
+    (``record``: the import's provenance, ``dataset.json``'s ``metadata.imports.<sweep>``) when
+    their count or size does not fit it: the file's count and size where the record has them
+    (imports since 2026-12-04), else room for the frames kept and the clip rectangle."""
     kept = np.asarray(record["frames"], dtype=np.int64)
-    n, height, width = frames.shape
+    n, height, width = shape
     expected = record.get("file_frames")
     if (expected is not None and n != expected) or n <= int(kept.max(initial=-1)):
         wanted = expected if expected is not None else f"at least {int(kept.max()) + 1}"
@@ -382,9 +379,23 @@ def frames_as_imported(
                 where, "frames", f"frames of {height} × {width} pixels cannot hold the import's"
                 f" clip rectangle (origin {i0}, {j0}, size {w} × {h})",
             )  # fmt: skip
+
+
+def frames_as_imported(
+    frames: np.ndarray, record: dict[str, Any], shape: tuple[int, int], where: str | Path
+) -> np.ndarray:
+    """uint8 (K, H, W) frames of a recording taken the way :func:`read_plus` took its B-mode
+    (``record`` as in :func:`check_recording_frames`, which the caller has passed): ``frames``
+    are K of the frames it kept, MF-oriented and of the file's whole size; they are clipped to
+    the recorded (narrowed) clip rectangle, resampled where it resampled and downsampled to
+    ``shape``, the sweep's image shape. Anything of the recording (a mask per frame) then lies
+    on the sweep's pixels as its B-mode does."""
+    clip = record.get("clip")
+    if clip is not None:
+        (i0, j0), (w, h) = clip["origin"], clip["size"]
         frames = frames[:, j0 : j0 + h, i0 : i0 + w]
         clip = ((i0, j0), (w, h))
-    frames = np.ascontiguousarray(frames[kept])
+    frames = np.ascontiguousarray(frames)
     calibration = clipped_calibration(np.asarray(record["image_to_probe"]), clip)
     fit = fit_image_plane(
         calibration, frames.shape[2], frames.shape[1], where, "metadata.imports.image_to_probe"

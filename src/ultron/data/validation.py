@@ -97,12 +97,13 @@ def _check_npy_size(path: Path, field: str) -> None:
         )  # fmt: skip
 
 
-def load_npy(path: Path, field: str) -> np.ndarray:
-    """Load a ``.npy`` file without pickles, turning every failure into a clear error."""
+def load_npy(path: Path, field: str, mmap: bool = False) -> np.ndarray:
+    """Load a ``.npy`` file without pickles, turning every failure into a clear error;
+    ``mmap``: memory-mapped read-only (frames are read as they are indexed)."""
     input_file(path, field)
     _check_npy_size(path, field)
     try:
-        return np.load(path, allow_pickle=False)
+        return np.load(path, mmap_mode="r" if mmap else None, allow_pickle=False)
     except (ValueError, EOFError, OSError) as exc:
         raise UltronInputError(
             path, field, f"not a readable .npy array (truncated or not .npy format: {exc})"
