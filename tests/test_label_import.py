@@ -24,7 +24,7 @@ from plus_synthetic import (
 from test_bad_input_corpus import runner
 from ultron.cli.main import app
 from ultron.data.dataset import ProbeGeometry, Sweep, SweepDataset
-from ultron.data.label_import import MaskImportConfig, mask_labels
+from ultron.data.label_import import MaskImportConfig, mask_labels, parse_frames
 from ultron.errors import UltronInputError
 
 #: Grey levels of the synthetic recording: tissue and the bone's echo band.
@@ -222,6 +222,45 @@ def test_masks_are_read_a_few_frames_at_a_time_with_the_same_labels(tmp_path: Pa
         label_import.sweep_mask_labels(data, "s", own, config, tmp_path), own_whole
     )
     assert (own_whole == 1).sum() == (whole == 1).sum()
+
+
+def test_frames_parse_as_numbers_and_ranges():
+    assert parse_frames("0:100:10,105") == (*range(0, 100, 10), 105)
+    assert parse_frames(" 3 , 5:7") == (3, 5, 6)
+    for bad in ("a", "1:2:0", "-1", "", "1:2:3:4", "2,,3"):
+        with pytest.raises(UltronInputError, match="frames"):
+            parse_frames(bad)
+    with pytest.raises(UltronInputError, match="more than once"):
+        MaskImportConfig(frames=(1, 2, 1))
+
+
+def test_masks_of_listed_frames_only(tmp_path: Path, own_frames: Path):
+    """Masks of frames 0, 2 and 3 of a PLUS recording (--frames 0,2,3; frame 2 was skipped at
+    import) give the labels of the whole recording's masks with every other frame empty; on a
+    sweep of its own frames, masks of frames 1 and 3 land there."""
+    out, masks = _plain_import(tmp_path)
+    empty_elsewhere = masks.copy()
+    empty_elsewhere[[1, 4]] = 0
+    np.save(tmp_path / "all.npy", empty_elsewhere)
+    assert _label(str(out), "--masks", str(tmp_path / "all.npy")).exit_code == 0
+    expected = SweepDataset.load(out).sweep("s").labels
+    np.save(tmp_path / "some.npy", masks[[0, 2, 3]])
+    result = _label(str(out), "--masks", str(tmp_path / "some.npy"), "--frames", "0,2,3",
+                    "--replace")  # fmt: skip
+    assert result.exit_code == 0, result.output
+    labels = SweepDataset.load(out).sweep("s").labels
+    assert np.array_equal(labels, expected) and (labels[[1, 3]] == 255).all()
+    for frames, needle in (("0,2", "3 masks for the 2 frames"), ("0:2,5", "lists frame 5")):
+        refused = _label(str(out), "--masks", str(tmp_path / "some.npy"), "--frames", frames,
+                         "--replace")  # fmt: skip
+        assert refused.exit_code == 2 and needle in refused.stderr, refused.stderr
+    own = np.zeros((2, 6, 8), dtype=np.uint8)
+    own[:, 2, 3] = 1
+    np.save(tmp_path / "own.npy", own)
+    result = _label(str(own_frames), "--masks", str(tmp_path / "own.npy"), "--frames", "1:4:2")
+    assert result.exit_code == 0, result.output
+    labels = SweepDataset.load(own_frames).sweep("s").labels
+    assert (labels[[0, 2, 4]] == 255).all() and np.array_equal(labels[[1, 3]], own)
 
 
 def test_plus_masks_png_folder(tmp_path: Path):

@@ -20,6 +20,7 @@ def label(
     unsure_value: int | None = None,
     annotated: str = "nonempty",
     orientation: str = "MF",
+    frames: str | None = None,
     threads: int | None = None,
 ) -> None:
     """Write bone labels (1 bone, 0 background, 255 unsure) into a dataset's sweeps: detected
@@ -33,6 +34,9 @@ def label(
             16-bit labelmap sequence (.seq.nrrd, .mha, …): of a PLUS sweep, the recording's
             whole frames (every frame of the file); of any other sweep, its frames
             (docs/auto-labels.md). Needs one sweep (--sweeps NAME).
+        frames: The frames the masks belong to, one per mask, when they are of some frames only:
+            numbers and ranges A:B[:S] (B left out), comma-separated, of the recording's file (a
+            PLUS sweep) or of the sweep: 0:1000:10 for every 10th of 1000.
         sweeps: Sweep to label (repeat, or comma-separate; default: all sweeps).
         replace: Overwrite the labels a sweep already has.
     """
@@ -43,7 +47,7 @@ def label(
         raise argument_error("--auto", "pass exactly one of --auto and --masks MASKS")
     if masks is not None:
         _import_masks(dataset, masks, sweep_names(sweeps), replace, bone_value, unsure_value,
-                      annotated, orientation)  # fmt: skip
+                      annotated, orientation, frames)  # fmt: skip
         return
     # refused before the progress bar opens; the checked dataset is the one labelled
     data, names = check_labelling(dataset, sweep_names(sweeps), replace, option="--sweeps")
@@ -55,12 +59,13 @@ def label(
 
 def _import_masks(dataset: Path, masks: Path, names: list[str] | None, replace: bool,
                   bone_value: int | None, unsure_value: int | None, annotated: str,
-                  orientation: str) -> None:  # fmt: skip
+                  orientation: str, frames: str | None) -> None:  # fmt: skip
     from ultron.data.dataset import SweepDataset
-    from ultron.data.label_import import MaskImportConfig, import_mask_labels
+    from ultron.data.label_import import MaskImportConfig, import_mask_labels, parse_frames
     from ultron.errors import argument_error
 
-    config = MaskImportConfig(bone_value, unsure_value, annotated, orientation)
+    numbers = None if frames is None else parse_frames(frames)
+    config = MaskImportConfig(bone_value, unsure_value, annotated, orientation, numbers)
     if names is None:
         names = [s.name for s in SweepDataset.load(dataset).sweeps]
     if len(names) != 1:

@@ -82,12 +82,17 @@ class MaskImportConfig:
         orientation: PLUS's orientation of the masks of a PLUS sweep: MF (row 0 at the
             transducer, as PLUS and Slicer display B-mode), MN, UF or UN (a sequence file's
             own UltrasoundImageOrientation wins).
+        frames: The frame each mask belongs to, when the masks are of some frames only:
+            frame numbers of the recording's file (a PLUS sweep) or of the sweep, one per
+            mask, in the masks' order; the frames not listed are unsure (default: one mask per
+            frame).
     """
 
     bone_value: int | None = None
     unsure_value: int | None = None
     annotated: str = "nonempty"
     orientation: str = "MF"
+    frames: tuple[int, ...] | None = None
 
     def __post_init__(self) -> None:
         for name in ("bone_value", "unsure_value"):
@@ -103,6 +108,14 @@ class MaskImportConfig:
                 "annotated", f"expected one of {', '.join(ANNOTATED)}, got {self.annotated!r}"
             )
         orientation_flips(self.orientation, "argument", "orientation")
+        if self.frames is not None:
+            numbers = list(self.frames)
+            if not numbers or any(
+                isinstance(v, bool) or not isinstance(v, int) or v < 0 for v in numbers
+            ):
+                raise argument_error("frames", f"expected frame numbers ≥ 0, got {self.frames!r}")
+            if len(set(numbers)) != len(numbers):
+                raise argument_error("frames", "lists a frame more than once")
 
 
 @dataclass(frozen=True)
@@ -125,6 +138,25 @@ class MaskImportSummary:
             f" {100 * self.background:.1f} %, unsure {100 * self.unsure:.1f} % of the pixels"
             + (" (replaced the sweep's labels)" if self.replaced else "")
         ]
+
+
+def parse_frames(text: str) -> tuple[int, ...]:
+    """``--frames``' text as frame numbers: comma-separated items, each a number ``N`` or a
+    range ``A:B`` or ``A:B:S`` (from A up to B, B left out, in steps of S, as Python counts):
+    ``0:100:10,105`` is 0, 10, …, 90, 105."""
+    numbers: list[int] = []
+    for item in text.split(","):
+        parts = item.strip().split(":")
+        try:
+            values = [int(part) for part in parts]
+        except ValueError:
+            values = []
+        if not values or len(values) > 3 or min(values) < 0 or (len(values) == 3 and not values[2]):
+            raise argument_error(
+                "frames", f"expected numbers or ranges A:B[:S] of numbers ≥ 0, got {item!r}"
+            )
+        numbers.extend(values if len(values) == 1 else range(*values))
+    return tuple(numbers)
 
 
 def read_masks(path: str | Path, orientation: str = "MF") -> tuple[np.ndarray, str]:
@@ -204,47 +236,87 @@ def sweep_mask_labels(
     ``sweep`` of ``dataset`` (module doc): masks of a PLUS sweep's recording taken through the
     import's steps; masks of the sweep's own frames, (N, H, W) of its ``images.npy``, as they
     are — of a PLUS sweep too, when that is their shape and not the recording's (labels made
-    on the sweep and edited). ``masks`` may be memory-mapped: they are read
-    :data:`CHUNK_FRAMES` frames at a time, so a recording of 10³ full-size frames needs no more
-    than a few of them in memory."""
+    on the sweep and edited). With ``config.frames`` the masks are of the frames listed. The
+    masks may be memory-mapped: they are read :data:`CHUNK_FRAMES` frames at a time, so a
+    recording of 10³ full-size frames needs no more than a few of them in memory."""
     target = dataset.sweep(sweep)
     record = (dataset.metadata.get("imports") or {}).get(sweep)
-    labels = np.empty(target.images.shape, dtype=np.uint8)
-    if _of_recording(masks.shape, target.images.shape, record):
-        check_recording_frames(masks.shape, record, where)
-        flip_columns, flip_rows = orientation_flips(
-            orientation or config.orientation, where, "orientation"
+    labels = np.full(target.images.shape, LABEL_UNANNOTATED, dtype=np.uint8)
+    numbers = None if config.frames is None else np.asarray(config.frames, dtype=np.int64)
+    if numbers is not None and len(numbers) != len(masks):
+        raise UltronInputError(
+            where, "masks", f"{len(masks)} masks for the {len(numbers)} frames --frames lists"
         )
+    if _of_recording(masks.shape, target.images.shape, record, numbers is None):
+        size = record.get("file_frames") or int(np.max(record["frames"])) + 1
+        check_recording_frames(
+            masks.shape if numbers is None else (size, *masks.shape[1:]), record, where
+        )
+        flips = orientation_flips(orientation or config.orientation, where, "orientation")
         kept = np.asarray(record["frames"], dtype=np.int64)
-        for start in range(0, len(kept), CHUNK_FRAMES):
-            chunk = np.asarray(masks[kept[start : start + CHUNK_FRAMES]])
-            chunk = chunk[:, :: -1 if flip_rows else 1, :: -1 if flip_columns else 1]
-            labels[start : start + len(chunk)] = labels_on_sweep(
+        on_sweep, of_mask = _pairs(kept, numbers, record.get("file_frames"), where)
+
+        def mapped(chunk: np.ndarray) -> np.ndarray:
+            chunk = chunk[:, :: -1 if flips[1] else 1, :: -1 if flips[0] else 1]
+            return labels_on_sweep(
                 mask_labels(chunk, config), record, target.images.shape[1:], where
             )
     else:
-        if masks.shape != target.images.shape:
+        if masks.shape[1:] != target.images.shape[1:] or (
+            numbers is None and len(masks) != len(target.images)
+        ):
             raise UltronInputError(
                 where, "masks", f"shape {masks.shape}; sweep {sweep!r} has frames of"
                 f" {target.images.shape} (N, H, W), which masks of a sweep not imported from"
                 " PLUS must match",
             )  # fmt: skip
-        for start in range(0, len(labels), CHUNK_FRAMES):
-            chunk = np.asarray(masks[start : start + CHUNK_FRAMES])
-            labels[start : start + len(chunk)] = mask_labels(chunk, config)
+        on_sweep, of_mask = _pairs(np.arange(len(labels)), numbers, len(labels), where)
+
+        def mapped(chunk: np.ndarray) -> np.ndarray:
+            return mask_labels(chunk, config)
+
+    for start in range(0, len(on_sweep), CHUNK_FRAMES):
+        chunk = np.asarray(masks[of_mask[start : start + CHUNK_FRAMES]])
+        labels[on_sweep[start : start + CHUNK_FRAMES]] = mapped(chunk)
     return labels  # 0, 1 and 255 by construction
 
 
-def _of_recording(shape: tuple[int, ...], sweep_shape: tuple[int, ...], record: Any) -> bool:
+def _pairs(
+    frames: np.ndarray, numbers: np.ndarray | None, n_numbers: int | None, where: Path
+) -> tuple[np.ndarray, np.ndarray]:
+    """(sweep frame, mask) index pairs: sweep frame i shows frame ``frames[i]`` (of the file,
+    or of the sweep); mask k is of frame ``numbers[k]`` (None: of frame k). A number at or
+    beyond ``n_numbers`` (the frames there are; None: unknown) is an error naming ``where``."""
+    if numbers is None:
+        return np.arange(len(frames)), frames
+    if n_numbers is not None and int(numbers.max()) >= n_numbers:
+        raise UltronInputError(
+            where, "frames", f"--frames lists frame {int(numbers.max())}; there are {n_numbers}"
+        )
+    position = {int(f): k for k, f in enumerate(numbers)}
+    on_sweep = np.asarray([i for i, f in enumerate(frames) if int(f) in position], dtype=np.int64)
+    of_mask = np.asarray([position[int(frames[i])] for i in on_sweep], dtype=np.int64)
+    return on_sweep, of_mask
+
+
+def _of_recording(
+    shape: tuple[int, ...], sweep_shape: tuple[int, ...], record: Any, counted: bool = True
+) -> bool:
     """Whether masks of ``shape`` are read as a PLUS recording's (``record``: the sweep's import
     provenance; None or another source: never): unless they have the sweep's shape and not the
-    recording's (a record without the recording's size: unless they have the sweep's)."""
+    recording's (a record without the recording's size: unless they have the sweep's). Not
+    ``counted`` (masks of listed frames): their frame size alone decides."""
     if not (isinstance(record, dict) and record.get("source") == "plus"):
         return False
+    frames, size = record.get("file_frames"), record.get("file_shape")
+    if not counted:
+        shape, sweep_shape = tuple(shape[1:]), tuple(sweep_shape[1:])
+        recording = None if size is None else tuple(size)
+    else:
+        recording = None if frames is None or size is None else (frames, *size)
     if tuple(shape) != tuple(sweep_shape):
         return True
-    frames, size = record.get("file_frames"), record.get("file_shape")
-    return frames is not None and size is not None and tuple(shape) == (frames, *size)
+    return recording is not None and tuple(shape) == recording
 
 
 def import_mask_labels(
