@@ -208,7 +208,8 @@ def test_masks_are_read_a_few_frames_at_a_time_with_the_same_labels(tmp_path: Pa
     out, masks = _plain_import(tmp_path)
     np.save(tmp_path / "m.npy", masks)
     data = SweepDataset.load(out)
-    read, orientation = label_import.read_masks(tmp_path / "m.npy")
+    read, orientation, named = label_import.read_masks(tmp_path / "m.npy")
+    assert named is None
     assert isinstance(read, np.memmap)
     config = MaskImportConfig()
     whole = label_import.sweep_mask_labels(data, "s", read, config, tmp_path, orientation)
@@ -254,6 +255,18 @@ def test_masks_of_listed_frames_only(tmp_path: Path, own_frames: Path):
         refused = _label(str(out), "--masks", str(tmp_path / "some.npy"), "--frames", frames,
                          "--replace")  # fmt: skip
         assert refused.exit_code == 2 and needle in refused.stderr, refused.stderr
+    # PNGs named by their frames, with gaps, are of those frames; --frames must agree
+    from PIL import Image
+
+    (tmp_path / "png").mkdir()
+    for number in (0, 2, 3):
+        Image.fromarray(masks[number] * 255).save(tmp_path / "png" / f"{number:04d}.png")
+    result = _label(str(out), "--masks", str(tmp_path / "png"), "--replace")
+    assert result.exit_code == 0, result.output
+    assert np.array_equal(SweepDataset.load(out).sweep("s").labels, expected)
+    refused = _label(str(out), "--masks", str(tmp_path / "png"), "--frames", "0,1,3", "--replace")
+    assert refused.exit_code == 2
+    assert "the PNG names give frames 0, 2, 3; --frames lists 0, 1, 3" in refused.stderr
     own = np.zeros((2, 6, 8), dtype=np.uint8)
     own[:, 2, 3] = 1
     np.save(tmp_path / "own.npy", own)

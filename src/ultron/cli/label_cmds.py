@@ -36,7 +36,8 @@ def label(
             (docs/auto-labels.md). Needs one sweep (--sweeps NAME).
         frames: The frames the masks belong to, one per mask, when they are of some frames only:
             numbers and ranges A:B[:S] (B left out), comma-separated, of the recording's file (a
-            PLUS sweep) or of the sweep: 0:1000:10 for every 10th of 1000.
+            PLUS sweep) or of the sweep: 0:1000:10 for every 10th of 1000 (PNGs named by
+            frame number with gaps give their frames themselves).
         sweeps: Sweep to label (repeat, or comma-separate; default: all sweeps).
         replace: Overwrite the labels a sweep already has.
     """

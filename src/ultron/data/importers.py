@@ -114,6 +114,21 @@ def numbered_frames(folder: Path) -> list[Path]:
     names of one number (``3.png``, ``03.png``) are ambiguous; both are errors naming the first
     missing index or the clashing files.
     """
+    by_index = png_numbers(folder)
+    missing = next((i for i in range(len(by_index)) if i not in by_index), None)
+    if missing is not None:
+        raise UltronInputError(
+            folder / f"{missing}.png", "images", f"frame {missing} is missing: {len(by_index)}"
+            f" frames must be numbered 0 … {len(by_index) - 1} (found up to"
+            f" {max(by_index)}.png), or frames and poses would be paired wrongly",
+        )  # fmt: skip
+    return [by_index[i] for i in range(len(by_index))]
+
+
+def png_numbers(folder: Path) -> dict[int, Path]:
+    """The ``.png`` files of ``folder`` by the frame number their name gives (``0010.png`` →
+    10), in numeric order; a name that is not a number, or two names of one number, is an
+    error naming them."""
     files = list(folder.glob("*.png"))
     if not files:
         raise UltronInputError(folder, "images", "no .png frames found")
@@ -123,7 +138,7 @@ def numbered_frames(folder: Path) -> list[Path]:
             folder, "images", f"frame names must be 0.png, 1.png, …; found {non_numeric[:3]}"
         )
     by_index: dict[int, Path] = {}
-    for file in sorted(files):
+    for file in sorted(files, key=lambda f: (int(f.stem), f.name)):
         index = int(file.stem)
         if index in by_index:
             raise UltronInputError(
@@ -132,14 +147,7 @@ def numbered_frames(folder: Path) -> list[Path]:
                 f"{by_index[index].name} and {file.name} both number frame {index}",
             )
         by_index[index] = file
-    missing = next((i for i in range(len(files)) if i not in by_index), None)
-    if missing is not None:
-        raise UltronInputError(
-            folder / f"{missing}.png", "images", f"frame {missing} is missing: {len(files)} frames"
-            f" must be numbered 0 … {len(files) - 1} (found up to {max(by_index)}.png), or"
-            " frames and poses would be paired wrongly",
-        )  # fmt: skip
-    return [by_index[i] for i in range(len(files))]
+    return by_index
 
 
 #: The largest frame a PNG may declare (pixels): far beyond any B-mode image, far below a
@@ -173,7 +181,12 @@ def _read_png(file: Path) -> tuple[np.ndarray, str]:
 
 def read_png_frames(folder: Path) -> np.ndarray:
     """Read ``0.png, 1.png, …`` (:func:`numbered_frames`) as uint8 (N, H, W) grey frames."""
-    files = numbered_frames(folder)
+    return read_png_files(numbered_frames(folder))
+
+
+def read_png_files(files: list[Path]) -> np.ndarray:
+    """Read ``files`` as uint8 (N, H, W) grey frames of one size; a colour or non-8-bit PNG,
+    or one of another size, is an error naming it."""
     frames = []
     for file in files:
         input_file(file, "image")

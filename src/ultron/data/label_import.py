@@ -32,6 +32,7 @@ nobody painted; with ``"all"`` every frame, an empty mask meaning "no bone here"
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -47,7 +48,7 @@ from ultron.data.auto_label_dataset import (
     save_dataset_json,
 )
 from ultron.data.dataset import SweepDataset
-from ultron.data.importers import read_png_frames
+from ultron.data.importers import png_numbers, read_png_files
 from ultron.data.plus import SEQUENCE_SUFFIXES, read_sequence
 from ultron.data.plus_import import check_recording_frames, frames_as_imported
 from ultron.data.plus_orientation import orientation_flips
@@ -159,14 +160,22 @@ def parse_frames(text: str) -> tuple[int, ...]:
     return tuple(numbers)
 
 
-def read_masks(path: str | Path, orientation: str = "MF") -> tuple[np.ndarray, str]:
-    """The masks at ``path`` and their orientation: a ``.npy`` integer array (N, H, W), a
-    folder of ``0.png, 1.png, …`` (both in ``orientation``) or an 8- or 16-bit sequence file as
-    PLUS and Slicer write them (a labelmap sequence: its own ``UltrasoundImageOrientation``,
-    else ``orientation``); anything else is an error naming the file."""
+def read_masks(
+    path: str | Path, orientation: str = "MF"
+) -> tuple[np.ndarray, str, tuple[int, ...] | None]:
+    """The masks at ``path``, their orientation and, for PNGs named by frame number with gaps
+    (``0.png, 10.png, 20.png, …``), the frames they are of (else None): a ``.npy`` integer
+    array (N, H, W), a folder of numbered PNGs (both in ``orientation``) or an 8- or 16-bit
+    sequence file as PLUS and Slicer write them (a labelmap sequence: its own
+    ``UltrasoundImageOrientation``, else ``orientation``); anything else is an error naming
+    the file."""
     path = Path(path)
+    frames = None
     if path.is_dir():
-        masks = read_png_frames(path)
+        by_number = png_numbers(path)
+        masks = read_png_files(list(by_number.values()))
+        if list(by_number) != list(range(len(by_number))):
+            frames = tuple(by_number)
     elif path.name.lower().endswith(SEQUENCE_SUFFIXES):
         sequence = read_sequence(path, orientation, "MASKS", labelmap=True)
         masks, orientation = sequence.pixels, sequence.orientation
@@ -184,7 +193,7 @@ def read_masks(path: str | Path, orientation: str = "MF") -> tuple[np.ndarray, s
         raise UltronInputError(path, "masks", f"expected integer values, got dtype {masks.dtype}")
     if masks.dtype.kind == "i" and masks.size and int(masks.min()) < 0:
         raise UltronInputError(path, "masks", f"negative value {int(masks.min())}")
-    return masks, orientation
+    return masks, orientation, frames
 
 
 def mask_labels(masks: np.ndarray, config: MaskImportConfig) -> np.ndarray:
@@ -336,7 +345,14 @@ def import_mask_labels(
         raise argument_error("config", f"expected a MaskImportConfig, got {type(config).__name__}")
     root, masks_path = Path(root), Path(masks_path)
     dataset, (name,) = check_labelling(root, [sweep], replace, "--sweeps", what="the masks")
-    masks, orientation = read_masks(masks_path, config.orientation)
+    masks, orientation, named = read_masks(masks_path, config.orientation)
+    if named is not None:  # PNGs named by the frames they are of
+        if config.frames is not None and tuple(config.frames) != named:
+            raise UltronInputError(
+                masks_path, "frames", f"the PNG names give frames {_listed(named)}; --frames"
+                f" lists {_listed(config.frames)}",
+            )  # fmt: skip
+        config = dataclasses.replace(config, frames=named)
     labels = sweep_mask_labels(dataset, name, masks, config, masks_path, orientation)
     if not (labels == LABEL_TARGET).any():
         raise UltronInputError(
@@ -383,3 +399,9 @@ def label_sources(dataset: SweepDataset) -> dict[str, str]:
         else:
             sources[sweep.name] = "masks" if sweep.name in imported else "given"
     return sources
+
+
+def _listed(frames: tuple[int, ...]) -> str:
+    """The first frames of ``frames`` for a message."""
+    head = ", ".join(str(f) for f in frames[:5])
+    return head + (f", … ({len(frames)} in all)" if len(frames) > 5 else "")
