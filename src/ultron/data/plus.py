@@ -296,11 +296,8 @@ def _metaimage_layout(
         raise UltronInputError(path, "DimSize", f"has {len(sizes)} sizes but NDims is {ndims}")
     element = (_lookup(fields, "ElementType") or "").upper()
     if element != "MET_UCHAR" and not (labelmap and element in _LABELMAP_METAIMAGE):
-        expected = (
-            "MET_UCHAR, MET_CHAR, MET_USHORT or MET_SHORT (a labelmap)"
-            if labelmap
-            else ("MET_UCHAR (8-bit B-mode)")
-        )
+        labelmap_types = "MET_UCHAR, MET_CHAR, MET_USHORT or MET_SHORT (a labelmap)"
+        expected = labelmap_types if labelmap else "MET_UCHAR (8-bit B-mode)"
         raise UltronInputError(path, "ElementType", f"{element or 'missing'}; expected {expected}")
     msb = (_lookup(fields, "BinaryDataByteOrderMSB") or "False").lower() == "true"
     dtype = np.dtype(_LABELMAP_METAIMAGE[element]).newbyteorder(">" if msb else "<")
@@ -403,7 +400,7 @@ def _read_metaimage(
     plain, frames = _split_frame_fields(fields, n_frames, path, "DimSize")
     orientation = _orientation(plain, default_orientation, path, "UltrasoundImageOrientation")
     payload = _read_metaimage_payload(plain, path, offset, math.prod(sizes) * dtype.itemsize)
-    flat = payload.view(dtype).astype(dtype.newbyteorder("="))
+    flat = payload.view(dtype).astype(dtype.newbyteorder("="), copy=False)  # B-mode: no copy
     pixels = _arrange_frames(flat, sizes, axes)
     return SequenceFile(path, pixels, orientation, plain, frames, "DimSize")
 
