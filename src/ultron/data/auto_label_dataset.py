@@ -247,10 +247,8 @@ def label_checked_sweeps(
         )
         summaries.append(summary)
     records = dict(dataset.metadata.get(METADATA_KEY) or {})
-    masks = {k: v for k, v in (dataset.metadata.get(MASKS_KEY) or {}).items() if k not in names}
-    dataset.metadata = {k: v for k, v in dataset.metadata.items() if k != MASKS_KEY}
-    if masks:  # a sweep labelled automatically now no longer holds a person's masks
-        dataset.metadata[MASKS_KEY] = masks
+    # a sweep labelled automatically now no longer holds a person's masks
+    dataset.metadata = without_sweeps(dataset.metadata, MASKS_KEY, names)
     for summary in summaries:
         labels, qualities = computed[summary.name]
         atomic.save_npy(root / summary.name / "labels.npy", labels)
@@ -260,6 +258,16 @@ def label_checked_sweeps(
     dataset.metadata = {**dataset.metadata, METADATA_KEY: records}
     save_dataset_json(root, dataset)
     return summaries
+
+
+def without_sweeps(metadata: dict[str, Any], key: str, names: Sequence[str]) -> dict[str, Any]:
+    """``metadata`` with the sweeps ``names`` left out of its per-sweep record ``key`` (the
+    record itself left out once it holds no sweep); ``metadata`` is not changed."""
+    kept = {k: v for k, v in (metadata.get(key) or {}).items() if k not in names}
+    out = {k: v for k, v in metadata.items() if k != key}
+    if kept:
+        out[key] = kept
+    return out
 
 
 def save_dataset_json(root: Path, dataset: SweepDataset) -> None:

@@ -45,7 +45,9 @@ from ultron.data.auto_label_dataset import METADATA_KEY as AUTO_LABELS_KEY
 from ultron.data.auto_label_dataset import (
     auto_label_records,
     check_labelling,
+    label_shares,
     save_dataset_json,
+    without_sweeps,
 )
 from ultron.data.dataset import SweepDataset
 from ultron.data.importers import png_numbers, read_png_files
@@ -257,10 +259,7 @@ def sweep_mask_labels(
             where, "masks", f"{len(masks)} masks for the {len(numbers)} frames --frames lists"
         )
     if _of_recording(masks.shape, target.images.shape, record, numbers is None):
-        size = record.get("file_frames") or int(np.max(record["frames"])) + 1
-        check_recording_frames(
-            masks.shape if numbers is None else (size, *masks.shape[1:]), record, where
-        )
+        check_recording_frames(masks.shape, record, where, counted=numbers is None)
         flips = orientation_flips(orientation or config.orientation, where, "orientation")
         kept = np.asarray(record["frames"], dtype=np.int64)
         on_sweep, of_mask = _pairs(kept, numbers, record.get("file_frames"), where)
@@ -361,26 +360,15 @@ def import_mask_labels(
         )  # fmt: skip
     replaced = dataset.sweep(name).labels is not None
     atomic.save_npy(root / name / "labels.npy", labels)
-    metadata = dict(dataset.metadata)
-    auto = {k: v for k, v in (metadata.get(AUTO_LABELS_KEY) or {}).items() if k != name}
-    metadata.pop(AUTO_LABELS_KEY, None)
-    if auto:
-        metadata[AUTO_LABELS_KEY] = auto
+    metadata = without_sweeps(dataset.metadata, AUTO_LABELS_KEY, [name])
     imports = dict(metadata.get(METADATA_KEY) or {})
     imports[name] = {"masks": str(masks_path.resolve()), "config": asdict(config)}
     dataset.metadata = {**metadata, METADATA_KEY: imports}
     dataset.sweep(name).labels = labels
     save_dataset_json(root, dataset)
     annotated = int((labels != LABEL_UNANNOTATED).any(axis=(1, 2)).sum())
-    n = labels.size
     return MaskImportSummary(
-        name,
-        int(labels.shape[0]),
-        annotated,
-        float((labels == LABEL_TARGET).sum() / n),
-        float((labels == LABEL_BACKGROUND).sum() / n),
-        float((labels == LABEL_UNANNOTATED).sum() / n),
-        replaced,
+        name, int(labels.shape[0]), annotated, **label_shares(labels), replaced=replaced
     )
 
 

@@ -351,16 +351,17 @@ def on_sweep_grid(
 
 
 def check_recording_frames(
-    shape: tuple[int, int, int], record: dict[str, Any], where: str | Path
+    shape: tuple[int, int, int], record: dict[str, Any], where: str | Path, counted: bool = True
 ) -> None:
     """Refuse (naming ``where``) frames of ``shape`` (N, H, W) as a PLUS sweep's recording
     (``record``: the import's provenance, ``dataset.json``'s ``metadata.imports.<sweep>``) when
-    their count or size does not fit it: the file's count and size where the record has them
-    (imports since 2026-12-04), else room for the frames kept and the clip rectangle."""
+    their count (not for frames that are ``counted`` elsewhere: some frames only) or size does
+    not fit it: the file's count and size where the record has them (imports since
+    2026-12-04), else room for the frames kept and the clip rectangle."""
     kept = np.asarray(record["frames"], dtype=np.int64)
     n, height, width = shape
     expected = record.get("file_frames")
-    if (expected is not None and n != expected) or n <= int(kept.max(initial=-1)):
+    if counted and ((expected is not None and n != expected) or n <= int(kept.max(initial=-1))):
         wanted = expected if expected is not None else f"at least {int(kept.max()) + 1}"
         raise UltronInputError(
             where, "frames", f"{n} frames; the recording ({record.get('sequence')}) has {wanted}"
