@@ -146,3 +146,20 @@ def tiny_ultron_run(iters: int, field_iters: int, n_points: int):
     )
     fields = FieldTrainConfig(iterations=field_iters, check_every=1000, checkpoint_every=1000)
     return request, fields
+
+
+#: A small occupancy network for fits of a few hundred steps in the tests.
+SMALL_OCCUPANCY = {"width": 32, "depth": 4, "skip_at": 2, "n_frequencies": 2}
+
+
+def random_occupancy_data(n: int, seed: int = 0, front: bool = False):
+    """Stage 2's data on n random 3-D inputs in [−1, 1), T uniform, bone where x > 0.3 and,
+    with ``front``, a random half of the pixels marked in front of the bone (drawn last)."""
+    from ultron.train.occupancy import OccupancyTrainingData
+
+    generator = torch.Generator().manual_seed(seed)
+    inputs = torch.rand(n, 3, generator=generator) * 2 - 1
+    transmission = torch.rand(n, generator=generator)
+    labels = (inputs[:, 0] > 0.3).to(torch.uint8)
+    in_front = torch.rand(n, generator=generator) > 0.5 if front else None
+    return OccupancyTrainingData(inputs, transmission, labels, in_front=in_front)

@@ -9,6 +9,7 @@ from dataclasses import replace
 import pytest
 import torch
 
+from conftest import SMALL_OCCUPANCY, random_occupancy_data
 from ultron.errors import UltronInputError
 from ultron.fields.occupancy import OccupancyNetwork, OccupancyNetworkConfig
 from ultron.train.fit_checkpoint import (
@@ -23,15 +24,12 @@ from ultron.train.occupancy import (
     fit_occupancy,
 )
 
-SMALL = OccupancyNetworkConfig(width=32, depth=4, skip_at=2, n_frequencies=2)
+SMALL = OccupancyNetworkConfig(**SMALL_OCCUPANCY)
 CONFIG = OccupancyTrainConfig(iters=120, batch_size=64, lr=1e-3, seed=3, network=SMALL)
 
 
 def _data(n: int = 1000, seed: int = 0) -> OccupancyTrainingData:
-    generator = torch.Generator().manual_seed(seed)
-    inputs = torch.rand(n, 3, generator=generator) * 2 - 1
-    transmission = torch.rand(n, generator=generator)
-    return OccupancyTrainingData(inputs, transmission, (inputs[:, 0] > 0.3).to(torch.uint8))
+    return random_occupancy_data(n, seed)
 
 
 def _reference_batches(n: int, batch_size: int, generator: torch.Generator) -> Iterator:

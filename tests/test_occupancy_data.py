@@ -7,6 +7,7 @@ from dataclasses import replace
 import pytest
 import torch
 
+from conftest import SMALL_OCCUPANCY, random_occupancy_data
 from ultron.errors import UltronInputError
 from ultron.fields.occupancy import OccupancyNetworkConfig
 from ultron.train.occupancy import (
@@ -19,19 +20,14 @@ from ultron.train.occupancy import (
 )
 from ultron.train.occupancy_data import label_loss_pick, minibatch_orders
 
-SMALL = OccupancyNetworkConfig(width=32, depth=4, skip_at=2, n_frequencies=2)
+SMALL = OccupancyNetworkConfig(**SMALL_OCCUPANCY)
 #: 15 batches of 64 of 2000 pixels and label_loss's every 20th: fewer than all are read
 CONFIG = OccupancyTrainConfig(iters=15, batch_size=64, lr=1e-3, seed=4, network=SMALL)
 MAX_POINTS = 100
 
 
 def _data(n: int = 2000) -> OccupancyTrainingData:
-    generator = torch.Generator().manual_seed(0)
-    inputs = torch.rand(n, 3, generator=generator) * 2 - 1
-    transmission = torch.rand(n, generator=generator)
-    labels = (inputs[:, 0] > 0.3).to(torch.uint8)
-    front = torch.rand(n, generator=generator) > 0.5
-    return OccupancyTrainingData(inputs, transmission, labels, in_front=front)
+    return random_occupancy_data(n, front=True)
 
 
 def _only(data: OccupancyTrainingData, rows: torch.Tensor) -> OccupancyTrainingData:
