@@ -248,3 +248,17 @@ def test_info_exits_2_with_one_line(broken_dataset):
 
 def test_valid_dataset_with_null_reference_loads(tiny_dataset_dir: Path):
     assert SweepDataset.load(tiny_dataset_dir).reference is None
+
+
+@pytest.mark.parametrize("value", [2, 128, 254])
+def test_label_check_finds_a_bad_value_in_any_frame(monkeypatch, value):
+    """The label check compares a few frames at a time: a bad value in the last frame of the
+    last chunk is found, every value's neighbour of 0, 1 and 255 included; good labels pass."""
+    import ultron.data.validation as validation
+
+    monkeypatch.setattr(validation, "_CHECK_VALUES", 2 * 3 * 4)  # two frames per comparison
+    labels = np.tile(np.array([0, 1, 255], dtype=np.uint8), (5, 3, 4))[:, :, :4]
+    validation.validate_labels(labels, "x")
+    labels[4, 2, 3] = value
+    with pytest.raises(UltronInputError, match=rf"invalid label values \[{value}\]"):
+        validation.validate_labels(labels, "x")

@@ -186,8 +186,9 @@ def test_stage2_sparse_checks_against_issue_32s_targets(monkeypatch):
 
 
 def test_mask_import_runs_at_a_small_size(monkeypatch, tmp_path, capsys):
-    """benchmarks/mask_import.py end to end on 12 frames of 40 × 60: both commands run, every
-    3rd frame is labelled, and the labels sit on the imported echo."""
+    """benchmarks/mask_import.py end to end on 12 frames of 40 × 60: its four commands run,
+    every 3rd frame is labelled, the labels sit on the imported echo, and the export read
+    back keeps them."""
     import json
 
     bench = _load("mask_import.py", monkeypatch)
@@ -197,5 +198,8 @@ def test_mask_import_runs_at_a_small_size(monkeypatch, tmp_path, capsys):
     bench.main()
     figures = json.loads((tmp_path / "mask_import.json").read_text())
     assert figures["annotated_frames"] == 4 and figures["agreement_on_annotated_pixels"] > 0.99
-    assert [row["stage"] for row in figures["stages"]] == ["import-plus", "label_--masks"]
-    assert "| label_--masks |" in capsys.readouterr().out
+    assert [row["stage"] for row in figures["stages"]] == [
+        "import-plus", "label_--masks", "label_--export", "label_--masks_(exported)"
+    ]  # fmt: skip
+    assert figures["round_trip_kept"] > 0.995  # the 2° shear resamples: edges may round
+    assert "| label_--export |" in capsys.readouterr().out

@@ -148,17 +148,16 @@ def _recording_with_an_echo(n: int = 5):
     return rec, masks
 
 
-@pytest.mark.parametrize("downsample", ["1", "2"])
-def test_plus_masks_land_on_the_echo_they_mark(tmp_path: Path, downsample: str):
-    """A recording stored UN, with a sheared calibration (the frames are resampled onto the
-    rigid grid), a clip rectangle, blank columns and an invalid frame: the masks, drawn in MF on
-    the recording's frames, land on the imported echo. Where a label is known, bone ⇔ the
-    imported grey level is above the midpoint of tissue and echo (both went through the same
-    linear steps), but for ties at the band's edges."""
+def imported_echo(
+    tmp_path: Path, shear_deg: float, downsample: str, name: str = "s.mha"
+) -> tuple[Path, Path, np.ndarray]:
+    """:func:`_recording_with_an_echo` stored UN as ``name``, imported with a calibration of
+    ``shear_deg`` and a clip rectangle, ``--downsample``, then labelled from its masks (saved as
+    ``m.npy``): the dataset, the recording and the masks."""
     rec, masks = _recording_with_an_echo()
-    cal = calibration(spacing=(0.3, 0.3), shear_deg=4.0)
+    cal = calibration(spacing=(0.3, 0.3), shear_deg=shear_deg)
     config = write_config(tmp_path / "c.xml", cal, clip=((1, 2), (58, 36)))
-    sequence = write_mha(tmp_path / "s.mha", rec, "UN")
+    sequence = write_mha(tmp_path / name, rec, "UN")
     out = tmp_path / "ds"
     imported = runner.invoke(
         app, ["import-plus", str(sequence), "--config", str(config), "--out", str(out),
@@ -168,6 +167,17 @@ def test_plus_masks_land_on_the_echo_they_mark(tmp_path: Path, downsample: str):
     np.save(tmp_path / "m.npy", masks)
     result = _label(str(out), "--masks", str(tmp_path / "m.npy"))
     assert result.exit_code == 0, result.output
+    return out, sequence, masks
+
+
+@pytest.mark.parametrize("downsample", ["1", "2"])
+def test_plus_masks_land_on_the_echo_they_mark(tmp_path: Path, downsample: str):
+    """A recording stored UN, with a sheared calibration (the frames are resampled onto the
+    rigid grid), a clip rectangle, blank columns and an invalid frame: the masks, drawn in MF on
+    the recording's frames, land on the imported echo. Where a label is known, bone ⇔ the
+    imported grey level is above the midpoint of tissue and echo (both went through the same
+    linear steps), but for ties at the band's edges."""
+    out, _, masks = imported_echo(tmp_path, 4.0, downsample)
     data = SweepDataset.load(out)
     record = data.metadata["imports"]["s"]
     assert record["resampled_to_rigid_grid"] and record["kept_columns"] is not None
@@ -380,7 +390,7 @@ def test_a_plus_sweeps_own_labels_edited_come_back_as_they_are(tmp_path: Path):
         (lambda m: m[:, :, :50], [], "frames of 40 × 50 pixels (rows × columns); the recording's"),
         (lambda m: m * 0, [], "no bone pixel reaches sweep 's'"),
         (lambda m: m.astype(np.float32), [], "expected integer values"),
-        (lambda m: m, ["--auto"], "pass exactly one of --auto and --masks"),
+        (lambda m: m, ["--auto"], "pass exactly one of --auto, --masks MASKS and --export OUT"),
         (lambda m: m, ["--bone-value", "0"], "--bone-value"),
         (lambda m: m, ["--orientation", "XX"], "orientation"),
         (lambda m: m, ["--sweeps", "t"], "'t'"),
@@ -412,7 +422,10 @@ def test_masks_need_one_sweep_and_a_readable_file(own_frames: Path, tmp_path: Pa
     result = _label(str(own_frames), "--masks", str(tmp_path / "m.txt"))
     assert result.exit_code == 2 and "expected a .npy array" in result.stderr
     result = _label(str(own_frames))
-    assert result.exit_code == 2 and "pass exactly one of --auto and --masks" in result.stderr
+    assert (
+        result.exit_code == 2
+        and "pass exactly one of --auto, --masks MASKS and --export OUT" in result.stderr
+    )
 
 
 def test_info_names_where_each_sweeps_labels_came_from(own_frames: Path, tmp_path: Path):

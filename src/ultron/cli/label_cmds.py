@@ -1,5 +1,6 @@
-"""``ultron label``: automatic bone labels from the B-mode (:mod:`ultron.data.auto_labels`) or
-a person's masks (:mod:`ultron.data.label_import`)."""
+"""``ultron label``: automatic bone labels from the B-mode (:mod:`ultron.data.auto_labels`), a
+person's masks (:mod:`ultron.data.label_import`), or a sweep's labels written as masks of its
+recording's frames (:mod:`ultron.data.label_export`)."""
 
 from __future__ import annotations
 
@@ -14,6 +15,8 @@ def label(
     dataset: Path,
     auto: bool = False,
     masks: Path | None = None,
+    export: Path | None = None,
+    recording: Path | None = None,
     sweeps: list[str] | None = None,
     replace: bool = False,
     bone_value: int | None = None,
@@ -24,7 +27,8 @@ def label(
     threads: int | None = None,
 ) -> None:
     """Write bone labels (1 bone, 0 background, 255 unsure) into a dataset's sweeps: detected
-    from the B-mode (--auto) or read from a person's segmentation (--masks).
+    from the B-mode (--auto) or read from a person's segmentation (--masks); or write a sweep's
+    labels as masks of its recording's frames, to check and correct them (--export).
 
     Args:
         dataset: Dataset directory (ultron-sweeps/1).
@@ -34,6 +38,16 @@ def label(
             16-bit labelmap sequence (.seq.nrrd, .mha, …): of a PLUS sweep, the recording's
             whole frames (every frame of the file); of any other sweep, its frames
             (docs/auto-labels.md). Needs one sweep (--sweeps NAME).
+        export: Write one sweep's labels (--sweeps NAME) as masks of the frames --masks reads:
+            .npy, .seq.mha or .seq.nrrd; bone --bone-value (1), unsure --unsure-value (2),
+            background and frames nobody annotated 0.
+        recording: With --export: the sequence file the sweep was imported from; a .seq.mha
+            export copies its header (timestamps, per-frame transforms), a .seq.nrrd its
+            per-frame fields.
+        bone_value: The mask value of bone: read (--masks; default every value but 0 and
+            --unsure-value) or written (--export; default 1).
+        unsure_value: The mask value of pixels left unsure: read (--masks; default none) or
+            written (--export; default 2).
         frames: The frames the masks belong to, one per mask, when they are of some frames only:
             numbers and ranges A:B[:S] (B left out), comma-separated, of the recording's file (a
             PLUS sweep) or of the sweep: 0:1000:10 for every 10th of 1000 (PNGs named by
@@ -44,8 +58,14 @@ def label(
     from ultron.data.auto_label_dataset import check_labelling, label_checked_sweeps
     from ultron.errors import argument_error
 
-    if auto == (masks is not None):
-        raise argument_error("--auto", "pass exactly one of --auto and --masks MASKS")
+    if auto + (masks is not None) + (export is not None) != 1:
+        raise argument_error("--auto", "pass exactly one of --auto, --masks MASKS and --export OUT")
+    if recording is not None and export is None:
+        raise argument_error("--recording", "goes with --export OUT")
+    if export is not None:
+        _export(dataset, export, sweep_names(sweeps), recording, bone_value, unsure_value,
+                orientation)  # fmt: skip
+        return
     if masks is not None:
         _import_masks(dataset, masks, sweep_names(sweeps), replace, bone_value, unsure_value,
                       annotated, orientation, frames)  # fmt: skip
@@ -58,20 +78,40 @@ def label(
         print_lines(*summary.lines(dataset))
 
 
-def _import_masks(dataset: Path, masks: Path, names: list[str] | None, replace: bool,
-                  bone_value: int | None, unsure_value: int | None, annotated: str,
-                  orientation: str, frames: str | None) -> None:  # fmt: skip
+def _one_sweep(dataset: Path, names: list[str] | None, option: str) -> str:
+    """The one sweep ``--masks`` or ``--export`` (``option``) works on."""
     from ultron.data.dataset import SweepDataset
-    from ultron.data.label_import import MaskImportConfig, import_mask_labels, parse_frames
     from ultron.errors import argument_error
 
-    numbers = None if frames is None else parse_frames(frames)
-    config = MaskImportConfig(bone_value, unsure_value, annotated, orientation, numbers)
     if names is None:
         names = [s.name for s in SweepDataset.load(dataset).sweeps]
     if len(names) != 1:
         raise argument_error(
-            "--sweeps", f"--masks labels one sweep: name it (--sweeps NAME; here {len(names)})"
+            "--sweeps", f"{option} works on one sweep: name it (--sweeps NAME; here {len(names)})"
         )
-    summary = import_mask_labels(dataset, names[0], masks, config, replace)
+    return names[0]
+
+
+def _export(dataset: Path, out: Path, names: list[str] | None, recording: Path | None,
+            bone_value: int | None, unsure_value: int | None, orientation: str) -> None:  # fmt: skip
+    from ultron.data.label_export import LabelExportConfig, export_labels
+
+    config = LabelExportConfig(
+        1 if bone_value is None else bone_value, 2 if unsure_value is None else unsure_value,
+        orientation,
+    )  # fmt: skip
+    name = _one_sweep(dataset, names, "--export")
+    exported = export_labels(dataset, name, out, config, recording)
+    print_lines(*exported.lines())
+
+
+def _import_masks(dataset: Path, masks: Path, names: list[str] | None, replace: bool,
+                  bone_value: int | None, unsure_value: int | None, annotated: str,
+                  orientation: str, frames: str | None) -> None:  # fmt: skip
+    from ultron.data.label_import import MaskImportConfig, import_mask_labels, parse_frames
+
+    numbers = None if frames is None else parse_frames(frames)
+    config = MaskImportConfig(bone_value, unsure_value, annotated, orientation, numbers)
+    summary = import_mask_labels(dataset, _one_sweep(dataset, names, "--masks"), masks, config,
+                                 replace)  # fmt: skip
     print_lines(summary.lines(dataset))

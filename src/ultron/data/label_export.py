@@ -1,0 +1,349 @@
+"""A sweep's labels in its recording's frames: ``ultron label DATASET --export OUT``.
+
+The inverse of ``label --masks`` (:mod:`ultron.data.label_import`): a sweep's labels —
+automatic, imported or given — written as one mask per frame of the recording it came from, so
+that a person can check them over the B-mode in 3D Slicer or any other tool, correct the frames
+that ``label --auto``'s quality summary flags, and read them back with ``label --masks``.
+
+- A sweep imported from PLUS / Slicer (``import-plus``): the masks have the recording's whole
+  frames, every frame of the file. Each pixel of a frame the import kept takes the label of the
+  sweep pixel the import made of it — the steps of
+  :func:`~ultron.data.plus_import.frames_as_imported` (clip rectangle, columns kept, resampling
+  onto the rigid pixel grid, downsampling) inverted, nearest pixel. Pixels outside the clip
+  rectangle and frames the import skipped are left empty (0).
+- Any other sweep: its own frames, as they are.
+
+Values: bone ``bone_value`` (1), unsure ``unsure_value`` (2), background 0, and every pixel of a
+frame nobody annotated 0 — an empty mask, which ``label --masks`` (``--annotated nonempty``, its
+default) reads as a frame nobody annotated. A frame annotated as all background, with no bone
+and no unsure pixel, reads back the same way: :class:`LabelExport` counts them.
+
+Formats, by ``OUT``'s ending: ``.npy`` (N, H, W) in ``orientation`` (MF by default, as ``label
+--masks`` reads one); a MetaImage sequence (``.mha``, ``.seq.mha``, ``.igs.mha``) or an NRRD
+one (``.nrrd``, ``.seq.nrrd``) in the recording's own orientation, recorded in its
+``UltrasoundImageOrientation``. Given the ``recording`` (the sequence file the sweep was
+imported from), a MetaImage export is its twin — the recording's header, per-frame
+timestamps and transforms included, with only the pixel type and data replaced — so a viewer
+places each mask where it places the frame; an NRRD export then carries the per-frame fields.
+"""
+
+from __future__ import annotations
+
+import shlex
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ultron import atomic
+from ultron.data.dataset import SweepDataset
+from ultron.data.plus import read_metaimage_header, read_sequence, sequence_stem
+from ultron.data.plus_geometry import RESAMPLE_RESIDUAL_MM, fit_image_plane, rigid_to_image_pixels
+from ultron.data.plus_import import check_recording_frames, clipped_calibration
+from ultron.data.plus_orientation import orientation_flips
+from ultron.data.validation import LABEL_TARGET, LABEL_UNANNOTATED
+from ultron.errors import UltronInputError, argument_error
+
+#: Endings of MetaImage exports (one file: the header and the data together).
+METAIMAGE_SUFFIXES = (".igs.mha", ".seq.mha", ".mha")
+#: Endings of NRRD exports (one file).
+NRRD_SUFFIXES = (".igs.nrrd", ".seq.nrrd", ".nrrd")
+#: Frames mapped or written at once (bounds the working memory of a full-size recording).
+_CHUNK_FRAMES = 32
+#: MetaImage header fields that describe the data and are written anew in a twin.
+_PAYLOAD_FIELDS = (
+    "ElementType",
+    "ElementNumberOfChannels",
+    "CompressedData",
+    "CompressedDataSize",
+    "BinaryData",
+    "BinaryDataByteOrderMSB",
+    "ElementByteOrderMSB",
+    "HeaderSize",
+    "ElementDataFile",
+)
+
+
+@dataclass(frozen=True)
+class LabelExportConfig:
+    """How labels are written as masks (module doc).
+
+    Attributes:
+        bone_value: The mask value written for bone (1–65535).
+        unsure_value: The mask value written for unsure pixels of an annotated frame (1–65535,
+            not bone_value).
+        orientation: PLUS's orientation of a .npy export (MF: row 0 at the transducer, as
+            label --masks reads one); a sequence file is written in the recording's own.
+    """
+
+    bone_value: int = 1
+    unsure_value: int = 2
+    orientation: str = "MF"
+
+    def __post_init__(self) -> None:
+        for name in ("bone_value", "unsure_value"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or not 0 < value < 2**16:
+                raise argument_error(name, f"expected an integer in [1, 65535], got {value!r}")
+        if self.bone_value == self.unsure_value:
+            raise argument_error("unsure_value", "must differ from bone_value")
+        orientation_flips(self.orientation, "argument", "orientation")
+
+    @property
+    def dtype(self) -> np.dtype:
+        """uint8 where both values fit, else uint16."""
+        return np.dtype(np.uint8 if max(self.bone_value, self.unsure_value) < 256 else np.uint16)
+
+
+@dataclass(frozen=True)
+class LabelExport:
+    """What an export wrote."""
+
+    path: Path
+    frames: int
+    shape: tuple[int, int]
+    orientation: str
+    annotated_frames: int
+    empty_annotated_frames: int
+    read_back: str
+
+    def lines(self) -> tuple[list[str], list[str]]:
+        """The command's report and its warnings."""
+        lines = [
+            f"{self.path}: {self.frames} masks of {self.shape[0]} × {self.shape[1]} pixels"
+            f" ({self.orientation}), {self.annotated_frames} frames annotated",
+            f"read back (after editing) with: {self.read_back}",
+        ]
+        warnings = []
+        if self.empty_annotated_frames:
+            warnings.append(
+                f"{self.empty_annotated_frames} annotated frames hold no bone and no unsure"
+                " pixel: their empty masks read back as frames nobody annotated (add"
+                " --annotated all to read every frame as annotated)"
+            )
+        return lines, warnings
+
+
+def recording_pixel_map(
+    record: dict[str, Any], shape: tuple[int, int], where: str | Path
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Which sweep pixel the import made of each pixel of a PLUS recording's (MF) frame.
+
+    ``record`` is the sweep's import provenance (``metadata.imports.<sweep>``), ``shape`` the
+    sweep's (H, W). Returns (row, column, covered), each of the recording's frame size: a
+    pixel (i, j) inside the clip rectangle maps to the rigid grid's pixel (i', j') = M⁻¹·(i, j,
+    1) (M: :func:`~ultron.data.plus_geometry.rigid_to_image_pixels`; the identity where the
+    import did not resample), then to the sweep pixel whose centre lies nearest,
+    (round(j'·H/h), round(i'·W/w)) for a clip rectangle of h × w (the downsampling's centres lie
+    at k·w/W); ``covered`` is False outside the clip rectangle and where (i', j') falls off the
+    rigid grid."""
+    file_height, file_width = (int(v) for v in record["file_shape"])
+    clip = record.get("clip")
+    if clip is None:
+        (i0, j0), (width, height) = (0, 0), (file_width, file_height)
+    else:
+        (i0, j0), (width, height) = clip["origin"], clip["size"]
+    calibration = clipped_calibration(
+        np.asarray(record["image_to_probe"]), None if clip is None else ((i0, j0), (width, height))
+    )
+    fit = fit_image_plane(calibration, width, height, where, "metadata.imports.image_to_probe")
+    j, i = np.mgrid[0:height, 0:width].astype(np.float64)
+    if fit.residual_max_mm > RESAMPLE_RESIDUAL_MM:  # as the import decided (on_sweep_grid)
+        inverse = np.linalg.inv(rigid_to_image_pixels(calibration, fit))
+        i, j = (inverse[k, 0] * i + inverse[k, 1] * j + inverse[k, 2] for k in (0, 1))
+    inside = (i >= -0.5) & (i < width - 0.5) & (j >= -0.5) & (j < height - 0.5)
+    rows = np.clip(np.rint(j * shape[0] / height), 0, shape[0] - 1).astype(np.int64)
+    columns = np.clip(np.rint(i * shape[1] / width), 0, shape[1] - 1).astype(np.int64)
+    full = [np.zeros((file_height, file_width), dtype=dtype) for dtype in (np.int64,) * 2 + (bool,)]
+    for target, values in zip(full, (rows, columns, inside), strict=True):
+        target[j0 : j0 + height, i0 : i0 + width] = values
+    return full[0], full[1], full[2]
+
+
+def coded_masks(
+    labels: np.ndarray,
+    config: LabelExportConfig,
+    covered: np.ndarray | None = None,
+    annotated: np.ndarray | None = None,
+) -> np.ndarray:
+    """Masks of ``labels`` (0, 1, 255; N, H, W): ``config``'s bone and unsure values,
+    background 0, and 0 outside ``covered`` (H, W; None: everywhere covered) and in every frame
+    that is not ``annotated`` (N; None: the frames with a known pixel)."""
+    if annotated is None:
+        annotated = (labels != LABEL_UNANNOTATED).any(axis=(1, 2))
+    code = np.zeros(256, dtype=config.dtype)  # a label's mask value, read off in one gather
+    code[LABEL_TARGET], code[LABEL_UNANNOTATED] = config.bone_value, config.unsure_value
+    masks = code[labels]
+    if covered is not None:
+        masks[:, ~covered] = 0
+    masks[~annotated] = 0
+    return masks
+
+
+def recording_masks(
+    labels: np.ndarray, record: dict[str, Any], config: LabelExportConfig, where: str | Path
+) -> np.ndarray:
+    """MF masks (the recording's frames, every frame of the file) of a PLUS sweep's ``labels``
+    (module doc)."""
+    rows, columns, covered = recording_pixel_map(record, labels.shape[1:], where)
+    kept = np.asarray(record["frames"], dtype=np.int64)
+    masks = np.zeros((int(record["file_frames"]), *rows.shape), dtype=config.dtype)
+    annotated = (labels != LABEL_UNANNOTATED).any(axis=(1, 2))
+    chunks = np.flatnonzero(annotated)  # frames nobody annotated stay empty: nothing to map
+    for first in range(0, len(chunks), _CHUNK_FRAMES):  # a few full-size frames at a time
+        frames = chunks[first : first + _CHUNK_FRAMES]
+        mapped = labels[frames][:, rows, columns]
+        masks[kept[frames]] = coded_masks(mapped, config, covered, np.ones(len(frames), bool))
+    return masks
+
+
+def _plus_record(dataset: SweepDataset, sweep: str) -> dict[str, Any] | None:
+    record = (dataset.metadata.get("imports") or {}).get(sweep)
+    if not (isinstance(record, dict) and record.get("source") == "plus"):
+        return None
+    if record.get("file_frames") is None or record.get("file_shape") is None:
+        raise UltronInputError(
+            "dataset.json", f"metadata.imports.{sweep}", "an import made before 2026-12-04"
+            " (no file_frames / file_shape): import the recording again to export its labels",
+        )  # fmt: skip
+    return record
+
+
+def export_labels(
+    root: str | Path,
+    sweep: str,
+    out: str | Path,
+    config: LabelExportConfig | None = None,
+    recording: str | Path | None = None,
+) -> LabelExport:
+    """Write sweep ``sweep``'s labels (of the dataset at ``root``) as masks at ``out``
+    atomically (module doc); ``recording``: the sequence file the sweep was imported from,
+    whose header a sequence export copies. A sweep without labels, an ending not listed, or a
+    recording whose frames differ from the import's is an error naming it."""
+    config = config or LabelExportConfig()
+    root, out = Path(root), Path(out)
+    dataset = SweepDataset.load(root)
+    target = dataset.sweep(sweep)
+    if target.labels is None:
+        raise UltronInputError(root / sweep, "labels.npy", "missing: the sweep has no labels")
+    kind = _format(out)
+    record = _plus_record(dataset, sweep)
+    header = None
+    if recording is not None:
+        if record is None:
+            raise argument_error("recording", f"sweep {sweep!r} was not imported from PLUS")
+        header = _recording_header(Path(recording), record, kind)
+    labels = np.asarray(target.labels)
+    orientation = config.orientation.strip().upper()
+    if record is None:
+        if orientation != "MF":
+            raise argument_error(
+                "orientation", f"sweep {sweep!r} was not imported from PLUS: its masks are of"
+                " its own frames, as they are",
+            )  # fmt: skip
+        masks = coded_masks(labels, config)
+    else:
+        masks = recording_masks(labels, record, config, root / "dataset.json")
+        if kind != "npy":
+            orientation = str(record.get("orientation") or "MF")
+    flip_columns, flip_rows = orientation_flips(orientation, "argument", "orientation")
+    masks = masks[:, :: -1 if flip_rows else 1, :: -1 if flip_columns else 1]  # MF ↔ it
+    _write(out, kind, masks, orientation, header)
+    annotated = (labels != LABEL_UNANNOTATED).any(axis=(1, 2))
+    empty = annotated & ~(labels == LABEL_TARGET).any(axis=(1, 2))
+    empty &= ~(labels == LABEL_UNANNOTATED).any(axis=(1, 2))
+    return LabelExport(
+        out, len(masks), tuple(masks.shape[1:]), orientation, int(annotated.sum()),
+        int(empty.sum()), _read_back(root, sweep, out, config, orientation, kind),
+    )  # fmt: skip
+
+
+def _format(out: Path) -> str:
+    lower = out.name.lower()
+    if lower.endswith(".npy"):
+        return "npy"
+    if lower.endswith(METAIMAGE_SUFFIXES):
+        return "metaimage"
+    if lower.endswith(NRRD_SUFFIXES):
+        return "nrrd"
+    endings = ", ".join((".npy", *METAIMAGE_SUFFIXES, *NRRD_SUFFIXES))
+    raise argument_error("export", f"{out.name}: expected a file ending in {endings}")
+
+
+def _read_back(
+    root: Path, sweep: str, out: Path, config: LabelExportConfig, orientation: str, kind: str
+) -> str:
+    """The ``label --masks`` command that reads the export back."""
+    parts = ["ultron", "label", str(root), "--masks", str(out), "--sweeps", sweep]
+    if config.bone_value != 1:
+        parts += ["--bone-value", str(config.bone_value)]
+    parts += ["--unsure-value", str(config.unsure_value)]
+    if kind == "npy" and orientation != "MF":
+        parts += ["--orientation", orientation]
+    return shlex.join([*parts, "--replace"])
+
+
+def _recording_header(path: Path, record: dict[str, Any], kind: str) -> dict[str, str]:
+    """The header fields an export of ``kind`` copies from the recording at ``path`` (module
+    doc), after checking that its frames are the ones the sweep was imported from."""
+    if kind == "npy":
+        raise argument_error("recording", "a .npy export has no header to copy it into")
+    sequence = read_sequence(path, field="--recording")
+    check_recording_frames(sequence.pixels.shape, record, path)
+    if sequence_stem(path) != sequence_stem(record.get("sequence") or path.name):
+        raise UltronInputError(
+            path, "--recording", f"the sweep was imported from {record.get('sequence')}, not"
+            f" {path.name}",
+        )  # fmt: skip
+    per_frame = {
+        sequence.frame_field_key(k, name): value
+        for k, fields in enumerate(sequence.frame_fields)
+        for name, value in fields.items()
+    }
+    if kind == "nrrd":
+        return per_frame
+    if not path.name.lower().endswith(METAIMAGE_SUFFIXES):
+        raise argument_error(
+            "export", "a MetaImage twin needs a MetaImage recording; export to .seq.nrrd instead"
+        )
+    fields, _ = read_metaimage_header(path)
+    payload = {name.lower() for name in _PAYLOAD_FIELDS}
+    return {key: value for key, value in fields.items() if key.lower() not in payload}
+
+
+def _write(
+    out: Path, kind: str, masks: np.ndarray, orientation: str, header: dict[str, str] | None
+) -> None:
+    """``masks`` (N, H, W) written atomically as ``kind``."""
+    if kind == "npy":
+        atomic.save_npy(out, masks)
+        return
+    n, height, width = masks.shape
+    if kind == "nrrd":
+        import nrrd
+
+        fields = {
+            "type": str(masks.dtype), "dimension": 3, "sizes": [width, height, n],
+            "kinds": ["domain", "domain", "list"], "encoding": "gzip",
+            "UltrasoundImageOrientation": orientation, **(header or {}),
+        }  # fmt: skip
+        with atomic.atomic_open(out) as handle:
+            nrrd.write(handle, masks, fields, index_order="C")
+        return
+    fields = header or {
+        "ObjectType": "Image", "NDims": "3", "DimSize": f"{width} {height} {n}",
+        "Kinds": "domain domain list",
+    }  # fmt: skip
+    fields = {**fields, "UltrasoundImageOrientation": orientation}
+    element = "MET_UCHAR" if masks.dtype == np.uint8 else "MET_USHORT"
+    fields.update(
+        BinaryData="True", BinaryDataByteOrderMSB="False", CompressedData="False",
+        ElementType=element, ElementDataFile="LOCAL",
+    )  # fmt: skip
+    text = "".join(f"{key} = {value}\n" for key, value in fields.items())
+    little = masks.dtype.newbyteorder("<")
+    with atomic.atomic_open(out) as handle:
+        handle.write(text.encode("latin-1"))
+        for start in range(0, n, _CHUNK_FRAMES):  # no second copy of a full-size recording
+            handle.write(np.ascontiguousarray(masks[start : start + _CHUNK_FRAMES], little).data)
