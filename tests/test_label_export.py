@@ -197,3 +197,29 @@ def test_bad_exports_are_one_line_errors_and_write_nothing(tmp_path: Path):
     (out / "s" / "labels.npy").unlink()  # a sweep without labels
     with pytest.raises(UltronInputError, match="the sweep has no labels"):
         export_labels(out, "s", tmp_path / "x.npy")
+
+
+def test_auto_labels_name_the_recordings_frames_and_how_to_correct_them(tmp_path: Path):
+    """label --auto on a PLUS sweep whose frame 2 was skipped: the quality summary's last column
+    is each frame's number in the recording (0, 1, 3, 4); the frames to check are named in both
+    numberings, with the export command that shows them over the recording."""
+    from ultron.data.auto_label_dataset import QUALITY_FILE, SweepLabelSummary
+
+    out, _, _ = _import(tmp_path, 0.0, "1")
+    result = _label(str(out), "--auto", "--replace")
+    assert result.exit_code == 0, result.output
+    rows = (out / "s" / QUALITY_FILE).read_text().splitlines()
+    assert rows[0] == "frame,bone_scanlines,evidence,unsure,check,recording_frame"
+    assert [row.split(",")[-1] for row in rows[1:]] == ["0", "1", "3", "4"]
+    summary = SweepLabelSummary(
+        "s", 4, 0.1, 0.2, 0.7, False, 1.0, frames_to_check=(2, 3),
+        recording_frames=(0, 1, 3, 4), recording="s.igs.mha",
+    )  # fmt: skip
+    lines, _ = summary.lines("my data")
+    assert "check 2, 3 (the recording's 3, 4) (per frame:" in lines[1]
+    assert lines[2] == (
+        "  to correct them over the recording: ultron label 'my data' --export"
+        " s_labels.seq.mha --sweeps s --recording s.igs.mha"
+    )
+    plain = SweepLabelSummary("s", 4, 0.1, 0.2, 0.7, False, 1.0, frames_to_check=(2, 3))
+    assert len(plain.lines("d")[0]) == 2 and "recording" not in plain.lines("d")[0][1]

@@ -12,8 +12,10 @@ as :meth:`~ultron.data.dataset.SweepDataset.save` orders its writes), recording 
 and writing, per sweep, ``auto_labels_quality.csv``: one row per frame (``frame``,
 ``bone_scanlines``: the share of its scanlines with a surface, ``evidence``: the mean bone
 score along it, ``unsure``: the share of unsure pixels, ``check``: 1 where the surface dropped
-out while the neighbouring frames see one, :func:`~ultron.data.auto_labels.frames_to_check`),
-so that a user sees which frames to look at before trusting them.
+out while the neighbouring frames see one, :func:`~ultron.data.auto_labels.frames_to_check`;
+for a sweep imported from PLUS also ``recording_frame``: the frame's number in the recording's
+file, as Slicer and ``label --export``'s masks number it), so that a user sees which frames to
+look at before trusting them.
 
 Existing labels — manual or automatic — are never overwritten unless ``replace`` is true.
 Everything that can be checked (sweep names, existing labels, writable folders) is checked
@@ -24,6 +26,7 @@ from __future__ import annotations
 
 import math
 import os
+import shlex
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -78,6 +81,9 @@ class SweepLabelSummary:
     #: Frames without any detected bone, and those to check (:func:`frames_to_check`).
     frames_without_bone: int = 0
     frames_to_check: tuple[int, ...] = ()
+    #: For a sweep imported from PLUS: each frame's number in the recording's file, and the file.
+    recording_frames: tuple[int, ...] | None = None
+    recording: str | None = None
 
     def shares(self) -> dict[str, float]:
         return {"bone": self.bone, "background": self.background, "unsure": self.unsure}
@@ -89,6 +95,13 @@ class SweepLabelSummary:
         where = Path(dataset_dir) / self.name
         check = ", ".join(str(i) for i in self.frames_to_check[:MAX_LISTED])
         more = " …" if len(self.frames_to_check) > MAX_LISTED else ""
+        listed = self.frames_to_check[:MAX_LISTED]
+        if check and self.recording_frames is not None:
+            in_file = [self.recording_frames[i] for i in listed]
+            if in_file != list(listed):
+                check += f"{more} (the recording's {', '.join(str(i) for i in in_file)}"
+                check += f"{more})" if more else ")"
+                more = ""
         lines = [
             f"{self.name}: {self.frames} frames, bone {100 * self.bone:.2f} %, background"
             f" {100 * self.background:.1f} %, unsure {100 * self.unsure:.1f} %"
@@ -97,6 +110,11 @@ class SweepLabelSummary:
             f" the surface dropped out{': check ' + check + more if check else ''}"
             f" (per frame: {where / QUALITY_FILE})",
         ]
+        if check and self.recording is not None:
+            command = ["ultron", "label", str(dataset_dir), "--export",
+                       f"{self.name}_labels.seq.mha", "--sweeps", self.name, "--recording",
+                       self.recording]  # fmt: skip
+            lines.append(f"  to correct them over the recording: {shlex.join(command)}")
         warnings = []
         if self.frames and self.frames_without_bone == self.frames:
             warnings.append(
@@ -107,13 +125,19 @@ class SweepLabelSummary:
         return lines, warnings
 
 
-def quality_csv(qualities: Sequence[FrameQuality]) -> str:
-    """The per-frame quality summary (module docstring) as CSV text."""
+def quality_csv(
+    qualities: Sequence[FrameQuality], recording_frames: Sequence[int] | None = None
+) -> str:
+    """The per-frame quality summary (module docstring) as CSV text; ``recording_frames``:
+    each frame's number in a PLUS recording's file (the last column), None for another sweep."""
     lines = ["frame,bone_scanlines,evidence,unsure,check"]
+    if recording_frames is not None:
+        lines[0] += ",recording_frame"
     check = frames_to_check(list(qualities))
     for i, q in enumerate(qualities):
         evidence = "" if math.isnan(q.evidence) else f"{q.evidence:.4f}"  # no surface
-        lines.append(f"{i},{q.bone_scanlines:.4f},{evidence},{q.unsure:.4f},{int(check[i])}")
+        line = f"{i},{q.bone_scanlines:.4f},{evidence},{q.unsure:.4f},{int(check[i])}"
+        lines.append(line if recording_frames is None else f"{line},{recording_frames[i]}")
     return "\n".join(lines) + "\n"
 
 
@@ -244,6 +268,7 @@ def label_checked_sweeps(
             seconds=time.perf_counter() - start,
             frames_without_bone=sum(q.bone_scanlines == 0 for q in qualities),
             frames_to_check=tuple(int(i) for i in np.flatnonzero(frames_to_check(qualities))),
+            **_recording_of(dataset, name),
         )
         summaries.append(summary)
     records = dict(dataset.metadata.get(METADATA_KEY) or {})
@@ -252,12 +277,25 @@ def label_checked_sweeps(
     for summary in summaries:
         labels, qualities = computed[summary.name]
         atomic.save_npy(root / summary.name / "labels.npy", labels)
-        atomic.write_text(root / summary.name / QUALITY_FILE, quality_csv(qualities))
+        csv = quality_csv(qualities, summary.recording_frames)
+        atomic.write_text(root / summary.name / QUALITY_FILE, csv)
         dataset.sweep(summary.name).labels = labels
         records[summary.name] = _record(cfg, summary)
     dataset.metadata = {**dataset.metadata, METADATA_KEY: records}
     save_dataset_json(root, dataset)
     return summaries
+
+
+def _recording_of(dataset: SweepDataset, name: str) -> dict[str, Any]:
+    """A PLUS sweep's frame numbers in its recording's file and the file's name (the import's
+    record, ``metadata.imports.<name>``); nothing for another sweep."""
+    record = (dataset.metadata.get("imports") or {}).get(name)
+    if not (isinstance(record, dict) and record.get("source") == "plus"):
+        return {}
+    frames = record.get("frames")
+    if not isinstance(frames, list) or len(frames) != dataset.sweep(name).n_frames:
+        return {}
+    return {"recording_frames": tuple(int(f) for f in frames), "recording": record.get("sequence")}
 
 
 def without_sweeps(metadata: dict[str, Any], key: str, names: Sequence[str]) -> dict[str, Any]:
