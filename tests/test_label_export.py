@@ -130,8 +130,9 @@ def test_plus_labels_land_on_the_masks_they_came_from(tmp_path: Path, shear_deg,
 
 def test_sequence_export_is_the_recordings_twin(tmp_path: Path):
     """A .seq.mha export with --recording: the recording's per-frame fields and orientation
-    (UN), the masks of the .npy export stored UN; a .seq.nrrd one carries the per-frame fields
-    too; both read back as the .npy does."""
+    (UN), the masks of the .npy export stored UN; a .seq.nrrd one is a Slicer labelmap volume
+    sequence indexed by the recording's timestamps (by frame number without a recording) and
+    carries the per-frame fields too; both read back as the .npy does."""
     out, sequence, _ = _import(tmp_path, 4.0, "1")
     assert _label(str(out), "--export", str(tmp_path / "e.npy")).exit_code == 0
     npy = np.load(tmp_path / "e.npy")
@@ -142,6 +143,16 @@ def test_sequence_export_is_the_recordings_twin(tmp_path: Path):
         twin = read_sequence(tmp_path / name, labelmap=True)
         assert twin.orientation == "UN" and twin.frame_fields == recording.frame_fields
         assert np.array_equal(twin.pixels[:, ::-1, ::-1], npy)
+    import nrrd
+
+    slicer = nrrd.read_header(str(tmp_path / "e.seq.nrrd"))  # Slicer's volume sequence
+    assert list(slicer["sizes"]) == [60, 40, 1, 5] and slicer["kinds"][3] == "list"
+    assert slicer["DataNodeClassName"] == "vtkMRMLLabelMapVolumeNode"
+    stamps = [fields["Timestamp"] for fields in recording.frame_fields]
+    assert slicer["axis 3 index values"] == " ".join(stamps) and slicer["labels"][3] == "time"
+    assert _label(str(out), "--export", str(tmp_path / "f.seq.nrrd")).exit_code == 0
+    untimed = nrrd.read_header(str(tmp_path / "f.seq.nrrd"))  # no recording: frame numbers
+    assert untimed["axis 3 index values"] == "0 1 2 3 4" and untimed["labels"][3] == "frame"
     header = (tmp_path / "e.seq.mha").read_bytes().split(b"ElementDataFile = LOCAL\n")[0]
     original = sequence.read_bytes().split(b"ElementDataFile = LOCAL\n")[0]
     kept = [line for line in original.splitlines() if not line.startswith(b"Element")]

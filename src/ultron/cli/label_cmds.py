@@ -39,11 +39,11 @@ def label(
             whole frames (every frame of the file); of any other sweep, its frames
             (docs/auto-labels.md). Needs one sweep (--sweeps NAME).
         export: Write one sweep's labels (--sweeps NAME) as masks of the frames --masks reads:
-            .npy, .seq.mha or .seq.nrrd; bone --bone-value (1), unsure --unsure-value (2),
-            background and frames nobody annotated 0.
+            .npy, .seq.mha or .seq.nrrd (a Slicer labelmap sequence); bone --bone-value (1),
+            unsure --unsure-value (2), background and frames nobody annotated 0.
         recording: With --export: the sequence file the sweep was imported from; a .seq.mha
-            export copies its header (timestamps, per-frame transforms), a .seq.nrrd its
-            per-frame fields.
+            export copies its header (timestamps, per-frame transforms), a .seq.nrrd is
+            indexed by its timestamps and carries its per-frame fields.
         bone_value: The mask value of bone: read (--masks; default every value but 0 and
             --unsure-value) or written (--export; default 1).
         unsure_value: The mask value of pixels left unsure: read (--masks; default none) or

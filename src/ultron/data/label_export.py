@@ -24,11 +24,15 @@ one (``.nrrd``, ``.seq.nrrd``) in the recording's own orientation, recorded in i
 ``UltrasoundImageOrientation``. Given the ``recording`` (the sequence file the sweep was
 imported from), a MetaImage export is its twin — the recording's header, per-frame
 timestamps and transforms included, with only the pixel type and data replaced — so a viewer
-places each mask where it places the frame; an NRRD export then carries the per-frame fields.
+places each mask where it places the frame. An NRRD export is a labelmap volume sequence as 3D
+Slicer's Sequences module stores one (three spatial axes of one slice, then the list axis;
+``DataNodeClassName`` a labelmap; ``axis 3 index values`` the recording's per-frame timestamps,
+else the frame numbers), carrying the recording's per-frame fields when it is given.
 """
 
 from __future__ import annotations
 
+import math
 import shlex
 from dataclasses import dataclass
 from pathlib import Path
@@ -51,6 +55,8 @@ METAIMAGE_SUFFIXES = (".igs.mha", ".seq.mha", ".mha")
 NRRD_SUFFIXES = (".igs.nrrd", ".seq.nrrd", ".nrrd")
 #: Frames mapped or written at once (bounds the working memory of a full-size recording).
 _CHUNK_FRAMES = 32
+#: Slicer's per-item index of a volume sequence (the list axis is axis 3).
+_INDEX_VALUES = "axis 3 index values"
 #: MetaImage header fields that describe the data and are written anew in a twin.
 _PAYLOAD_FIELDS = (
     "ElementType",
@@ -302,6 +308,9 @@ def _recording_header(path: Path, record: dict[str, Any], kind: str) -> dict[str
         for name, value in fields.items()
     }
     if kind == "nrrd":
+        stamps = [fields.get("Timestamp", "") for fields in sequence.frame_fields]
+        if all(_is_number(stamp) for stamp in stamps):  # Slicer's index: the frames' times
+            per_frame[_INDEX_VALUES] = " ".join(stamp.strip() for stamp in stamps)
         return per_frame
     if not path.name.lower().endswith(METAIMAGE_SUFFIXES):
         raise argument_error(
@@ -310,6 +319,13 @@ def _recording_header(path: Path, record: dict[str, Any], kind: str) -> dict[str
     fields, _ = read_metaimage_header(path)
     payload = {name.lower() for name in _PAYLOAD_FIELDS}
     return {key: value for key, value in fields.items() if key.lower() not in payload}
+
+
+def _is_number(text: str) -> bool:
+    try:
+        return math.isfinite(float(text))
+    except ValueError:
+        return False
 
 
 def _write(
@@ -323,13 +339,20 @@ def _write(
     if kind == "nrrd":
         import nrrd
 
-        fields = {
-            "type": str(masks.dtype), "dimension": 3, "sizes": [width, height, n],
-            "kinds": ["domain", "domain", "list"], "encoding": "gzip",
-            "UltrasoundImageOrientation": orientation, **(header or {}),
+        header = dict(header or {})
+        timed = _INDEX_VALUES in header
+        fields = {  # Slicer's volume sequence: three spatial axes (one slice), then the list
+            "type": str(masks.dtype), "dimension": 4, "space": "left-posterior-superior",
+            "sizes": [width, height, 1, n], "kinds": ["domain", "domain", "domain", "list"],
+            "labels": ["", "", "", "time" if timed else "frame"],
+            "space directions": np.vstack([np.eye(3), np.full(3, np.nan)]),
+            "space origin": np.zeros(3), "encoding": "gzip",
+            "DataNodeClassName": "vtkMRMLLabelMapVolumeNode", "axis 3 index type": "numeric",
+            _INDEX_VALUES: header.pop(_INDEX_VALUES, " ".join(str(k) for k in range(n))),
+            "UltrasoundImageOrientation": orientation, **header,
         }  # fmt: skip
         with atomic.atomic_open(out) as handle:
-            nrrd.write(handle, masks, fields, index_order="C")
+            nrrd.write(handle, masks[:, None], fields, index_order="C")
         return
     fields = header or {
         "ObjectType": "Image", "NDims": "3", "DimSize": f"{width} {height} {n}",
