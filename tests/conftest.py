@@ -163,3 +163,13 @@ def random_occupancy_data(n: int, seed: int = 0, front: bool = False):
     labels = (inputs[:, 0] > 0.3).to(torch.uint8)
     in_front = torch.rand(n, generator=generator) > 0.5 if front else None
     return OccupancyTrainingData(inputs, transmission, labels, in_front=in_front)
+
+
+def assert_refused(invoke, cases) -> None:
+    """Each ``(args, needle)`` of ``cases`` run through ``invoke`` (a CLI runner call) exits 2
+    with ``needle`` on stderr and no traceback."""
+    for args, needle in cases:
+        result = invoke(*args)
+        assert result.exit_code == 2, (args, result.output)
+        assert needle in result.stderr, (args, result.stderr)
+        assert "Traceback" not in result.output + result.stderr

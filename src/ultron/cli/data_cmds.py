@@ -43,13 +43,16 @@ def import_plus(
     downsample: float = 1.0,
     replace: bool = False,
     keep_blank_columns: bool = False,
+    tracking: list[Path] | None = None,
+    orientation: str | None = None,
 ) -> None:
     """Import a tracked PLUS / 3D Slicer recording as a sweep (repeat to add sweeps)."""
     from ultron.pipeline.sweep_import import import_plus_sweep
 
     imported = import_plus_sweep(
         sequence, config, out, to=to, sweep_name=sweep_name, kind=kind, downsample=downsample,
-        replace=replace, keep_blank_columns=keep_blank_columns,
+        replace=replace, keep_blank_columns=keep_blank_columns, tracking=tracking or (),
+        orientation=orientation,
     )  # fmt: skip
     print_lines(imported.lines(out, kind))
 

@@ -25,8 +25,8 @@ one (``.nrrd``, ``.seq.nrrd``) in the recording's own orientation, recorded in i
 imported from), a MetaImage export is its twin — the recording's header, per-frame
 timestamps and transforms included, with only the pixel type and data replaced — so a viewer
 places each mask where it places the frame. An NRRD export is a labelmap volume sequence as 3D
-Slicer's Sequences module stores one (three spatial axes of one slice, then the list axis;
-``DataNodeClassName`` a labelmap; ``axis 3 index values`` the recording's per-frame timestamps,
+Slicer's Sequences module documents one (the list axis, then three spatial axes of one slice;
+``DataNodeClassName`` a labelmap; ``axis 0 index values`` the recording's per-frame timestamps,
 else the frame numbers), carrying the recording's per-frame fields when it is given.
 """
 
@@ -55,8 +55,8 @@ METAIMAGE_SUFFIXES = (".igs.mha", ".seq.mha", ".mha")
 NRRD_SUFFIXES = (".igs.nrrd", ".seq.nrrd", ".nrrd")
 #: Frames mapped or written at once (bounds the working memory of a full-size recording).
 _CHUNK_FRAMES = 32
-#: Slicer's per-item index of a volume sequence (the list axis is axis 3).
-_INDEX_VALUES = "axis 3 index values"
+#: Slicer's per-item index of a volume sequence (its list axis comes first: axis 0).
+_INDEX_VALUES = "axis 0 index values"
 #: MetaImage header fields that describe the data and are written anew in a twin.
 _PAYLOAD_FIELDS = (
     "ElementType",
@@ -341,18 +341,18 @@ def _write(
 
         header = dict(header or {})
         timed = _INDEX_VALUES in header
-        fields = {  # Slicer's volume sequence: three spatial axes (one slice), then the list
+        fields = {  # Slicer's volume sequence: the list axis, then three spatial (one slice)
             "type": str(masks.dtype), "dimension": 4, "space": "left-posterior-superior",
-            "sizes": [width, height, 1, n], "kinds": ["domain", "domain", "domain", "list"],
-            "labels": ["", "", "", "time" if timed else "frame"],
-            "space directions": np.vstack([np.eye(3), np.full(3, np.nan)]),
+            "sizes": [n, width, height, 1], "kinds": ["list", "domain", "domain", "domain"],
+            "labels": ["time" if timed else "frame", "", "", ""],
+            "space directions": np.vstack([np.full(3, np.nan), np.eye(3)]),
             "space origin": np.zeros(3), "encoding": "gzip",
-            "DataNodeClassName": "vtkMRMLLabelMapVolumeNode", "axis 3 index type": "numeric",
+            "DataNodeClassName": "vtkMRMLLabelMapVolumeNode", "axis 0 index type": "numeric",
             _INDEX_VALUES: header.pop(_INDEX_VALUES, " ".join(str(k) for k in range(n))),
             "UltrasoundImageOrientation": orientation, **header,
         }  # fmt: skip
-        with atomic.atomic_open(out) as handle:
-            nrrd.write(handle, masks[:, None], fields, index_order="C")
+        with atomic.atomic_open(out) as handle:  # the list axis varies fastest
+            nrrd.write(handle, np.moveaxis(masks, 0, -1)[None], fields, index_order="C")
         return
     fields = header or {
         "ObjectType": "Image", "NDims": "3", "DimSize": f"{width} {height} {n}",

@@ -30,6 +30,7 @@ from __future__ import annotations
 import math
 import re
 from collections import Counter
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -266,6 +267,8 @@ def read_plus(
     kind: str = "other",
     downsample: float = 1.0,
     columns: tuple[int, int] | str | None = "signal",
+    tracking: Sequence[str | Path] = (),
+    orientation: str | None = None,
 ) -> tuple[Sweep, ProbeGeometry, PlusImportReport]:
     """Read a PLUS / Slicer sequence and its PLUS configuration as one :class:`Sweep` in the
     ``to`` frame (Reference or Tracker, or any frame the file tracks) and its probe geometry.
@@ -275,6 +278,9 @@ def read_plus(
     added to a dataset whose first sweep was narrowed), None to none.
     Frames with an image or transform status other than OK are skipped (counted in the
     report); every other problem is an :class:`UltronInputError` naming file and field.
+    ``tracking``: transform sequences saved apart from the frames (3D Slicer's; each frame gets
+    their transforms at its time, :func:`~ultron.data.tracking_files.with_tracking`);
+    ``orientation``: the frames' orientation where the file does not record it.
     """
     if isinstance(columns, str) and columns != "signal":
         raise argument_error(
@@ -286,7 +292,17 @@ def read_plus(
     if not target.isascii() or not target.isalnum():
         raise argument_error("--to", f"expected a frame name such as Reference, got {to!r}")
     plus_config = read_config(config)
-    seq = read_sequence(sequence)
+    try:
+        seq = read_sequence(sequence, orientation)
+    except UltronInputError as exc:  # a volume sequence saved by Slicer does not record it
+        if orientation is not None or "orientation" not in exc.field.lower():
+            raise
+        hint = "; give the frames' orientation with --orientation"
+        raise UltronInputError(exc.where, exc.field, exc.problem + hint) from None
+    if tracking:
+        from ultron.data.tracking_files import with_tracking
+
+        seq = with_tracking(seq, tracking)
     probe_frame = _probe_frame(seq, plus_config)
     chain = transform_chain(seq, probe_frame, target)
     world = world_poses(seq, chain)
@@ -326,6 +342,8 @@ def read_plus(
         kept_columns=kept,
     )
     metadata = _import_metadata(seq, plus_config, report, np.flatnonzero(world.valid))
+    if tracking:
+        metadata["tracking"] = [Path(path).name for path in tracking]
     return sweep, probe, replace(report, metadata=metadata)
 
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import re
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Generic, TypeVar
@@ -157,6 +158,8 @@ def import_plus_sweep(
     downsample: float = 1.0,
     replace: bool = False,
     keep_blank_columns: bool = False,
+    tracking: Sequence[str | Path] = (),
+    orientation: str | None = None,
 ) -> ImportedSweep[PlusImportReport]:
     """Add a tracked PLUS / 3D Slicer recording to a dataset as a sweep
     (:func:`~ultron.data.plus_import.read_plus`); the import's provenance is kept in
@@ -176,6 +179,11 @@ def import_plus_sweep(
         keep_blank_columns: Keep the columns that are 0 in every frame (default: drop them,
             as outside the probe's aperture; a dataset holding PLUS sweeps already keeps its
             first sweep's columns, so that they share one probe geometry).
+        tracking: A transform sequence saved apart from the frames, as 3D Slicer saves each
+            tracked transform (.seq.mha; repeat for more): every frame gets its transforms
+            interpolated at the frame's time (docs/data.md).
+        orientation: The frames' orientation (MF, MN, UF or UN) where the file does not record
+            it, as in a volume sequence saved by 3D Slicer.
     """
     if kind not in SWEEP_KINDS:
         raise argument_error("--kind", f"{kind!r} is not one of {', '.join(SWEEP_KINDS)}")
@@ -184,6 +192,7 @@ def import_plus_sweep(
     sweep, probe, report = read_plus(
         sequence, config, to=to, name=name, kind=kind, downsample=downsample,
         columns=None if keep_blank_columns else _dataset_columns(Path(out)),
+        tracking=tracking, orientation=orientation,
     )  # fmt: skip
     dataset = add_sweep_to_dataset(
         out, sweep, probe, replace=replace, sweep_metadata=report.metadata
