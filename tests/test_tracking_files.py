@@ -161,3 +161,34 @@ def test_bad_tracking_and_frames_are_one_line_errors(scene, tmp_path: Path):
     ]  # fmt: skip
     assert_refused(_import, cases)
     assert not (tmp_path / "o").exists()
+
+
+def test_labels_of_a_slicer_scene_export_indexed_by_the_frames_times(scene, tmp_path: Path):
+    """A sweep imported from a Slicer scene: label --export to .seq.nrrd with the frames' file
+    as --recording is indexed by the frames' own times; a MetaImage twin of an NRRD recording
+    is refused; label --auto suggests the NRRD export."""
+    from ultron.data.auto_label_dataset import SweepLabelSummary
+
+    out = tmp_path / "a"
+    result = _import(str(scene["image"]), "--config", str(scene["config"]), "--out", str(out),
+                     "--tracking", str(scene["probe"]), "--tracking", str(scene["reference"]),
+                     "--orientation", "UN")  # fmt: skip
+    assert result.exit_code == 0, result.output
+    labels = np.full((6, 12, 16), 255, dtype=np.uint8)
+    labels[2, 5:7, 3:12] = 1
+    np.save(out / "Image" / "labels.npy", labels)
+    exported = runner.invoke(app, ["label", str(out), "--export", str(tmp_path / "x.seq.nrrd"),
+                                   "--recording", str(scene["image"])])  # fmt: skip
+    assert exported.exit_code == 0, exported.output
+    import nrrd
+
+    index = nrrd.read_header(str(tmp_path / "x.seq.nrrd"))["axis 0 index values"].split()
+    np.testing.assert_allclose([float(v) for v in index], FRAME_TIMES)
+    refused = runner.invoke(app, ["label", str(out), "--export", str(tmp_path / "x.seq.mha"),
+                                  "--recording", str(scene["image"])])  # fmt: skip
+    assert refused.exit_code == 2 and "needs a MetaImage recording" in refused.stderr
+    summary = SweepLabelSummary(
+        "Image", 6, 0.1, 0.2, 0.7, False, 1.0, frames_to_check=(2,),
+        recording_frames=tuple(range(6)), recording="Image.seq.nrrd",
+    )  # fmt: skip
+    assert "--export Image_labels.seq.nrrd" in summary.lines("a")[0][2]

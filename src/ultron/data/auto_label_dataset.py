@@ -111,9 +111,10 @@ class SweepLabelSummary:
             f" (per frame: {where / QUALITY_FILE})",
         ]
         if check and self.recording is not None:
+            nrrd = self.recording.lower().endswith((".nrrd", ".nhdr"))  # a twin of its format
             command = ["ultron", "label", str(dataset_dir), "--export",
-                       f"{self.name}_labels.seq.mha", "--sweeps", self.name, "--recording",
-                       self.recording]  # fmt: skip
+                       f"{self.name}_labels.seq.{'nrrd' if nrrd else 'mha'}", "--sweeps",
+                       self.name, "--recording", self.recording]  # fmt: skip
             lines.append(f"  to correct them over the recording: {shlex.join(command)}")
         warnings = []
         if self.frames and self.frames_without_bone == self.frames:

@@ -32,7 +32,6 @@ else the frame numbers), carrying the recording's per-frame fields when it is gi
 
 from __future__ import annotations
 
-import math
 import shlex
 from dataclasses import dataclass
 from pathlib import Path
@@ -46,6 +45,7 @@ from ultron.data.plus import read_metaimage_header, read_sequence, sequence_stem
 from ultron.data.plus_geometry import RESAMPLE_RESIDUAL_MM, fit_image_plane, rigid_to_image_pixels
 from ultron.data.plus_import import check_recording_frames, clipped_calibration
 from ultron.data.plus_orientation import orientation_flips
+from ultron.data.tracking_files import frame_times
 from ultron.data.validation import LABEL_TARGET, LABEL_UNANNOTATED
 from ultron.errors import UltronInputError, argument_error
 
@@ -295,7 +295,7 @@ def _recording_header(path: Path, record: dict[str, Any], kind: str) -> dict[str
     doc), after checking that its frames are the ones the sweep was imported from."""
     if kind == "npy":
         raise argument_error("recording", "a .npy export has no header to copy it into")
-    sequence = read_sequence(path, field="--recording")
+    sequence = read_sequence(path, record.get("orientation"), field="--recording")
     check_recording_frames(sequence.pixels.shape, record, path)
     if sequence_stem(path) != sequence_stem(record.get("sequence") or path.name):
         raise UltronInputError(
@@ -308,9 +308,11 @@ def _recording_header(path: Path, record: dict[str, Any], kind: str) -> dict[str
         for name, value in fields.items()
     }
     if kind == "nrrd":
-        stamps = [fields.get("Timestamp", "") for fields in sequence.frame_fields]
-        if all(_is_number(stamp) for stamp in stamps):  # Slicer's index: the frames' times
-            per_frame[_INDEX_VALUES] = " ".join(stamp.strip() for stamp in stamps)
+        try:  # Slicer's index: the frames' times (per-frame, or a volume sequence's own)
+            times = frame_times(sequence)
+        except UltronInputError:
+            return per_frame  # the frame numbers index it
+        per_frame[_INDEX_VALUES] = " ".join(repr(float(t)) for t in times)
         return per_frame
     if not path.name.lower().endswith(METAIMAGE_SUFFIXES):
         raise argument_error(
@@ -319,13 +321,6 @@ def _recording_header(path: Path, record: dict[str, Any], kind: str) -> dict[str
     fields, _ = read_metaimage_header(path)
     payload = {name.lower() for name in _PAYLOAD_FIELDS}
     return {key: value for key, value in fields.items() if key.lower() not in payload}
-
-
-def _is_number(text: str) -> bool:
-    try:
-        return math.isfinite(float(text))
-    except ValueError:
-        return False
 
 
 def _write(

@@ -10,12 +10,13 @@ transforms at its time, so that ``import-plus`` reads such a recording as it rea
 with per-frame transforms.
 
 A transform at the frame's time t is interpolated between the two samples around it (t₀ ≤ t ≤
-t₁) — the rotation by spherical linear interpolation (:class:`scipy.spatial.transform.Slerp`),
-the translation linearly — as PLUS interpolates tracking at a frame's time. It is found when
-both samples have status OK and lie at most :data:`MAX_GAP_INTERVALS` of the transform's median
-sampling interval apart (a frame inside a gap in the tracking, or outside the tracked span,
-has none: status ``NO_TRACKING``, and the import skips and counts it); a frame at a sample's
-own time (a sequence Slicer saved synchronised to the frames) takes that sample exactly.
+t₁) — the rotation by spherical linear interpolation (with
+:class:`scipy.spatial.transform.Rotation`), the translation linearly — as PLUS interpolates
+tracking at a frame's time. It is found when both samples have status OK and lie at most
+:data:`MAX_GAP_INTERVALS` of the transform's median sampling interval apart; a frame inside a
+longer gap in the tracking, or outside the tracked span, has none (status ``NO_TRACKING``: the
+import skips and counts it). A frame at a sample's own time (a sequence Slicer saved
+synchronised to the frames) takes that sample exactly.
 """
 
 from __future__ import annotations
@@ -136,35 +137,39 @@ def frame_times(seq: SequenceFile) -> np.ndarray:
 
 def poses_at(transform: TransformSequence, times_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``transform`` at ``times_s`` (module doc): (K, 4, 4) matrices (NaN where not found) and
-    whether each was found."""
-    from scipy.spatial.transform import Rotation, Slerp
+    whether each was found. Between samples r₀, r₁ at weight w the rotation is
+    r₀·exp(w·log(r₀⁻¹r₁)) — spherical linear interpolation, with scipy's rotations — for all
+    frames at once."""
+    from scipy.spatial.transform import Rotation
 
-    times = transform.times_s
-    out = np.full((len(times_s), 4, 4), np.nan)
-    found = np.zeros(len(times_s), dtype=bool)
+    times, queries = transform.times_s, np.asarray(times_s, dtype=np.float64)
+    out = np.full((len(queries), 4, 4), np.nan)
+    if len(times) == 0 or len(queries) == 0:
+        return out, np.zeros(len(queries), dtype=bool)
+    i1 = np.clip(np.searchsorted(times, queries), 0, len(times) - 1)
+    i0 = np.maximum(i1 - 1, 0)
+    nearest = np.where(np.abs(times[i0] - queries) <= np.abs(times[i1] - queries), i0, i1)
+    exact = np.abs(times[nearest] - queries) <= SAME_TIME_S
     interval = float(np.median(np.diff(times))) if len(times) > 1 else 0.0
-    right = np.clip(np.searchsorted(times, times_s), 1, max(1, len(times) - 1))
-    for k, t in enumerate(times_s):
-        exact = np.flatnonzero(np.abs(times - t) <= SAME_TIME_S)
-        if exact.size:
-            if transform.ok[exact[0]]:
-                out[k], found[k] = transform.matrices[exact[0]], True
-            continue
-        i1 = int(right[k])
-        i0 = i1 - 1
-        if not (
-            len(times) > 1 and times[i0] <= t <= times[i1] and transform.ok[i0]
-            and transform.ok[i1] and times[i1] - times[i0] <= MAX_GAP_INTERVALS * interval
-        ):  # fmt: skip
-            continue
-        pair = transform.matrices[[i0, i1]]
-        rotations = Rotation.from_matrix(_orthonormal(pair[:, :3, :3]))
-        weight = (t - times[i0]) / (times[i1] - times[i0])
-        out[k] = np.eye(4)
-        out[k, :3, :3] = Slerp(times[[i0, i1]], rotations)([t]).as_matrix()[0]
-        out[k, :3, 3] = (1 - weight) * pair[0, :3, 3] + weight * pair[1, :3, 3]
-        found[k] = True
-    return out, found
+    between = (
+        ~exact & (i0 < i1) & (times[i0] <= queries) & (queries <= times[i1])
+        & transform.ok[i0] & transform.ok[i1]
+        & (times[i1] - times[i0] <= MAX_GAP_INTERVALS * interval)
+    )  # fmt: skip
+    at_sample = exact & transform.ok[nearest]
+    out[at_sample] = transform.matrices[nearest[at_sample]]
+    if between.any():
+        a, b = i0[between], i1[between]
+        weight = (queries[between] - times[a]) / (times[b] - times[a])
+        r0 = Rotation.from_matrix(_orthonormal(transform.matrices[a, :3, :3]))
+        r1 = Rotation.from_matrix(_orthonormal(transform.matrices[b, :3, :3]))
+        turn = Rotation.from_rotvec((r0.inv() * r1).as_rotvec() * weight[:, None])
+        moved = np.tile(np.eye(4), (len(a), 1, 1))
+        moved[:, :3, :3] = (r0 * turn).as_matrix()
+        moved[:, :3, 3] = (1 - weight)[:, None] * transform.matrices[a, :3, 3]
+        moved[:, :3, 3] += weight[:, None] * transform.matrices[b, :3, 3]
+        out[between] = moved
+    return out, at_sample | between
 
 
 def _orthonormal(blocks: np.ndarray) -> np.ndarray:
