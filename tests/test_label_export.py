@@ -6,6 +6,7 @@ the recording's header; the round trip; bad input."""
 from __future__ import annotations
 
 import shlex
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -152,11 +153,18 @@ def test_sequence_export_is_the_recordings_twin(tmp_path: Path):
     stamps = [fields["Timestamp"] for fields in recording.frame_fields]
     index = [float(v) for v in slicer["axis 0 index values"].split()]
     assert index == [float(t) for t in stamps] and slicer["labels"][0] == "time"
+    found = _label(str(out), "--export", str(tmp_path / "f.seq.mha"))  # where the import read it
+    assert f"header and per-frame fields from {sequence}" in found.output
+    assert (tmp_path / "f.seq.mha").read_bytes() == (tmp_path / "e.seq.mha").read_bytes()
+    sequence.rename(tmp_path / "moved.igs.mha")  # gone from there: frame numbers index it
     assert _label(str(out), "--export", str(tmp_path / "f.seq.nrrd")).exit_code == 0
-    untimed = nrrd.read_header(str(tmp_path / "f.seq.nrrd"))  # no recording: frame numbers
+    untimed = nrrd.read_header(str(tmp_path / "f.seq.nrrd"))
     assert untimed["axis 0 index values"] == "0 1 2 3 4" and untimed["labels"][0] == "frame"
+    write_mha(sequence, _recording_with_an_echo(n=3)[0], "UN")  # another file in its place
+    other = _label(str(out), "--export", str(tmp_path / "g.seq.nrrd"))
+    assert other.exit_code == 0 and "written without the recording's header" in other.stderr
     header = (tmp_path / "e.seq.mha").read_bytes().split(b"ElementDataFile = LOCAL\n")[0]
-    original = sequence.read_bytes().split(b"ElementDataFile = LOCAL\n")[0]
+    original = (tmp_path / "moved.igs.mha").read_bytes().split(b"ElementDataFile = LOCAL\n")[0]
     kept = [line for line in original.splitlines() if not line.startswith(b"Element")]
     assert set(kept) <= set(header.splitlines())
 
@@ -230,5 +238,7 @@ def test_auto_labels_name_the_recordings_frames_and_how_to_correct_them(tmp_path
         "  to correct them over the recording: ultron label 'my data' --export"
         " s_labels.seq.mha --sweeps s --recording s.igs.mha"
     )
+    where = replace(summary, recording="/data/s.igs.mha")  # where the import read it: found
+    assert where.lines("d")[0][2].endswith("--export s_labels.seq.mha --sweeps s")
     plain = SweepLabelSummary("s", 4, 0.1, 0.2, 0.7, False, 1.0, frames_to_check=(2, 3))
     assert len(plain.lines("d")[0]) == 2 and "recording" not in plain.lines("d")[0][1]

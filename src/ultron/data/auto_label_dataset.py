@@ -81,7 +81,8 @@ class SweepLabelSummary:
     #: Frames without any detected bone, and those to check (:func:`frames_to_check`).
     frames_without_bone: int = 0
     frames_to_check: tuple[int, ...] = ()
-    #: For a sweep imported from PLUS: each frame's number in the recording's file, and the file.
+    #: For a sweep imported from PLUS: each frame's number in the recording's file, and the file
+    #: (its path where the import read it and it still is, else its name).
     recording_frames: tuple[int, ...] | None = None
     recording: str | None = None
 
@@ -114,7 +115,9 @@ class SweepLabelSummary:
             nrrd = self.recording.lower().endswith((".nrrd", ".nhdr"))  # a twin of its format
             command = ["ultron", "label", str(dataset_dir), "--export",
                        f"{self.name}_labels.seq.{'nrrd' if nrrd else 'mha'}", "--sweeps",
-                       self.name, "--recording", self.recording]  # fmt: skip
+                       self.name]  # fmt: skip
+            if not Path(self.recording).is_absolute():  # not where the import read it
+                command += ["--recording", self.recording]
             lines.append(f"  to correct them over the recording: {shlex.join(command)}")
         warnings = []
         if self.frames and self.frames_without_bone == self.frames:
@@ -296,7 +299,10 @@ def _recording_of(dataset: SweepDataset, name: str) -> dict[str, Any]:
     frames = record.get("frames")
     if not isinstance(frames, list) or len(frames) != dataset.sweep(name).n_frames:
         return {}
-    return {"recording_frames": tuple(int(f) for f in frames), "recording": record.get("sequence")}
+    path = record.get("sequence_path")
+    found = isinstance(path, str) and Path(path).is_file()  # then label --export finds it
+    recording = path if found else record.get("sequence")
+    return {"recording_frames": tuple(int(f) for f in frames), "recording": recording}
 
 
 def without_sweeps(metadata: dict[str, Any], key: str, names: Sequence[str]) -> dict[str, Any]:

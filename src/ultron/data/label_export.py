@@ -113,6 +113,8 @@ class LabelExport:
     annotated_frames: int
     empty_annotated_frames: int
     read_back: str
+    recording: Path | None = None
+    note: str | None = None
 
     def lines(self) -> tuple[list[str], list[str]]:
         """The command's report and its warnings."""
@@ -121,7 +123,9 @@ class LabelExport:
             f" ({self.orientation}), {self.annotated_frames} frames annotated",
             f"read back (after editing) with: {self.read_back}",
         ]
-        warnings = []
+        if self.recording is not None:
+            lines.insert(1, f"header and per-frame fields from {self.recording}")
+        warnings = [] if self.note is None else [self.note]
         if self.empty_annotated_frames:
             warnings.append(
                 f"{self.empty_annotated_frames} annotated frames hold no bone and no unsure"
@@ -225,7 +229,8 @@ def export_labels(
 ) -> LabelExport:
     """Write sweep ``sweep``'s labels (of the dataset at ``root``) as masks at ``out``
     atomically (module doc); ``recording``: the sequence file the sweep was imported from,
-    whose header a sequence export copies. A sweep without labels, an ending not listed, or a
+    whose header a sequence export copies (default: the file the import read, where it still
+    is). A sweep without labels, an ending not listed, or a
     recording whose frames differ from the import's is an error naming it."""
     config = config or LabelExportConfig()
     root, out = Path(root), Path(out)
@@ -235,11 +240,16 @@ def export_labels(
         raise UltronInputError(root / sweep, "labels.npy", "missing: the sweep has no labels")
     kind = _format(out)
     record = _plus_record(dataset, sweep)
-    header = None
+    header, note = None, None
     if recording is not None:
         if record is None:
             raise argument_error("recording", f"sweep {sweep!r} was not imported from PLUS")
         header = _recording_header(Path(recording), record, kind)
+    elif record is not None and (recording := _recorded(record, kind)) is not None:
+        try:  # the file the import read, where it still is: not asked for, so not required
+            header = _recording_header(recording, record, kind)
+        except UltronInputError as exc:
+            note = f"written without the recording's header: {exc}"
     labels = np.asarray(target.labels)
     orientation = config.orientation.strip().upper()
     if record is None:
@@ -262,7 +272,19 @@ def export_labels(
     return LabelExport(
         out, len(masks), tuple(masks.shape[1:]), orientation, int(annotated.sum()),
         int(empty.sum()), _read_back(root, sweep, out, config, orientation, kind),
+        None if header is None else Path(recording), note,  # type: ignore[arg-type]
     )  # fmt: skip
+
+
+def _recorded(record: dict[str, Any], kind: str) -> Path | None:
+    """The recording the import read (``sequence_path``, imports since 2026-12-05) where it
+    still is and a ``kind`` export can copy its header; else None."""
+    path = Path(str(record.get("sequence_path") or ""))
+    if kind == "npy" or not record.get("sequence_path") or not path.is_file():
+        return None
+    if kind == "metaimage" and not path.name.lower().endswith(METAIMAGE_SUFFIXES):
+        return None
+    return path
 
 
 def _format(out: Path) -> str:

@@ -431,6 +431,7 @@ def _import_metadata(
     return {
         "source": "plus",
         "sequence": seq.path.name,
+        "sequence_path": str(seq.path.resolve()),
         "config": config.path.name,
         "world": report.world,
         "transforms": report.chain,
