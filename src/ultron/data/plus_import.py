@@ -292,17 +292,7 @@ def read_plus(
     if not target.isascii() or not target.isalnum():
         raise argument_error("--to", f"expected a frame name such as Reference, got {to!r}")
     plus_config = read_config(config)
-    try:
-        seq = read_sequence(sequence, orientation)
-    except UltronInputError as exc:  # a volume sequence saved by Slicer does not record it
-        if orientation is not None or "orientation" not in exc.field.lower():
-            raise
-        hint = "; give the frames' orientation with --orientation"
-        raise UltronInputError(exc.where, exc.field, exc.problem + hint) from None
-    if tracking:
-        from ultron.data.tracking_files import with_tracking
-
-        seq = with_tracking(seq, tracking)
+    seq = _tracked_sequence(sequence, orientation, tracking)
     probe_frame = _probe_frame(seq, plus_config)
     chain = transform_chain(seq, probe_frame, target)
     world = world_poses(seq, chain)
@@ -345,6 +335,26 @@ def read_plus(
     if tracking:
         metadata["tracking"] = [Path(path).name for path in tracking]
     return sweep, probe, replace(report, metadata=metadata)
+
+
+def _tracked_sequence(
+    sequence: str | Path, orientation: str | None, tracking: Sequence[str | Path]
+) -> SequenceFile:
+    """The recording, its frames given the transforms of the ``tracking`` files at their times
+    (:func:`read_plus`); a file that does not record its orientation, without
+    ``orientation``, is an error that says how to give it."""
+    try:
+        seq = read_sequence(sequence, orientation)
+    except UltronInputError as exc:  # a volume sequence saved by Slicer does not record it
+        if orientation is not None or "orientation" not in exc.field.lower():
+            raise
+        hint = "; give the frames' orientation with --orientation"
+        raise UltronInputError(exc.where, exc.field, exc.problem + hint) from None
+    if not tracking:
+        return seq
+    from ultron.data.tracking_files import with_tracking
+
+    return with_tracking(seq, tracking)
 
 
 def clipped_calibration(image_to_probe: np.ndarray, clip: tuple | None) -> np.ndarray:
