@@ -94,24 +94,22 @@ class SweepLabelSummary:
         frames without bone and those to check (:data:`MAX_LISTED` at most), and a warning
         when no frame shows bone."""
         where = Path(dataset_dir) / self.name
-        check = ", ".join(str(i) for i in self.frames_to_check[:MAX_LISTED])
-        more = " …" if len(self.frames_to_check) > MAX_LISTED else ""
         listed = self.frames_to_check[:MAX_LISTED]
-        if check and self.recording_frames is not None:
+        more = " …" if len(self.frames_to_check) > MAX_LISTED else ""
+        check = ", ".join(str(i) for i in listed) + more
+        if listed and self.recording_frames is not None:
             in_file = [self.recording_frames[i] for i in listed]
             if in_file != list(listed):
-                check += f"{more} (the recording's {', '.join(str(i) for i in in_file)}"
-                check += f"{more})" if more else ")"
-                more = ""
+                check += f" (the recording's {', '.join(str(i) for i in in_file)}{more})"
         lines = [
             f"{self.name}: {self.frames} frames, bone {100 * self.bone:.2f} %, background"
             f" {100 * self.background:.1f} %, unsure {100 * self.unsure:.1f} %"
             f" ({'replaced' if self.replaced else 'wrote'} labels.npy, {self.seconds:.1f} s)",
             f"  {self.frames_without_bone} frames without bone; {len(self.frames_to_check)} where"
-            f" the surface dropped out{': check ' + check + more if check else ''}"
+            f" the surface dropped out{': check ' + check if listed else ''}"
             f" (per frame: {where / QUALITY_FILE})",
         ]
-        if check and self.recording is not None:
+        if listed and self.recording is not None:
             nrrd = self.recording.lower().endswith((".nrrd", ".nhdr"))  # a twin of its format
             command = ["ultron", "label", str(dataset_dir), "--export",
                        f"{self.name}_labels.seq.{'nrrd' if nrrd else 'mha'}", "--sweeps",

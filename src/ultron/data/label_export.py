@@ -192,14 +192,19 @@ def coded_masks(
 
 
 def recording_masks(
-    labels: np.ndarray, record: dict[str, Any], config: LabelExportConfig, where: str | Path
+    labels: np.ndarray,
+    record: dict[str, Any],
+    config: LabelExportConfig,
+    where: str | Path,
+    annotated: np.ndarray | None = None,
 ) -> np.ndarray:
     """MF masks (the recording's frames, every frame of the file) of a PLUS sweep's ``labels``
-    (module doc)."""
+    (module doc); ``annotated`` as in :func:`coded_masks`."""
     rows, columns, covered = recording_pixel_map(record, labels.shape[1:], where)
     kept = np.asarray(record["frames"], dtype=np.int64)
     masks = np.zeros((int(record["file_frames"]), *rows.shape), dtype=config.dtype)
-    annotated = (labels != LABEL_UNANNOTATED).any(axis=(1, 2))
+    if annotated is None:
+        annotated = (labels != LABEL_UNANNOTATED).any(axis=(1, 2))
     chunks = np.flatnonzero(annotated)  # frames nobody annotated stay empty: nothing to map
     for first in range(0, len(chunks), _CHUNK_FRAMES):  # a few full-size frames at a time
         frames = chunks[first : first + _CHUNK_FRAMES]
@@ -251,6 +256,8 @@ def export_labels(
         except UltronInputError as exc:
             note = f"written without the recording's header: {exc}"
     labels = np.asarray(target.labels)
+    n_unsure = np.count_nonzero(labels == LABEL_UNANNOTATED, axis=(1, 2))  # per frame, once
+    unsure, annotated = n_unsure > 0, n_unsure < labels[0].size
     orientation = config.orientation.strip().upper()
     if record is None:
         if orientation != "MF":
@@ -258,17 +265,15 @@ def export_labels(
                 "orientation", f"sweep {sweep!r} was not imported from PLUS: its masks are of"
                 " its own frames, as they are",
             )  # fmt: skip
-        masks = coded_masks(labels, config)
+        masks = coded_masks(labels, config, annotated=annotated)
     else:
-        masks = recording_masks(labels, record, config, root / "dataset.json")
+        masks = recording_masks(labels, record, config, root / "dataset.json", annotated)
         if kind != "npy":
             orientation = str(record.get("orientation") or "MF")
     flip_columns, flip_rows = orientation_flips(orientation, "argument", "orientation")
     masks = masks[:, :: -1 if flip_rows else 1, :: -1 if flip_columns else 1]  # MF ↔ it
     _write(out, kind, masks, orientation, header)
-    annotated = (labels != LABEL_UNANNOTATED).any(axis=(1, 2))
-    empty = annotated & ~(labels == LABEL_TARGET).any(axis=(1, 2))
-    empty &= ~(labels == LABEL_UNANNOTATED).any(axis=(1, 2))
+    empty = annotated & ~unsure & ~(labels == LABEL_TARGET).any(axis=(1, 2))
     return LabelExport(
         out, len(masks), tuple(masks.shape[1:]), orientation, int(annotated.sum()),
         int(empty.sum()), _read_back(root, sweep, out, config, orientation, kind),

@@ -34,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ultron.data.plus_orientation import orientation_flips
+from ultron.data.plus_orientation import ORIENTATION_FLIPS, orientation_flips
 from ultron.data.validation import contained_path, input_file
 from ultron.errors import UltronInputError
 from ultron.memory import check_fits_in_memory
@@ -61,7 +61,8 @@ STATUS_OK = "OK"
 #: Image-status field names: MetaImage sequences write ``ImageStatus``, NRRD ones ``Status``.
 IMAGE_STATUS_FIELDS = ("ImageStatus", "Status")
 
-_FRAME_FIELD = re.compile(r"^seq_frame(\d+)_(.+)$", re.IGNORECASE)
+#: A per-frame field's key, ``Seq_Frame0012_ProbeToTrackerTransform``: (frame, field name).
+FRAME_FIELD = re.compile(r"^seq_frame(\d+)_(.+)$", re.IGNORECASE)
 _NAN_TOKEN = re.compile(r"^[-+]?nan(\(.*\))?$", re.IGNORECASE)
 _MAX_HEADER_LINE = 1 << 20
 _UINT8_NAMES = ("uchar", "unsigned char", "uint8", "uint8_t")
@@ -172,7 +173,7 @@ def _split_frame_fields(
     plain: dict[str, str] = {}
     frames: list[dict[str, str]] = [{} for _ in range(n_frames)]
     for key, value in fields.items():
-        match = _FRAME_FIELD.match(key)
+        match = FRAME_FIELD.match(key)
         if match is None:
             plain[key] = value
             continue
@@ -383,10 +384,15 @@ def _read_metaimage_payload(
 
 
 def _orientation(plain: Mapping[str, str], default: str | None, path: Path, field: str) -> str:
-    """The file's ``UltrasoundImageOrientation``, else ``default`` (None: it is required)."""
+    """The file's ``UltrasoundImageOrientation``, else ``default`` (None: it is required, and
+    its absence an error saying how to give it, as a volume sequence saved by Slicer lacks it)."""
     orientation = _lookup(plain, "UltrasoundImageOrientation")
-    if orientation is None and default is not None:
-        orientation = default
+    if orientation is None and default is None:
+        raise UltronInputError(
+            path, field, f"missing; expected one of {', '.join(sorted(ORIENTATION_FLIPS))};"
+            " give the frames' orientation with --orientation",
+        )  # fmt: skip
+    orientation = default if orientation is None else orientation
     orientation_flips(orientation, path, field)
     return str(orientation)
 

@@ -340,16 +340,9 @@ def read_plus(
 def _tracked_sequence(
     sequence: str | Path, orientation: str | None, tracking: Sequence[str | Path]
 ) -> SequenceFile:
-    """The recording, its frames given the transforms of the ``tracking`` files at their times
-    (:func:`read_plus`); a file that does not record its orientation, without
-    ``orientation``, is an error that says how to give it."""
-    try:
-        seq = read_sequence(sequence, orientation)
-    except UltronInputError as exc:  # a volume sequence saved by Slicer does not record it
-        if orientation is not None or "orientation" not in exc.field.lower():
-            raise
-        hint = "; give the frames' orientation with --orientation"
-        raise UltronInputError(exc.where, exc.field, exc.problem + hint) from None
+    """The recording (``orientation``: the frames' where the file does not record it), its
+    frames given the transforms of the ``tracking`` files at their times (:func:`read_plus`)."""
+    seq = read_sequence(sequence, orientation)
     if not tracking:
         return seq
     from ultron.data.tracking_files import with_tracking

@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from ultron.data.plus import (
+    FRAME_FIELD,
     STATUS_OK,
     SequenceFile,
     parse_matrix,
@@ -43,7 +44,6 @@ MAX_GAP_INTERVALS = 2.0
 SAME_TIME_S = 1e-6
 #: The status of a frame without tracking at its time.
 NO_TRACKING = "NO_TRACKING"
-_FRAME_FIELD = re.compile(r"^seq_frame(\d+)_(.+)$", re.IGNORECASE)
 _INDEX_VALUES = re.compile(r"^axis\s*\d+\s*index\s*values$", re.IGNORECASE)
 
 
@@ -72,7 +72,7 @@ def read_transform_sequences(path: str | Path) -> list[TransformSequence]:
     fields, _ = read_metaimage_header(path)
     frames: dict[int, dict[str, str]] = {}
     for key, value in fields.items():
-        match = _FRAME_FIELD.match(key)
+        match = FRAME_FIELD.match(key)
         if match:
             frames.setdefault(int(match.group(1)), {})[match.group(2)] = value
     names = sorted(
