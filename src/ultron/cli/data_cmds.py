@@ -35,8 +35,8 @@ def import_ultranerf(
 @command("sequence", documented_by=("ultron.pipeline.sweep_import:import_plus_sweep",))
 def import_plus(
     sequence: Path,
-    config: Path,
     out: Path,
+    config: Path | None = None,
     to: str = "Reference",
     sweep_name: str | None = None,
     kind: str = "other",

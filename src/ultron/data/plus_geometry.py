@@ -164,6 +164,77 @@ def resample_to_rigid(
     return out
 
 
+#: Largest displacement (mm, at a frame corner) between one frame's calibration and the
+#: recording's common one that :func:`factor_image_to_world` accepts as one calibration (a
+#: tracker's rounding moves a pixel by 1e-4 mm; a changed depth or zoom by millimetres).
+CALIBRATION_SPREAD_MM = 0.05
+
+
+@dataclass(frozen=True)
+class TrackedCalibration:
+    """Per-frame Image → world transforms factored into a rigid image-plane pose per frame and
+    one calibration (:func:`factor_image_to_world`)."""
+
+    #: (K, 4, 4) rigid: the image plane's own frame (x along image columns, y in the plane
+    #: towards the rows, z their normal; origin at pixel (0, 0)) → world.
+    plane_to_world: np.ndarray
+    #: pixel (i, j, 0, 1) → the plane's frame, mm: [[s_x, a, 0, 0], [0, s_y, 0, 0], …].
+    image_to_plane: np.ndarray
+    #: Largest distance (mm) by which a frame's own calibration moves a frame corner from
+    #: ``image_to_plane``'s placement.
+    spread_mm: float
+
+
+def factor_image_to_world(
+    image_to_world: np.ndarray, width_px: int, height_px: int, where: str | Path, field_name: str
+) -> TrackedCalibration:
+    """Factor per-frame Image → world transforms A_k (PLUS's ``ImageToReference``: tracking
+    with the calibration, and so the pixel scale, already in it) as A_k = P_k · C.
+
+    Only the image axes a_x, a_y (A_k's first two columns) and its translation t act on pixels.
+    Per frame, the image plane's frame is q₁ = a_x/|a_x|, q₃ = a_x × a_y/|a_x × a_y|, q₂ =
+    q₃ × q₁ (a rotation), P_k = [q₁ q₂ q₃ | t]; in it the axes are C_k's columns (|a_x|, 0, 0)
+    and (a_y·q₁, a_y·q₂, 0), so P_k·C_k·[i, j, 0, 1]ᵀ = A_k·[i, j, 0, 1]ᵀ exactly. A tracked
+    probe's frames differ only in P_k, so C = mean C_k is their common calibration; a frame
+    whose C_k moves a corner of the ``height_px`` × ``width_px`` frame by more than
+    :data:`CALIBRATION_SPREAD_MM` from C's placement (the depth or zoom changed during the
+    recording) is an error naming ``field_name``, as are zero or parallel image axes."""
+    matrices = np.asarray(image_to_world, dtype=np.float64)
+    ax, ay, t = matrices[:, :3, 0], matrices[:, :3, 1], matrices[:, :3, 3]
+    nx = np.linalg.norm(ax, axis=1)
+    normal = np.cross(ax, ay)
+    nn = np.linalg.norm(normal, axis=1)
+    if not (np.all(nx > 0) and np.all(nn > 1e-9 * nx * np.linalg.norm(ay, axis=1))):
+        raise UltronInputError(
+            where, field_name, "image axes are zero or parallel in some frame (not a calibration)"
+        )
+    q1, q3 = ax / nx[:, None], normal / nn[:, None]
+    q2 = np.cross(q3, q1)
+    plane = np.tile(np.eye(4), (len(matrices), 1, 1))
+    plane[:, :3, :3] = np.stack([q1, q2, q3], axis=2)
+    plane[:, :3, 3] = t
+    own = np.zeros((len(matrices), 2, 2))  # each frame's C_k restricted to the image plane
+    own[:, 0, 0] = nx
+    own[:, 0, 1], own[:, 1, 1] = np.einsum("ki,ki->k", ay, q1), np.einsum("ki,ki->k", ay, q2)
+    common = own.mean(axis=0)
+    corners = np.array([(i, j) for i in (0, width_px - 1) for j in (0, height_px - 1)])
+    spread = float(np.linalg.norm(np.einsum("kab,cb->kca", own - common, corners), axis=2).max())
+    if spread > CALIBRATION_SPREAD_MM:
+        worst = int(np.argmax(np.abs(own - common).reshape(len(own), -1).max(axis=1)))
+        raise UltronInputError(
+            where,
+            field_name,
+            f"the image's scale or shear changes across frames (a frame corner moves by up to"
+            f" {spread:.3g} mm from the recording's mean calibration, at most"
+            f" {CALIBRATION_SPREAD_MM:g}; e.g. {own[worst, 0, 0]:.5f} × {own[worst, 1, 1]:.5f}"
+            f" mm per pixel against {common[0, 0]:.5f} × {common[1, 1]:.5f}): the depth or zoom"
+            " changed during the recording, and a sweep has one calibration",
+        )  # fmt: skip
+    calibration = np.eye(4)
+    calibration[:2, :2] = common
+    return TrackedCalibration(plane, calibration, spread)
+
+
 # --------------------------------------------------------------------------- downsampling
 def downsampled_shape(height: int, width: int, factor: float) -> tuple[int, int]:
     """(H', W') of frames downsampled by ``factor`` ≥ 1 (rounded, at least 1)."""

@@ -4,7 +4,9 @@ PLUS places pixel (i, j) of frame k (i: column, j: row of the MF-oriented frame)
 
     x = (To)ToTracker⁻¹ · ProbeToTracker · ImageToProbe · [i, j, 0, 1]ᵀ
 
-(``To`` = Reference by default; a file that records ``ProbeTo<To>`` directly is read as it is).
+(``To`` = Reference by default; a file that records ``ProbeTo<To>`` directly is read as it is;
+without a configuration, the frames' own ``ImageTo<To>`` is the whole product: the per-frame
+transforms and the calibration are read in :mod:`ultron.data.plus_poses`).
 ultron's format places pixel (r, c) at probe point ((c − W/2)·s_x, r·s_y, 0) of a rigid
 probe-to-world pose, so the affine ImageToProbe (it holds the pixel scale and, from a
 calibration fit, usually a small shear) is factored into a rigid pose and two pixel spacings,
@@ -28,8 +30,6 @@ fit's residual (a few pixels at each corner, read as 0 on one side and left out 
 from __future__ import annotations
 
 import math
-import re
-from collections import Counter
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -38,13 +38,7 @@ from typing import Any
 import numpy as np
 
 from ultron.data.dataset import ProbeGeometry, Sweep
-from ultron.data.plus import (
-    IMAGE_STATUS_FIELDS,
-    STATUS_OK,
-    SequenceFile,
-    parse_matrix,
-    read_sequence,
-)
+from ultron.data.plus import SequenceFile, read_sequence
 from ultron.data.plus_config import PlusConfig, read_config
 from ultron.data.plus_geometry import (
     RESAMPLE_RESIDUAL_MM,
@@ -55,120 +49,11 @@ from ultron.data.plus_geometry import (
     resample_to_rigid,
 )
 from ultron.data.plus_orientation import orientation_flips
+from ultron.data.plus_poses import Placement, placement
 from ultron.data.resolution import signal_columns
-from ultron.data.validation import ROTATION_TOLERANCE, pose_errors
 from ultron.errors import UltronInputError, argument_error
 
-#: The frame a tracker reports in; ``--to X`` other than it composes XToTracker⁻¹ · …ToTracker.
-TRACKER = "Tracker"
-#: The source frame of a transform name: PLUS splits at the "To" followed by a capital.
-_FROM = re.compile(r"^(.+?)To(?=[A-Z])")
 
-
-@dataclass(frozen=True)
-class WorldPoses:
-    """Per frame: the probe → world matrix (NaN where invalid), whether the frame is valid,
-    and why the others were skipped (reason → count)."""
-
-    probe_to_world: np.ndarray
-    valid: np.ndarray
-    skipped: Counter[str]
-    description: str
-
-
-def _status(seq: SequenceFile, frame: int, name: str) -> str:
-    """A frame's status field ``name`` (OK when absent: older PLUS files have none)."""
-    return seq.frame_fields[frame].get(name, STATUS_OK).strip() or STATUS_OK
-
-
-def _frame_matrix(seq: SequenceFile, frame: int, transform: str) -> tuple[np.ndarray, bool]:
-    """(matrix, status OK) of frame ``frame``'s ``<transform>Transform``; a malformed matrix is
-    an error whatever its status, a non-finite or non-rigid one only with status OK."""
-    key = f"{transform}Transform"
-    text = seq.frame_fields[frame].get(key)
-    label = seq.frame_field_key(frame, key)
-    if text is None:
-        have = sum(key in fields for fields in seq.frame_fields)
-        raise UltronInputError(
-            seq.path,
-            seq.size_field,
-            f"{seq.n_frames} frames, but {key} is given for {have}"
-            f" ({label} is missing): frame count does not match the transform fields",
-        )
-    matrix = parse_matrix(text, seq.path, label)
-    ok = _status(seq, frame, f"{key}Status").upper() == STATUS_OK
-    if ok:
-        if not np.isfinite(matrix).all():
-            raise UltronInputError(seq.path, label, "holds NaN or inf but its status is OK")
-        if np.abs(matrix[3] - (0.0, 0.0, 0.0, 1.0)).max() > 1e-6:
-            raise UltronInputError(seq.path, label, f"last row is {matrix[3].tolist()}")
-        ortho, det = (float(e[0]) for e in pose_errors(matrix[None]))
-        if max(ortho, det) > ROTATION_TOLERANCE:
-            raise UltronInputError(
-                seq.path,
-                label,
-                f"not rigid: rotation block deviates from orthonormal by {ortho:.2e}"
-                f" (det error {det:.2e}; at most {ROTATION_TOLERANCE:g})",
-            )
-        matrix[3] = (0.0, 0.0, 0.0, 1.0)
-    return matrix, ok
-
-
-def _affine_inverse(matrix: np.ndarray) -> np.ndarray:
-    """Inverse of an affine 4 × 4 with its last row exactly (0, 0, 0, 1)."""
-    inverse = np.eye(4)
-    inverse[:3, :3] = np.linalg.inv(matrix[:3, :3])
-    inverse[:3, 3] = -inverse[:3, :3] @ matrix[:3, 3]
-    return inverse
-
-
-def transform_chain(seq: SequenceFile, probe: str, target: str) -> tuple[str, ...]:
-    """The per-frame transforms giving probe → ``target``: ``(ProbeToTarget,)``, or
-    ``(ProbeToTracker, TargetToTracker)`` composed as TargetToTracker⁻¹ · ProbeToTracker."""
-    names = seq.transform_names()
-    direct = f"{probe}To{target}"
-    if direct in names:
-        return (direct,)
-    via = (f"{probe}To{TRACKER}", f"{target}To{TRACKER}")
-    if target != TRACKER and all(name in names for name in via):
-        return via
-    wanted = direct if target == TRACKER else f"{direct}, or {via[0]} and {via[1]}"
-    raise UltronInputError(
-        seq.path,
-        "--to",
-        f"{target}: the sequence has no {wanted} transform"
-        f" (it has {', '.join(names) or 'no transforms'})",
-    )
-
-
-def world_poses(seq: SequenceFile, chain: tuple[str, ...]) -> WorldPoses:
-    """Probe → world of every frame along ``chain`` (:func:`transform_chain`); frames whose
-    image status or a used transform's status is not OK are marked invalid and counted."""
-    poses = np.full((seq.n_frames, 4, 4), np.nan)
-    valid = np.zeros(seq.n_frames, dtype=bool)
-    skipped: Counter[str] = Counter()
-    for frame in range(seq.n_frames):
-        matrices = [_frame_matrix(seq, frame, name) for name in chain]
-        reasons = []
-        image_status = next((f for f in IMAGE_STATUS_FIELDS if f in seq.frame_fields[frame]), None)
-        if image_status and _status(seq, frame, image_status).upper() != STATUS_OK:
-            reasons.append(f"{image_status} {_status(seq, frame, image_status)}")
-        for name, (_, ok) in zip(chain, matrices, strict=True):
-            if not ok:
-                key = f"{name}TransformStatus"
-                reasons.append(f"{key} {_status(seq, frame, key)}")
-        if reasons:
-            skipped.update(reasons[:1])
-            continue
-        pose = matrices[0][0]
-        if len(chain) == 2:
-            pose = _affine_inverse(matrices[1][0]) @ pose
-        poses[frame], valid[frame] = pose, True
-    text = chain[0] if len(chain) == 1 else f"{chain[1]}⁻¹ · {chain[0]}"
-    return WorldPoses(poses, valid, skipped, text)
-
-
-# --------------------------------------------------------------------------- the import
 @dataclass(frozen=True)
 class PlusImportReport:
     """What :func:`read_plus` did, for the CLI's summary and the dataset's metadata."""
@@ -191,31 +76,20 @@ class PlusImportReport:
     #: The columns [start, stop) of the clipped frames that were kept (the others blank in
     #: every frame, :func:`signal_columns`); None: every column kept.
     kept_columns: tuple[int, int] | None = None
+    #: The calibration came with the tracking (per-frame ImageTo<X>, no configuration): how
+    #: far (mm) the frames' own calibrations move a frame corner from the common one; None:
+    #: the calibration is the configuration's.
+    calibration_spread_mm: float | None = None
     metadata: dict[str, Any] = field(default_factory=dict)
 
 
-def _probe_frame(seq: SequenceFile, config: PlusConfig) -> str:
-    """The frame the calibration maps the image to (Probe, unless the configuration
-    calibrates the image to another frame that the sequence tracks)."""
-    tracked = {match.group(1) for name in seq.transform_names() if (match := _FROM.match(name))}
-    candidates = sorted(config.image_to, key=lambda name: (name != "Probe", name))
-    for name in candidates:
-        if name in tracked:
-            return name
-    raise UltronInputError(
-        seq.path,
-        "transforms",
-        f"no per-frame transform from {' or '.join(candidates)} (the frame the configuration's"
-        f" Image → {candidates[0]} calibration maps to); the sequence has"
-        f" {', '.join(seq.transform_names()) or 'no transforms'}",
-    )
-
-
-def _oriented_clipped(seq: SequenceFile, config: PlusConfig) -> tuple[np.ndarray, tuple | None]:
-    """Frames flipped to MF and clipped to the configuration's clip rectangle."""
+def _oriented_clipped(
+    seq: SequenceFile, config: PlusConfig | None
+) -> tuple[np.ndarray, tuple | None]:
+    """Frames flipped to MF and clipped to the configuration's clip rectangle (if any)."""
     flip_columns, flip_rows = orientation_flips(seq.orientation, seq.path, "orientation")
     frames = seq.pixels[:, :: -1 if flip_rows else 1, :: -1 if flip_columns else 1]
-    if config.clip_origin is None or config.clip_size is None:
+    if config is None or config.clip_origin is None or config.clip_size is None:
         return np.ascontiguousarray(frames), None
     (i0, j0), (w, h) = config.clip_origin, config.clip_size
     height, width = frames.shape[1:]
@@ -260,7 +134,7 @@ def _narrowed(
 
 def read_plus(
     sequence: str | Path,
-    config: str | Path,
+    config: str | Path | None,
     *,
     to: str = "Reference",
     name: str = "sweep",
@@ -272,6 +146,9 @@ def read_plus(
 ) -> tuple[Sweep, ProbeGeometry, PlusImportReport]:
     """Read a PLUS / Slicer sequence and its PLUS configuration as one :class:`Sweep` in the
     ``to`` frame (Reference or Tracker, or any frame the file tracks) and its probe geometry.
+    Without a configuration (``config`` None) the frames' own Image → ``to`` transforms (PLUS's
+    ``ImageToReference``) place the pixels: they hold the calibration, factored out of them
+    (:func:`~ultron.data.plus_geometry.factor_image_to_world`); no clip rectangle applies.
 
     ``columns`` narrows the clipped frames: ``"signal"`` to the columns where some imported
     frame has signal (:func:`signal_columns`), a (start, stop) pair to those columns (a sweep
@@ -291,25 +168,18 @@ def read_plus(
     target = to[:1].upper() + to[1:]
     if not target.isascii() or not target.isalnum():
         raise argument_error("--to", f"expected a frame name such as Reference, got {to!r}")
-    plus_config = read_config(config)
+    plus_config = read_config(config) if config is not None else None
     seq = _tracked_sequence(sequence, orientation, tracking)
-    probe_frame = _probe_frame(seq, plus_config)
-    chain = transform_chain(seq, probe_frame, target)
-    world = world_poses(seq, chain)
-    if not world.valid.any():
-        reasons = ", ".join(f"{n} × {r}" for r, n in world.skipped.most_common())
-        raise UltronInputError(
-            seq.path, "frames", f"all {seq.n_frames} frames are invalid ({reasons})"
-        )
+    placed = placement(seq, plus_config, target)
+    world = placed.world
     frames, clip = _oriented_clipped(seq, plus_config)
     frames = frames[world.valid]
     wanted = signal_columns(frames) if columns == "signal" else columns
     frames, clip, kept = _narrowed(frames, clip, wanted, seq.path)  # type: ignore[arg-type]
-    calibration = clipped_calibration(plus_config.image_to[probe_frame], clip)
+    calibration = clipped_calibration(placed.image_to_probe, clip)
     height, width = frames.shape[1:]
-    label = f"Transform Image → {probe_frame}"
-    fit = fit_image_plane(calibration, width, height, plus_config.path, label)
-    poses = world.probe_to_world[world.valid] @ fit.dataset_probe_to_probe(width)
+    fit = fit_image_plane(calibration, width, height, placed.where, placed.field)
+    poses = placed.probe_to_world @ fit.dataset_probe_to_probe(width)
     shape = downsampled_shape(height, width, downsample)
     images, resampled = on_sweep_grid(frames, calibration, fit, shape)
     probe = ProbeGeometry(width * fit.spacing_mm[0], height * fit.spacing_mm[1], *shape)
@@ -322,7 +192,7 @@ def read_plus(
         image_shape=shape,
         orientation=seq.orientation,
         flips=orientation_flips(seq.orientation, seq.path, "orientation"),
-        probe_frame=probe_frame,
+        probe_frame=placed.probe_frame,
         world=target,
         chain=world.description,
         clip=clip,
@@ -330,8 +200,9 @@ def read_plus(
         downsample=float(downsample),
         resampled=resampled,
         kept_columns=kept,
+        calibration_spread_mm=placed.spread_mm,
     )
-    metadata = _import_metadata(seq, plus_config, report, np.flatnonzero(world.valid))
+    metadata = _import_metadata(seq, plus_config, placed, report, np.flatnonzero(world.valid))
     if tracking:
         metadata["tracking"] = [Path(path).name for path in tracking]
     return sweep, probe, replace(report, metadata=metadata)
@@ -427,7 +298,11 @@ def frames_as_imported(
 
 
 def _import_metadata(
-    seq: SequenceFile, config: PlusConfig, report: PlusImportReport, frames: np.ndarray
+    seq: SequenceFile,
+    config: PlusConfig | None,
+    placed: Placement,
+    report: PlusImportReport,
+    frames: np.ndarray,
 ) -> dict[str, Any]:
     """Provenance of an imported sweep, kept in ``dataset.json``'s metadata."""
     fit = report.fit
@@ -435,13 +310,15 @@ def _import_metadata(
         "source": "plus",
         "sequence": seq.path.name,
         "sequence_path": str(seq.path.resolve()),
-        "config": config.path.name,
+        "config": None if config is None else config.path.name,
+        "calibration_from": placed.field,
+        "calibration_spread_mm": placed.spread_mm,
         "world": report.world,
         "transforms": report.chain,
         "orientation": report.orientation,
         "clip": None if report.clip is None else {"origin": report.clip[0], "size": report.clip[1]},
         "kept_columns": None if report.kept_columns is None else list(report.kept_columns),
-        "image_to_probe": config.image_to[report.probe_frame].tolist(),
+        "image_to_probe": placed.image_to_probe.tolist(),
         "fitted_image_to_probe": fit.image_to_probe().tolist(),
         "pixel_spacing_mm": list(fit.spacing_mm),
         "shear_deg": fit.shear_deg,

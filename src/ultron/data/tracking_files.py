@@ -12,7 +12,9 @@ with per-frame transforms.
 A transform at the frame's time t is interpolated between the two samples around it (t₀ ≤ t ≤
 t₁) — the rotation by spherical linear interpolation (with
 :class:`scipy.spatial.transform.Rotation`), the translation linearly — as PLUS interpolates
-tracking at a frame's time. It is found when both samples have status OK and lie at most
+tracking at a frame's time. An Image → X transform (``ImageToReference``: the calibration's
+scale and shear in it) is split into rotation · stretch and its stretch interpolated linearly,
+so the pixel scale is kept. It is found when both samples have status OK and lie at most
 :data:`MAX_GAP_INTERVALS` of the transform's median sampling interval apart; a frame inside a
 longer gap in the tracking, or outside the tracked span, has none (status ``NO_TRACKING``: the
 import skips and counts it). A frame at a sample's own time (a sequence Slicer saved
@@ -161,21 +163,30 @@ def poses_at(transform: TransformSequence, times_s: np.ndarray) -> tuple[np.ndar
     if between.any():
         a, b = i0[between], i1[between]
         weight = (queries[between] - times[a]) / (times[b] - times[a])
-        r0 = Rotation.from_matrix(_orthonormal(transform.matrices[a, :3, :3]))
-        r1 = Rotation.from_matrix(_orthonormal(transform.matrices[b, :3, :3]))
+        (turn0, stretch0), (turn1, stretch1) = (
+            _polar(transform.matrices[k, :3, :3]) for k in (a, b)
+        )
+        r0, r1 = Rotation.from_matrix(turn0), Rotation.from_matrix(turn1)
         turn = Rotation.from_rotvec((r0.inv() * r1).as_rotvec() * weight[:, None])
+        stretch = (1 - weight)[:, None, None] * stretch0 + weight[:, None, None] * stretch1
         moved = np.tile(np.eye(4), (len(a), 1, 1))
-        moved[:, :3, :3] = (r0 * turn).as_matrix()
+        moved[:, :3, :3] = (r0 * turn).as_matrix() @ stretch
         moved[:, :3, 3] = (1 - weight)[:, None] * transform.matrices[a, :3, 3]
         moved[:, :3, 3] += weight[:, None] * transform.matrices[b, :3, 3]
         out[between] = moved
     return out, at_sample | between
 
 
-def _orthonormal(blocks: np.ndarray) -> np.ndarray:
-    """The nearest rotations of 3 × 3 ``blocks`` (tracking rounds its matrices)."""
+def _polar(blocks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """3 × 3 ``blocks`` as rotation · stretch, B = R·S: R = U·Vᵀ of B's singular value
+    decomposition (the nearest rotation; its last column's sign flipped where det B < 0) and
+    S = Rᵀ·B. A rigid transform's S is the identity up to the tracker's rounding; an Image → X
+    transform's S holds the calibration's scale and shear, the same in every sample, so the
+    interpolated transform keeps it."""
     u, _, vt = np.linalg.svd(blocks)
-    return u @ vt
+    u[..., :, 2] *= np.where(np.linalg.det(u @ vt) < 0, -1.0, 1.0)[..., None]
+    turns = u @ vt
+    return turns, np.swapaxes(turns, -1, -2) @ blocks
 
 
 def with_tracking(seq: SequenceFile, paths: Sequence[str | Path]) -> SequenceFile:

@@ -67,10 +67,18 @@ def plus_lines(report: PlusImportReport, probe: ProbeGeometry) -> list[str]:
     fit = report.fit
     flips = [axis for axis, flip in zip(("columns", "rows"), report.flips, strict=True) if flip]
     height, width = report.file_shape
+    tracked = report.calibration_spread_mm is not None
+    calibration = (
+        f"Image → {report.world} per frame ({report.chain}, no --config: the calibration is in"
+        f" the tracking; the frames' own calibrations agree to {report.calibration_spread_mm:.2g}"
+        " mm)"
+        if tracked
+        else f"Image → {report.probe_frame}"
+    )
     lines = [
         f"frames: {report.n_frames_file} of {height}×{width} (rows × columns), orientation"
         f" {report.orientation} → MF ({'flipped ' + ' and '.join(flips) if flips else 'no flip'})",
-        f"Image → {report.probe_frame}: {fit.spacing_mm[0]:.5f} mm per column ×"
+        f"{calibration}: {fit.spacing_mm[0]:.5f} mm per column ×"
         f" {fit.spacing_mm[1]:.5f} mm per row; its image axes are {abs(fit.shear_deg):.2f}° from"
         f" perpendicular: a rigid pose would move pixels by at most {fit.residual_max_mm:.3f} mm"
         f" (RMS {fit.residual_rms_mm:.3f} mm) from PLUS's map"
@@ -79,7 +87,7 @@ def plus_lines(report: PlusImportReport, probe: ProbeGeometry) -> list[str]:
             if report.resampled
             else ""
         ),
-        f"world frame: {report.world} ({report.chain} · ImageToProbe)",
+        f"world frame: {report.world} ({report.chain}{'' if tracked else ' · ImageToProbe'})",
     ]
     if report.clip is not None:
         (i0, j0), (w, h) = report.clip
@@ -149,7 +157,7 @@ def import_ultranerf_sweep(
 
 def import_plus_sweep(
     sequence: str | Path,
-    config: str | Path,
+    config: str | Path | None,
     out: str | Path,
     *,
     to: str = "Reference",
@@ -169,7 +177,10 @@ def import_plus_sweep(
     Args:
         sequence: PLUS / 3D Slicer sequence: .igs.mha, .seq.mha, .mha, .igs.nrrd, .seq.nrrd
             (raw or compressed).
-        config: PLUS configuration XML holding the Image → Probe matrix.
+        config: PLUS configuration XML holding the Image → Probe matrix (and the clip
+            rectangle). Not needed where the frames carry Image → Reference transforms (PLUS's
+            ImageToReference, as a 3D Slicer recording of PLUS's stream holds them), which
+            hold the calibration.
         out: Dataset directory (created, or extended by a new sweep).
         to: World frame: Reference (moves with the patient) or Tracker.
         sweep_name: Name of the new sweep (default: the file's stem).
