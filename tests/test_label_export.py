@@ -242,3 +242,49 @@ def test_auto_labels_name_the_recordings_frames_and_how_to_correct_them(tmp_path
     assert where.lines("d")[0][2].endswith("--export s_labels.seq.mha --sweeps s")
     plain = SweepLabelSummary("s", 4, 0.1, 0.2, 0.7, False, 1.0, frames_to_check=(2, 3))
     assert len(plain.lines("d")[0]) == 2 and "recording" not in plain.lines("d")[0][1]
+
+
+@pytest.mark.parametrize("fmt", ["mha", "nrrd"])
+def test_a_recording_is_read_header_only_for_its_header(tmp_path: Path, fmt: str):
+    """``read_sequence(…, header_only=True)`` gives the full read's fields, per-frame fields and
+    frame shape without the pixels (a zero view of no memory), so that ``--recording`` costs a
+    header; a payload cut short, which the full read refuses, is not read at all."""
+    from plus_synthetic import recording, write_nrrd
+
+    rec = recording(n=5, height=12, width=16)
+    writer = write_mha if fmt == "mha" else write_nrrd
+    path = writer(tmp_path / f"s.seq.{fmt}", rec, "UN", True)
+    full, header = read_sequence(path), read_sequence(path, header_only=True)
+    assert header.pixels.shape == full.pixels.shape == (5, 12, 16)
+    assert header.frame_fields == full.frame_fields and header.fields == full.fields
+    assert header.orientation == "UN" and not header.pixels.any()
+    assert header.pixels.strides == (0, 0, 0) and not header.pixels.flags.writeable
+    path.write_bytes(path.read_bytes()[:-40])
+    with pytest.raises(UltronInputError, match=r"truncated|corrupt"):
+        read_sequence(path)
+    assert read_sequence(path, header_only=True).pixels.shape == (5, 12, 16)
+
+
+def test_export_and_masks_need_one_sweep_named_where_there_are_more(tmp_path: Path):
+    """Without --sweeps the one sweep of a dataset is taken (it is loaded once, by the library);
+    with two sweeps, or two named, --export and --masks are refused naming --sweeps."""
+    from ultron.data.dataset import ProbeGeometry, Sweep
+
+    root = _simulated(tmp_path)
+    assert _label(str(root), "--export", str(tmp_path / "one.npy")).exit_code == 0
+    np.save(tmp_path / "m.npy", np.load(tmp_path / "one.npy"))
+    data = SweepDataset.load(root)
+    other = data.sweep("s")
+    data.sweeps.append(Sweep("t", "row", other.images.copy(), other.probe_to_world.copy()))
+    SweepDataset(ProbeGeometry(8.0, 6.0, 6, 8), data.sweeps).save(tmp_path / "two")
+    two = str(tmp_path / "two")
+    cases = [
+        ([two, "--export", str(tmp_path / "e.npy")], "--sweeps: --export works on one sweep"),
+        ([two, "--masks", str(tmp_path / "m.npy")], "--sweeps: --masks works on one sweep"),
+        ([two, "--export", str(tmp_path / "e.npy"), "--sweeps", "s,t"], "(--sweeps NAME; here 2)"),
+    ]  # fmt: skip
+    assert_refused(_label, cases)
+    assert not (tmp_path / "e.npy").exists()
+    named = _label(two, "--masks", str(tmp_path / "m.npy"), "--sweeps", "t", "--unsure-value", "2")
+    assert named.exit_code == 0, named.output
+    assert np.array_equal(SweepDataset.load(two).sweep("t").labels, data.sweep("s").labels)

@@ -78,18 +78,12 @@ def label(
         print_lines(*summary.lines(dataset))
 
 
-def _one_sweep(dataset: Path, names: list[str] | None, option: str) -> str:
-    """The one sweep ``--masks`` or ``--export`` (``option``) works on."""
-    from ultron.data.dataset import SweepDataset
-    from ultron.errors import argument_error
+def _one_sweep(names: list[str] | None, option: str) -> str | None:
+    """The one sweep ``--masks`` or ``--export`` (``option``) works on, where ``--sweeps`` names
+    it (None: the library takes the dataset's only sweep)."""
+    from ultron.data.dataset import one_sweep
 
-    if names is None:
-        names = [s.name for s in SweepDataset.load(dataset).sweeps]
-    if len(names) != 1:
-        raise argument_error(
-            "--sweeps", f"{option} works on one sweep: name it (--sweeps NAME; here {len(names)})"
-        )
-    return names[0]
+    return None if names is None else one_sweep(names, option)
 
 
 def _export(dataset: Path, out: Path, names: list[str] | None, recording: Path | None,
@@ -100,7 +94,7 @@ def _export(dataset: Path, out: Path, names: list[str] | None, recording: Path |
         1 if bone_value is None else bone_value, 2 if unsure_value is None else unsure_value,
         orientation,
     )  # fmt: skip
-    name = _one_sweep(dataset, names, "--export")
+    name = _one_sweep(names, "--export")
     exported = export_labels(dataset, name, out, config, recording)
     print_lines(*exported.lines())
 
@@ -112,6 +106,6 @@ def _import_masks(dataset: Path, masks: Path, names: list[str] | None, replace: 
 
     numbers = None if frames is None else parse_frames(frames)
     config = MaskImportConfig(bone_value, unsure_value, annotated, orientation, numbers)
-    summary = import_mask_labels(dataset, _one_sweep(dataset, names, "--masks"), masks, config,
+    summary = import_mask_labels(dataset, _one_sweep(names, "--masks"), masks, config,
                                  replace)  # fmt: skip
     print_lines(summary.lines(dataset))

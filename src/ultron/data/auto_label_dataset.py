@@ -43,7 +43,7 @@ from ultron.data.auto_labels import (
     auto_label_frames,
     frames_to_check,
 )
-from ultron.data.dataset import SweepDataset
+from ultron.data.dataset import SweepDataset, one_sweep
 from ultron.data.validation import (
     LABEL_BACKGROUND,
     LABEL_TARGET,
@@ -184,15 +184,18 @@ def check_labelling(
     replace: bool = False,
     option: str = "sweeps",
     what: str = "automatic labels",
+    one: str | None = None,
 ) -> tuple[SweepDataset, list[str]]:
     """Load the dataset at ``root`` and check that the chosen ``sweeps`` (default: all) exist,
     have no labels unless ``replace``, and can be written; returns the dataset and the names.
     A sweep that already has labels is an error naming it, ``--replace`` and ``what`` would
     overwrite them; an unknown sweep one naming it and ``option`` (the argument that chose
-    it)."""
+    it); with ``one`` (the option that works on one sweep), other than one sweep chosen."""
     root = Path(root)
     dataset = SweepDataset.load(root)
     names = _chosen_sweeps(dataset, root, sweeps, option)
+    if one is not None:
+        names = [one_sweep(names, one)]
     if not replace:
         for name in names:
             if dataset.sweep(name).labels is not None:

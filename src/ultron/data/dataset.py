@@ -159,6 +159,16 @@ class Sweep:
         return np.flatnonzero(annotated)
 
 
+def one_sweep(names: Collection[str], option: str) -> str:
+    """The one sweep of ``names`` that ``option`` (``--export``, ``--masks``) works on: more or
+    fewer is an error naming ``--sweeps``."""
+    if len(names) != 1:
+        raise argument_error(
+            "--sweeps", f"{option} works on one sweep: name it (--sweeps NAME; here {len(names)})"
+        )
+    return next(iter(names))
+
+
 def _check_count(array: np.ndarray, n: int, where: str | Path, field_name: str) -> None:
     if array.shape[0] != n:
         raise UltronInputError(

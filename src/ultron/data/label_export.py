@@ -40,7 +40,7 @@ from typing import Any
 import numpy as np
 
 from ultron import atomic
-from ultron.data.dataset import SweepDataset
+from ultron.data.dataset import SweepDataset, one_sweep
 from ultron.data.plus import read_metaimage_header, read_sequence, sequence_stem
 from ultron.data.plus_geometry import RESAMPLE_RESIDUAL_MM, fit_image_plane, rigid_to_image_pixels
 from ultron.data.plus_import import check_recording_frames, clipped_calibration
@@ -227,7 +227,7 @@ def _plus_record(dataset: SweepDataset, sweep: str) -> dict[str, Any] | None:
 
 def export_labels(
     root: str | Path,
-    sweep: str,
+    sweep: str | None,
     out: str | Path,
     config: LabelExportConfig | None = None,
     recording: str | Path | None = None,
@@ -236,10 +236,13 @@ def export_labels(
     atomically (module doc); ``recording``: the sequence file the sweep was imported from,
     whose header a sequence export copies (default: the file the import read, where it still
     is). A sweep without labels, an ending not listed, or a
-    recording whose frames differ from the import's is an error naming it."""
+    recording whose frames differ from the import's is an error naming it. ``sweep`` None:
+    the dataset's only sweep."""
     config = config or LabelExportConfig()
     root, out = Path(root), Path(out)
     dataset = SweepDataset.load(root)
+    if sweep is None:
+        sweep = one_sweep([s.name for s in dataset.sweeps], "--export")
     target = dataset.sweep(sweep)
     if target.labels is None:
         raise UltronInputError(root / sweep, "labels.npy", "missing: the sweep has no labels")
@@ -322,7 +325,7 @@ def _recording_header(path: Path, record: dict[str, Any], kind: str) -> dict[str
     doc), after checking that its frames are the ones the sweep was imported from."""
     if kind == "npy":
         raise argument_error("recording", "a .npy export has no header to copy it into")
-    sequence = read_sequence(path, record.get("orientation"), field="--recording")
+    sequence = read_sequence(path, record.get("orientation"), field="--recording", header_only=True)
     check_recording_frames(sequence.pixels.shape, record, path)
     if sequence_stem(path) != sequence_stem(record.get("sequence") or path.name):
         raise UltronInputError(

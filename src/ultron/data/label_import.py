@@ -329,7 +329,7 @@ def _of_recording(
 
 def import_mask_labels(
     root: str | Path,
-    sweep: str,
+    sweep: str | None,
     masks_path: str | Path,
     config: MaskImportConfig | None = None,
     replace: bool = False,
@@ -338,12 +338,14 @@ def import_mask_labels(
     ``root``: ``labels.npy`` atomically, then ``dataset.json`` with the masks' provenance under
     ``metadata.label_imports.<sweep>`` (an automatic-labels record of the sweep is dropped: its
     labels are a person's now). Everything is checked before anything is written; a sweep that
-    has labels is refused unless ``replace``."""
+    has labels is refused unless ``replace``. ``sweep`` None: the dataset's only sweep."""
     config = config or MaskImportConfig()
     if not isinstance(config, MaskImportConfig):
         raise argument_error("config", f"expected a MaskImportConfig, got {type(config).__name__}")
     root, masks_path = Path(root), Path(masks_path)
-    dataset, (name,) = check_labelling(root, [sweep], replace, "--sweeps", what="the masks")
+    dataset, (name,) = check_labelling(
+        root, None if sweep is None else [sweep], replace, "--sweeps", "the masks", "--masks"
+    )
     masks, orientation, named = read_masks(masks_path, config.orientation)
     if named is not None:  # PNGs named by the frames they are of
         if config.frames is not None and tuple(config.frames) != named:

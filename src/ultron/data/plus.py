@@ -219,6 +219,13 @@ def _frame_axes(
     return domains[0], domains[1], (lists[0] if lists else None)
 
 
+def _placeholder(sizes: list[int], axes: tuple[int, int, int | None], dtype) -> np.ndarray:
+    """A read-only all-zero (N, H, W) view of no memory: a header-only read's ``pixels``."""
+    x_axis, y_axis, list_axis = axes
+    n = sizes[list_axis] if list_axis is not None else 1
+    return np.broadcast_to(np.zeros((), dtype=dtype), (n, sizes[y_axis], sizes[x_axis]))
+
+
 def _arrange_frames(flat: np.ndarray, sizes: list[int], axes: tuple[int, int, int | None]):
     """Raw values (fastest axis first in the file) → (N, H, W)."""
     x_axis, y_axis, list_axis = axes
@@ -398,13 +405,16 @@ def _orientation(plain: Mapping[str, str], default: str | None, path: Path, fiel
 
 
 def _read_metaimage(
-    path: Path, default_orientation: str | None = None, labelmap: bool = False
+    path: Path, default_orientation: str | None = None, labelmap: bool = False, header_only=False
 ) -> SequenceFile:
     fields, offset = read_metaimage_header(path)
     sizes, axes, dtype = _metaimage_layout(fields, path, labelmap)
     n_frames = sizes[axes[2]] if axes[2] is not None else 1
     plain, frames = _split_frame_fields(fields, n_frames, path, "DimSize")
     orientation = _orientation(plain, default_orientation, path, "UltrasoundImageOrientation")
+    if header_only:
+        pixels = _placeholder(sizes, axes, dtype)
+        return SequenceFile(path, pixels, orientation, plain, frames, "DimSize")
     payload = _read_metaimage_payload(plain, path, offset, math.prod(sizes) * dtype.itemsize)
     flat = payload.view(dtype).astype(dtype.newbyteorder("="), copy=False)  # B-mode: no copy
     pixels = _arrange_frames(flat, sizes, axes)
@@ -437,7 +447,7 @@ def _nrrd_header(path: Path, handle, labelmap: bool = False) -> dict[str, object
 
 
 def _read_nrrd(
-    path: Path, default_orientation: str | None = None, labelmap: bool = False
+    path: Path, default_orientation: str | None = None, labelmap: bool = False, header_only=False
 ) -> SequenceFile:
     import nrrd
 
@@ -454,6 +464,10 @@ def _read_nrrd(
         text = {str(k): str(v) for k, v in header.items()}
         plain, frames = _split_frame_fields(text, n_frames, path, "sizes")
         orientation = _orientation(plain, default_orientation, path, "ultrasound image orientation")
+        if header_only:
+            dtype = np.dtype(_LABELMAP_NRRD[str(header["type"]).lower()] if labelmap else np.uint8)
+            pixels = _placeholder(sizes, axes, dtype)
+            return SequenceFile(path, pixels, orientation, plain, frames, "sizes")
         try:
             data = nrrd.read_data(header, handle, str(path), index_order="F")
         except (nrrd.NRRDError, OSError, EOFError, zlib.error, ValueError) as exc:
@@ -473,20 +487,23 @@ def read_sequence(
     default_orientation: str | None = None,
     field: str = "SEQUENCE",
     labelmap: bool = False,
+    header_only: bool = False,
 ) -> SequenceFile:
     """Read a PLUS / Slicer sequence file (MetaImage or NRRD, by its ending). A file without
     ``UltrasoundImageOrientation`` (a labelmap sequence) takes ``default_orientation``; with
     None (B-mode) it is an error. ``field`` names the file in messages about the file as a
     whole. B-mode must be uint8; a ``labelmap`` may hold 8- or 16-bit integers (Slicer's
-    labelmaps are often 16-bit), kept as they are."""
+    labelmaps are often 16-bit), kept as they are. ``header_only`` reads the header alone (the
+    fields, the per-frame fields, the frames' count and size): ``pixels`` is then a read-only
+    all-zero view of that shape, holding no memory, and the payload is not checked."""
     path = Path(path)
     input_file(path, field)
     lower = path.name.lower()
     try:
         if lower.endswith(_METAIMAGE_SUFFIXES):
-            return _read_metaimage(path, default_orientation, labelmap)
+            return _read_metaimage(path, default_orientation, labelmap, header_only)
         if lower.endswith((".nrrd", ".nhdr")):
-            return _read_nrrd(path, default_orientation, labelmap)
+            return _read_nrrd(path, default_orientation, labelmap, header_only)
     except OSError as exc:
         raise UltronInputError(path, field, f"cannot be read ({exc.strerror})") from None
     raise UltronInputError(
