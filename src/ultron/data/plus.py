@@ -405,7 +405,10 @@ def _orientation(plain: Mapping[str, str], default: str | None, path: Path, fiel
 
 
 def _read_metaimage(
-    path: Path, default_orientation: str | None = None, labelmap: bool = False, header_only=False
+    path: Path,
+    default_orientation: str | None = None,
+    labelmap: bool = False,
+    header_only: bool = False,
 ) -> SequenceFile:
     fields, offset = read_metaimage_header(path)
     sizes, axes, dtype = _metaimage_layout(fields, path, labelmap)
@@ -447,7 +450,10 @@ def _nrrd_header(path: Path, handle, labelmap: bool = False) -> dict[str, object
 
 
 def _read_nrrd(
-    path: Path, default_orientation: str | None = None, labelmap: bool = False, header_only=False
+    path: Path,
+    default_orientation: str | None = None,
+    labelmap: bool = False,
+    header_only: bool = False,
 ) -> SequenceFile:
     import nrrd
 
@@ -464,15 +470,14 @@ def _read_nrrd(
         text = {str(k): str(v) for k, v in header.items()}
         plain, frames = _split_frame_fields(text, n_frames, path, "sizes")
         orientation = _orientation(plain, default_orientation, path, "ultrasound image orientation")
+        dtype = np.dtype(_LABELMAP_NRRD[str(header["type"]).lower()] if labelmap else np.uint8)
         if header_only:
-            dtype = np.dtype(_LABELMAP_NRRD[str(header["type"]).lower()] if labelmap else np.uint8)
             pixels = _placeholder(sizes, axes, dtype)
             return SequenceFile(path, pixels, orientation, plain, frames, "sizes")
         try:
             data = nrrd.read_data(header, handle, str(path), index_order="F")
         except (nrrd.NRRDError, OSError, EOFError, zlib.error, ValueError) as exc:
             raise UltronInputError(path, "data", f"truncated or corrupt payload ({exc})") from None
-    dtype = np.dtype(_LABELMAP_NRRD[str(header["type"]).lower()] if labelmap else np.uint8)
     flat = np.asarray(data, dtype=dtype).reshape(-1, order="F")
     if flat.size != math.prod(sizes):
         raise UltronInputError(
