@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import ast
 import functools
+import gc
 import importlib
 import inspect
 import re
@@ -160,17 +161,49 @@ def _library_args(target: str) -> dict[str, str]:
 
 
 def _at_boundary(func: Callable[P, R], torch_threads: bool) -> Callable[P, R]:
-    """``func`` with its ``device`` resolved and its ``threads`` applied (:func:`command`)."""
+    """``func`` with its ``device`` resolved and its ``threads`` applied (:func:`command`),
+    run with the objects then alive frozen out of the garbage collector (:func:`settled`)."""
 
     @functools.wraps(func)
     def resolved(*args: P.args, **kwargs: P.kwargs) -> R:
-        if torch_threads and "threads" in kwargs:
-            apply_threads(kwargs["threads"])  # type: ignore[arg-type]
-        if "device" in kwargs:
-            kwargs["device"] = check_device(kwargs["device"])  # type: ignore[arg-type]
-        return func(*args, **kwargs)
+        with collector_paused():  # resolving the device imports torch
+            if torch_threads and "threads" in kwargs:
+                apply_threads(kwargs["threads"])  # type: ignore[arg-type]
+            if "device" in kwargs:
+                kwargs["device"] = check_device(kwargs["device"])  # type: ignore[arg-type]
+        with settled():
+            return func(*args, **kwargs)
 
     return resolved
+
+
+@contextmanager
+def collector_paused() -> Iterator[None]:
+    """The cyclic garbage collector off for the block (:func:`gc.disable`), as it was after.
+    Importing torch allocates ≈ 10⁵ objects that live as long as the process, and triggers
+    full collections that walk them all (docs/decisions.md, "The command's garbage
+    collections")."""
+    was_enabled = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        if was_enabled:
+            gc.enable()
+
+
+@contextmanager
+def settled() -> Iterator[None]:
+    """The objects alive on entry (the modules loaded, torch's among them) moved out of the
+    garbage collector's reach for the block (:func:`gc.freeze`), and back on exit
+    (:func:`gc.unfreeze`, so that a process running many commands, as the tests do, collects
+    them again). A full collection during the command then walks only the command's own
+    objects; reference counting frees what it frees, as before."""
+    gc.freeze()
+    try:
+        yield
+    finally:
+        gc.unfreeze()
 
 
 def _paragraphs(text: str) -> str:

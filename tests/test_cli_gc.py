@@ -1,0 +1,37 @@
+"""The CLI's boundary: the collector paused while torch loads, the heap frozen while a command
+runs, and both undone after it (a process running many commands, as the tests do)."""
+
+from __future__ import annotations
+
+import gc
+
+import pytest
+
+from ultron.cli.common import collector_paused, settled
+
+
+def test_settled_freezes_then_unfreezes():
+    before = gc.get_freeze_count()
+    with settled():
+        assert gc.get_freeze_count() > before
+    assert gc.get_freeze_count() == 0
+
+
+def test_settled_unfreezes_on_error():
+    with pytest.raises(ValueError), settled():
+        raise ValueError("boom")
+    assert gc.get_freeze_count() == 0
+
+
+def test_collector_paused_restores_state():
+    assert gc.isenabled()
+    with collector_paused():
+        assert not gc.isenabled()
+    assert gc.isenabled()
+    gc.disable()
+    try:
+        with collector_paused():
+            assert not gc.isenabled()
+        assert not gc.isenabled()  # was off before: stays off
+    finally:
+        gc.enable()
