@@ -7,7 +7,7 @@ import gc
 
 import pytest
 
-from ultron.cli.common import collector_paused, settled
+from ultron.cli.common import collector_paused, command, settled
 
 
 def test_settled_freezes_then_unfreezes():
@@ -35,3 +35,26 @@ def test_collector_paused_restores_state():
         assert not gc.isenabled()  # was off before: stays off
     finally:
         gc.enable()
+
+
+def test_settled_leaves_a_callers_freeze():
+    gc.freeze()
+    try:
+        with settled():
+            pass
+        assert gc.get_freeze_count() > 0
+    finally:
+        gc.unfreeze()
+
+
+def test_a_command_runs_frozen_and_leaves_nothing_frozen():
+    seen = []
+
+    @command()
+    def probe() -> None:
+        """Record the collector's state."""
+        seen.append((gc.get_freeze_count(), gc.isenabled()))
+
+    probe()
+    assert seen[0][0] > 0 and seen[0][1]
+    assert gc.get_freeze_count() == 0 and gc.isenabled()

@@ -198,12 +198,15 @@ def settled() -> Iterator[None]:
     garbage collector's reach for the block (:func:`gc.freeze`), and back on exit
     (:func:`gc.unfreeze`, so that a process running many commands, as the tests do, collects
     them again). A full collection during the command then walks only the command's own
-    objects; reference counting frees what it frees, as before."""
+    objects; reference counting frees what it frees, as before. Objects a caller froze before
+    entry stay frozen: ``gc.unfreeze`` cannot tell them apart, so nothing is unfrozen then."""
+    frozen_before = gc.get_freeze_count()
     gc.freeze()
     try:
         yield
     finally:
-        gc.unfreeze()
+        if frozen_before == 0:
+            gc.unfreeze()
 
 
 def _paragraphs(text: str) -> str:
