@@ -10,6 +10,13 @@ import pytest
 from ultron.cli.common import collector_paused, command, settled
 
 
+@pytest.fixture(autouse=True)
+def nothing_frozen():
+    """Start from an unfrozen heap: a test that ran ``ultron.cli.main.main`` in this worker
+    left its exit's ``gc.freeze`` behind."""
+    gc.unfreeze()
+
+
 def test_settled_freezes_then_unfreezes():
     before = gc.get_freeze_count()
     with settled():
