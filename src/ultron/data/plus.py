@@ -16,7 +16,8 @@ How each format is read:
   dependency of ultron (≈ 260 MB installed) and reports a truncated payload as "No such file
   or directory".
 - **NRRD** (``.nrrd``/``.nhdr``) with pynrrd, which returns the per-frame ``key:=value`` fields
-  as strings and decodes raw and gzip payloads (also detached data files).
+  as strings and decodes raw and gzip payloads (also detached data files), in
+  :mod:`ultron.data.plus_nrrd`; the frame layout and fields are interpreted here for both.
 
 The configuration is read by :mod:`ultron.data.plus_config`.
 
@@ -65,17 +66,10 @@ IMAGE_STATUS_FIELDS = ("ImageStatus", "Status")
 FRAME_FIELD = re.compile(r"^seq_frame(\d+)_(.+)$", re.IGNORECASE)
 _NAN_TOKEN = re.compile(r"^[-+]?nan(\(.*\))?$", re.IGNORECASE)
 _MAX_HEADER_LINE = 1 << 20
-_UINT8_NAMES = ("uchar", "unsigned char", "uint8", "uint8_t")
 #: What a labelmap sequence (``read_sequence(…, labelmap=True)``) may hold besides uint8: the
-#: MetaImage element types and NRRD types of 8- and 16-bit integers, as Slicer writes labelmaps.
+#: MetaImage element types of 8- and 16-bit integers, as Slicer writes labelmaps (the NRRD
+#: types are in :mod:`ultron.data.plus_nrrd`).
 _LABELMAP_METAIMAGE = {"MET_UCHAR": "u1", "MET_CHAR": "i1", "MET_USHORT": "u2", "MET_SHORT": "i2"}
-_LABELMAP_NRRD = {
-    **dict.fromkeys(("signed char", "int8", "int8_t"), "i1"),
-    **dict.fromkeys(_UINT8_NAMES, "u1"),
-    **dict.fromkeys(("short", "short int", "signed short", "signed short int"), "i2"),
-    **dict.fromkeys(("int16", "int16_t"), "i2"),
-    **dict.fromkeys(("ushort", "unsigned short", "unsigned short int", "uint16", "uint16_t"), "u2"),
-}
 
 
 @dataclass(frozen=True)
@@ -424,69 +418,6 @@ def _read_metaimage(
     return SequenceFile(path, pixels, orientation, plain, frames, "DimSize")
 
 
-# --------------------------------------------------------------------------- NRRD
-def _nrrd_header(path: Path, handle, labelmap: bool = False) -> dict[str, object]:
-    import nrrd
-
-    try:
-        header = nrrd.read_header(handle)
-    except (nrrd.NRRDError, ValueError, UnicodeDecodeError) as exc:
-        raise UltronInputError(path, "header", f"not a readable NRRD header ({exc})") from None
-    if "sizes" not in header:
-        raise UltronInputError(path, "sizes", "missing: the frame size and count are unknown")
-    for key in ("data file", "datafile"):
-        if key in header:  # a detached payload: one file, inside the header's folder
-            name = str(header[key])
-            if name.upper().startswith("LIST") or "%" in name:
-                raise UltronInputError(path, key, f"{name!r}: only one data file is supported")
-            contained_path(path.parent, name, path, key)
-    kind = str(header.get("type", "")).lower()
-    if kind not in _UINT8_NAMES and not (labelmap and kind in _LABELMAP_NRRD):
-        expected = "8- or 16-bit integers (a labelmap)" if labelmap else "uint8 (B-mode)"
-        raise UltronInputError(
-            path, "type", f"{header.get('type', 'missing')}; expected {expected}"
-        )
-    return header
-
-
-def _read_nrrd(
-    path: Path,
-    default_orientation: str | None = None,
-    labelmap: bool = False,
-    header_only: bool = False,
-) -> SequenceFile:
-    import nrrd
-
-    with path.open("rb") as handle:
-        header = _nrrd_header(path, handle, labelmap)
-        sizes = [int(s) for s in np.atleast_1d(header["sizes"])]
-        if not sizes or min(sizes) < 1:
-            raise UltronInputError(path, "sizes", f"expected positive sizes, got {sizes}")
-        kinds = header.get("kinds")
-        axes = _frame_axes(
-            sizes, [str(k) for k in kinds] if kinds else None, path, "sizes", "kinds"
-        )
-        n_frames = sizes[axes[2]] if axes[2] is not None else 1
-        text = {str(k): str(v) for k, v in header.items()}
-        plain, frames = _split_frame_fields(text, n_frames, path, "sizes")
-        orientation = _orientation(plain, default_orientation, path, "ultrasound image orientation")
-        dtype = np.dtype(_LABELMAP_NRRD[str(header["type"]).lower()] if labelmap else np.uint8)
-        if header_only:
-            pixels = _placeholder(sizes, axes, dtype)
-            return SequenceFile(path, pixels, orientation, plain, frames, "sizes")
-        try:
-            data = nrrd.read_data(header, handle, str(path), index_order="F")
-        except (nrrd.NRRDError, OSError, EOFError, zlib.error, ValueError) as exc:
-            raise UltronInputError(path, "data", f"truncated or corrupt payload ({exc})") from None
-    flat = np.asarray(data, dtype=dtype).reshape(-1, order="F")
-    if flat.size != math.prod(sizes):
-        raise UltronInputError(
-            path, "data", f"truncated payload: {flat.size} of {math.prod(sizes)} values"
-        )
-    pixels = _arrange_frames(flat, sizes, axes)
-    return SequenceFile(path, pixels, orientation, plain, frames, "sizes")
-
-
 def read_sequence(
     path: str | Path,
     default_orientation: str | None = None,
@@ -508,7 +439,9 @@ def read_sequence(
         if lower.endswith(_METAIMAGE_SUFFIXES):
             return _read_metaimage(path, default_orientation, labelmap, header_only)
         if lower.endswith((".nrrd", ".nhdr")):
-            return _read_nrrd(path, default_orientation, labelmap, header_only)
+            from ultron.data.plus_nrrd import read_nrrd_sequence
+
+            return read_nrrd_sequence(path, default_orientation, labelmap, header_only)
     except OSError as exc:
         raise UltronInputError(path, field, f"cannot be read ({exc.strerror})") from None
     raise UltronInputError(

@@ -184,7 +184,7 @@ def _polar(blocks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     transform's S holds the calibration's scale and shear, the same in every sample, so the
     interpolated transform keeps it."""
     u, _, vt = np.linalg.svd(blocks)
-    u[..., :, 2] *= np.where(np.linalg.det(u @ vt) < 0, -1.0, 1.0)[..., None]
+    u[..., :, 2] *= np.where(np.linalg.det(u) * np.linalg.det(vt) < 0, -1.0, 1.0)[..., None]
     turns = u @ vt
     return turns, np.swapaxes(turns, -1, -2) @ blocks
 
