@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 from typer.testing import CliRunner
 
 from field_configs import quick_field_config, random_sweep
@@ -112,6 +113,42 @@ def test_log_holds_every_step_once_after_a_kill(tmp_path: Path, monkeypatch, kil
     monkeypatch.undo()
     fit_field(data, quick_config(), tmp_path / "killed")
     assert read_log(tmp_path / "killed") == expected
+
+
+# ----------------------------------------------------------------- a fit asked again
+def test_a_finished_fit_asked_again_is_loaded_not_prepared(tmp_path: Path, monkeypatch) -> None:
+    """The end of a fit writes its ``done`` marker last; asked again for the same steps it loads
+    the field (the frames' preparation, confidence maps included, is not redone); continued to
+    more steps, the marker is gone until that fit ends; a fit stopped after its last save but
+    before its end prepares again and writes what its end writes."""
+    from ultron.models.field_dir import FIT_DONE, THETA_STATS
+
+    data, out = make_dataset(), tmp_path / "f"
+    first = fit_field(data, quick_config(iterations=6), out)
+    assert (out / FIT_DONE).is_file()
+    prepared: list[bool] = []
+    original = field_fit._prepare
+
+    def spy(*args, **kwargs):
+        prepared.append((out / FIT_DONE).exists())
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(field_fit, "_prepare", spy)
+    again = fit_field(data, quick_config(iterations=6), out)
+    assert prepared == []
+    weights = zip(first.field.state_dict().items(), again.field.state_dict().values(), strict=True)
+    for (name, x), y in weights:
+        assert torch.equal(x, y), name
+    assert again.theta_stats == first.theta_stats
+    longer = fit_field(data, quick_config(iterations=8), out)
+    assert prepared == [False] and (out / FIT_DONE).is_file()
+    assert json.loads((out / "field.json").read_text())["step"] == 8
+    assert longer.theta_stats != first.theta_stats
+    (out / FIT_DONE).unlink()  # stopped after the last save, before the statistics
+    (out / THETA_STATS).unlink()
+    fit_field(data, quick_config(iterations=8), out)
+    assert prepared == [False, False] and (out / FIT_DONE).is_file()
+    assert (out / THETA_STATS).is_file()
 
 
 # ----------------------------------------------------------------- fewer --iters than done
@@ -223,6 +260,34 @@ def test_cli_prints_a_line_per_stage_and_preparation_into_a_log(tmp_path: Path) 
     assert "fit-field: confidence maps 0/10" in result.output
     assert "fit-field: confidence maps 10/10" in result.output
     assert "fit-field: step 4/4 (100 %)" in result.output
+
+
+def test_demo_prints_each_reconstruction_stage_into_a_log(tmp_path: Path, monkeypatch) -> None:
+    """Off a terminal the demo names each method and prints its stages as reconstruct does (a
+    spinner prints nothing into a log, where stage 2 runs for minutes). The field fit and the
+    reconstruction are stand-ins that tell what the real ones tell."""
+    from ultron.pipeline import demo
+
+    monkeypatch.chdir(tmp_path)  # short paths: the console wraps at 80 columns
+    make_dataset().save(Path("d") / "dataset")
+    told = []
+
+    def reconstruct(dataset_dir, request, out_dir, field_dir, announce=None, advance=None):
+        told.append((request.method, str(out_dir), callable(advance)))
+        announce("occupancy_fit", None)
+        announce("occupancy_fit", 12.0)
+        return {"metrics": {}, "timings_s": {"occupancy_fit": 12.0}}
+
+    monkeypatch.setattr(demo, "fit_field", lambda *a, **k: None)
+    monkeypatch.setattr(demo, "reconstruct", reconstruct)
+    result = runner.invoke(app, ["demo", "--out", "d"])
+    assert result.exit_code == 0, result.output
+    assert told == [("ultron", str(Path("d", "ultron")), True),
+                    ("ultron-noloss", str(Path("d", "ultron-noloss")), True)]  # fmt: skip
+    lines = result.output.splitlines()
+    for method, label in demo.DEMO_METHODS.items():  # the method named, then its stages
+        named = lines.index(f"{label} → {Path('d', method)}")
+        assert lines[named + 1 : named + 3] == ["occupancy_fit …", "occupancy_fit: 12.0 s"]
 
 
 def test_stage_lines_print_each_tenth_once_a_gap_has_passed() -> None:

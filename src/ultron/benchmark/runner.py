@@ -44,6 +44,7 @@ from ultron.methods.finetune import FinetuneConfig
 from ultron.models.field_dir import (
     CHECKPOINT,
     FIELD_JSON,
+    FIT_DONE,
     TRANSMISSION_CHECK,
     read_field_json,
 )
@@ -60,8 +61,6 @@ from ultron.train.transmission_check import record_transmission_check
 Outcome = dict[str, Any]
 #: Called with (task, outcome, tasks finished, tasks in total) as each task ends.
 Report = Callable[[Task, Outcome, int, int], None]
-
-FIELD_DONE = "done"  # the completion marker of ultron.pipeline.field_cache
 
 
 def default_threads(jobs: int) -> int:
@@ -120,14 +119,13 @@ def fit(job: FieldJob) -> bool:
     out = Path(job.out)
     dataset = SweepDataset.load(job.dataset_dir)
     config = resolve_fit_shape(job.config, dataset)  # field.json records the resolved shape
-    done = all((out / name).is_file() for name in (FIELD_DONE, FIELD_JSON, CHECKPOINT))
+    done = all((out / name).is_file() for name in (FIT_DONE, FIELD_JSON, CHECKPOINT))
     if done and _normalised(read_field_json(out).get("train")) == _normalised(config.to_dict()):
         if not (out / TRANSMISSION_CHECK).is_file():  # fitted before the check was written
             record_transmission_check(dataset, load_field(out, job.device), out)
         return True
     # resumes a checkpoint (also a larger iteration count); other settings are an error
-    fit_field(dataset, config, out, resume=True, device=job.device)
-    atomic.write_text(out / FIELD_DONE, "ok\n")
+    fit_field(dataset, config, out, resume=True, device=job.device)  # writes FIT_DONE last
     return False
 
 

@@ -160,7 +160,10 @@ def demo(
     def log(line: str) -> None:
         console.print(line, highlight=False)
 
-    summaries = run_demo(out, seed, device, _field_progress, console.status, log)
+    lines = StageLines()
+    summaries = run_demo(
+        out, seed, device, _field_progress, console.status, log, lines, lines.advance
+    )
     _print_summary(summaries)
     for method in DEMO_METHODS:
         console.print(

@@ -38,6 +38,10 @@ CONFIDENCE_CACHE = "confidence_maps.npz"
 #: annotated sweep has ``transmission.npy``): the fitted field's T against it
 #: (:mod:`ultron.train.transmission_check`). Diagnostic only; no reader of a field needs it.
 TRANSMISSION_CHECK = "transmission_check.json"
+#: Written last by a fit that ran to its end (θ statistics and transmission check included)
+#: and removed when a fit starts or continues, so that a fit asked again for the same steps
+#: loads the field instead of preparing its frames afresh (:func:`fit_is_done`).
+FIT_DONE = "done"
 
 
 def read_field_json(field_dir: Path) -> dict[str, Any]:
@@ -165,8 +169,17 @@ def check_field_out(out: str | Path, dataset_dir: str | Path, option: str = "--o
 def clear_field_dir(out: Path) -> None:
     """Remove a previous fit's files from ``out`` (only FIELD_DIR's own file names), so that
     an interrupted fresh run never leaves a mix of two runs (or an old checkpoint to resume)."""
-    for name in (CHECKPOINT, FIELD_JSON, THETA_STATS, TRAIN_LOG, TRANSMISSION_CHECK):
+    for name in (FIT_DONE, CHECKPOINT, FIELD_JSON, THETA_STATS, TRAIN_LOG, TRANSMISSION_CHECK):
         (out / name).unlink(missing_ok=True)
+
+
+def fit_is_done(out: Path, iterations: int) -> bool:
+    """Whether FIELD_DIR ``out`` holds a fit that ran to its end at ``iterations`` steps: its
+    :data:`FIT_DONE` marker, field.json and checkpoint, and field.json's ``step`` equal to
+    ``iterations`` (a fit continued to more steps removes the marker first)."""
+    if not all((out / n).is_file() for n in (FIT_DONE, FIELD_JSON, CHECKPOINT)):
+        return False
+    return read_field_json(out).get("step") == iterations
 
 
 def write_transmission_check(out_dir: Path, check: dict[str, Any]) -> None:

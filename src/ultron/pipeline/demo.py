@@ -22,6 +22,7 @@ from ultron.phantom import SimulationConfig, simulate_dataset
 from ultron.pipeline.presets import preset_field_config, preset_request
 from ultron.pipeline.run import reconstruct
 from ultron.pipeline.rundir import check_run_dir
+from ultron.timing import Advance, Announce
 from ultron.train.field_fit import fit_field
 from ultron.train.loop import Progress
 
@@ -48,11 +49,15 @@ def run_demo(
     field_progress: Callable[[], AbstractContextManager[Progress | None]] | None = None,
     status: Callable[[str], AbstractContextManager[Any]] | None = None,
     log: Callable[[str], None] | None = None,
+    announce: Announce | None = None,
+    advance: Advance | None = None,
 ) -> dict[str, dict[str, Any]]:
     """Run the demo (module doc) into ``out``; returns each method's summary by its name in
     :data:`DEMO_METHODS`. ``field_progress()`` wraps the field fit and gives the callback of its
-    per-step dicts (e.g. a progress bar's), ``status(text)`` wraps each other long stage (e.g.
-    a spinner), ``log(line)`` reports what was done."""
+    per-step dicts (e.g. a progress bar's), ``status(text)`` wraps the simulation (e.g. a
+    spinner), ``log(line)`` reports what was done; ``announce`` and ``advance`` are told each
+    reconstruction's stages and how far a long one has come, as
+    :func:`~ultron.pipeline.run.reconstruct` tells them, after ``log`` has named the method."""
     check_seed("seed", seed)
     out = check_demo_out(out)
     field_progress = field_progress or nullcontext
@@ -73,7 +78,9 @@ def run_demo(
     log(f"acoustic field → {field_dir} (fitted on {device})")
     summaries = {}
     for method, label in DEMO_METHODS.items():
-        with status(f"{label}: occupancy, mesh, metrics"):
-            request = preset_request("fast", method, DEMO_LABEL_FRACTION, seed, device=device)
-            summaries[label] = reconstruct(dataset_dir, request, out / method, field_dir)
+        log(f"{label} → {out / method}")
+        request = preset_request("fast", method, DEMO_LABEL_FRACTION, seed, device=device)
+        summaries[label] = reconstruct(
+            dataset_dir, request, out / method, field_dir, announce=announce, advance=advance
+        )
     return summaries

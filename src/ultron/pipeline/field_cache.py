@@ -16,7 +16,7 @@ from typing import Any
 
 from ultron.device import resolve_device
 from ultron.errors import UltronInputError
-from ultron.models.field_dir import CHECKPOINT, FIELD_JSON
+from ultron.models.field_dir import CHECKPOINT, FIELD_JSON, FIT_DONE
 from ultron.models.fitted import load_field
 from ultron.train.field_fit import fit_field
 from ultron.train.fit_shape import resolve_fit_shape
@@ -73,8 +73,7 @@ def get_or_fit_field(
     device = resolve_device(device, "device")
     config = resolve_fit_shape(config, dataset)  # the key holds the shape the fit uses
     field_dir = cached_field_dir(dataset_dir, config.to_dict(), device.type)
-    done = field_dir / "done"
-    if done.is_file() and (field_dir / FIELD_JSON).is_file() and (field_dir / CHECKPOINT).is_file():
+    if all((field_dir / n).is_file() for n in (FIT_DONE, FIELD_JSON, CHECKPOINT)):
         return load_field(field_dir, device), field_dir, True
     try:
         fitted = fit_field(dataset, config, field_dir, progress, resume=True, device=device)
@@ -82,5 +81,4 @@ def get_or_fit_field(
         if exc.field != "dataset_sha256":
             raise
         fitted = fit_field(dataset, config, field_dir, progress, resume=False, device=device)
-    done.write_text("ok\n")
     return fitted, field_dir, False

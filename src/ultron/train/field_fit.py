@@ -48,15 +48,17 @@ from ultron.models.field_dir import (
     CHECKPOINT,
     FIELD_FORMAT,
     FIELD_JSON,
+    FIT_DONE,
     THETA_STATS,
     clear_field_dir,
+    fit_is_done,
     read_checkpoint,
     read_field_json,
     read_train_log,
     save_checkpoint,
     write_train_log,
 )
-from ultron.models.fitted import FittedField, ThetaStatistics, probe_to_dict
+from ultron.models.fitted import FittedField, ThetaStatistics, load_field, probe_to_dict
 from ultron.parallel import default_workers
 from ultron.render.renderer import RenderConfig
 from ultron.train.confidence_cache import CONFIDENCE_CACHE
@@ -424,6 +426,9 @@ def fit_field(
     device = resolve_device(device, "device")
     dataset_sha256 = dataset.content_hash()
     resuming = resume and check_resumable(out, config, dataset_sha256)
+    if resuming and fit_is_done(out, config.iterations):  # nothing left to fit or to write
+        return load_field(out, device)
+    (out / FIT_DONE).unlink(missing_ok=True)
     frames, cube, module, resolved = _prepare(dataset, config, progress, out)
     frames, module = frames.to(device), module.to(device)
     optimizer = make_optimizer(module, config.lr)
@@ -451,6 +456,7 @@ def fit_field(
     fitted = replace_stats(run.fitted, stats)
     record_transmission_check(dataset, fitted, out)  # simulated data: T against the true T
     (out / CONFIDENCE_CACHE).unlink(missing_ok=True)  # the fit is whole: no resume needs them
+    atomic.write_text(out / FIT_DONE, "ok\n")
     return fitted
 
 
