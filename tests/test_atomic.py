@@ -143,3 +143,24 @@ def test_failed_write_leaves_no_temporary_file(tmp_path: Path) -> None:
         raise RuntimeError("interrupted")
     assert (tmp_path / "a.bin").read_bytes() == b"old"
     assert [p.name for p in tmp_path.iterdir()] == ["a.bin"]
+
+
+@pytest.mark.parametrize("maker", ["mkstemp", "mkdtemp"])
+def test_a_temporary_that_cannot_be_made_names_the_output(tmp_path: Path, monkeypatch, maker):
+    """A file system that takes no new entries (/proc) fails at the temporary's creation: the
+    error names the output asked for, not the temporary name."""
+    import tempfile
+
+    def refuse(prefix: str, suffix: str, dir: str):
+        raise FileNotFoundError(2, "No such file or directory", f"{dir}/{prefix}abc{suffix}")
+
+    monkeypatch.setattr(tempfile, maker, refuse)
+    out = tmp_path / "out.npy"
+    with pytest.raises(FileNotFoundError) as caught:
+        if maker == "mkstemp":
+            atomic.save_npy(out, np.zeros(3))
+        else:
+            with atomic.staged_directory(out):
+                pass
+    assert caught.value.filename == str(out)
+    assert list(tmp_path.iterdir()) == []

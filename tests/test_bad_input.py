@@ -73,6 +73,18 @@ def _dangling_reference(root: Path) -> None:
     _edit_json(root, lambda m: m.update(reference="reference.ply"))
 
 
+def _plus_record(**fields) -> Callable[[Path], None]:
+    """A PLUS import record of sweep ``row`` (as import-plus writes it, 3 frames) with
+    ``fields`` changed, in dataset.json's metadata."""
+    record = {
+        "source": "plus", "sequence": "rec.igs.mha", "orientation": "MF", "frames": [0, 1, 2],
+        "file_frames": 3, "file_shape": [8, 6], "clip": {"origin": [0, 0], "size": [6, 8]},
+        "image_to_probe": [[0.1, 0, 0, 0], [0, 0.1, 0, 0], [0, 0, 0.1, 0], [0, 0, 0, 1]],
+    }  # fmt: skip
+    record.update(fields)
+    return lambda r: _edit_json(r, lambda m: m.update(metadata={"imports": {"row": record}}))
+
+
 # case name → (mutation, file expected in the message, field expected in the message)
 CASES: dict[str, tuple[Callable[[Path], None], str, str]] = {
     "missing_dataset_json": (
@@ -202,6 +214,58 @@ CASES: dict[str, tuple[Callable[[Path], None], str, str]] = {
         lambda r: np.save(r / "row" / "transmission.npy", np.ones((3, 8, 6), np.float32)),
         "transmission.npy",
         "float16",
+    ),
+    "json_integer_too_long": (
+        lambda r: (r / "dataset.json").write_text('{"format": ' + "9" * 5000 + "}"),
+        "dataset.json",
+        "not readable JSON",
+    ),
+    # a PLUS sweep's import record, read when masks are mapped to and from its recording
+    "imports_not_an_object": (
+        lambda r: _edit_json(r, lambda m: m.update(metadata={"imports": "abc"})),
+        "dataset.json",
+        "metadata.imports",
+    ),
+    "import_record_not_an_object": (
+        lambda r: _edit_json(r, lambda m: m.update(metadata={"imports": {"row": 3}})),
+        "dataset.json",
+        "metadata.imports.row",
+    ),
+    "import_frames_not_numbers": (_plus_record(frames="abc"), "dataset.json", "imports.row.frames"),
+    "import_frames_fewer_than_the_sweep": (
+        _plus_record(frames=[0, 1]),
+        "dataset.json",
+        "the sweep has 3 frames",
+    ),
+    "import_frames_not_increasing": (
+        _plus_record(frames=[0, 2, 1]),
+        "dataset.json",
+        "increasing",
+    ),
+    "import_frames_beyond_the_file": (
+        _plus_record(frames=[0, 1, 99]),
+        "dataset.json",
+        "imports.row.file_frames",
+    ),
+    "import_calibration_not_a_matrix": (
+        _plus_record(image_to_probe="garbage"),
+        "dataset.json",
+        "imports.row.image_to_probe",
+    ),
+    "import_calibration_missing": (
+        _plus_record(image_to_probe=None),
+        "dataset.json",
+        "4 × 4 matrix",
+    ),
+    "import_clip_without_size": (
+        _plus_record(clip={"origin": [0, 0]}),
+        "dataset.json",
+        "imports.row.clip.size",
+    ),
+    "import_file_shape_of_one_number": (
+        _plus_record(file_shape=[8]),
+        "dataset.json",
+        "imports.row.file_shape",
     ),
     "transmission_out_of_range": (
         lambda r: np.save(r / "row" / "transmission.npy", np.full((3, 8, 6), 2.0, np.float16)),

@@ -332,6 +332,14 @@ CASES: dict[str, tuple[Callable[[Path, Path], list[str]], tuple[str, ...]]] = {
         lambda t, d: ["fit-field", str(d), "--out", str(_file(t / "field"))],
         ("field", "--out", "not a directory"),
     ),
+    "label_export_to_a_directory": (
+        lambda t, d: ["label", str(d), "--export", str(_foreign_dir(t / "masks.npy"))],
+        ("masks.npy", "--export", "is a directory"),
+    ),
+    "label_export_under_a_file": (
+        lambda t, d: ["label", str(d), "--export", str(_file(t / "notes") / "masks.npy")],
+        ("notes/masks.npy", "--export", "not a directory"),
+    ),
     "simulate_out_is_a_file": (
         lambda t, d: ["simulate", "--out", str(_file(t / "sim"))],
         ("sim", "--out", "not a directory"),

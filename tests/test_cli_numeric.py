@@ -58,6 +58,7 @@ CASES = [
     ("reconstruct", "--field-iters", "0"),
     ("reconstruct", "--occupancy-iters", "-1"),
     ("reconstruct", "--points", "0"),
+    ("reconstruct", "--occupancy-iters", "0"),
     ("reconstruct", "--max-memory", "0"),
     ("reconstruct", "--max-memory", "nan"),
     ("finetune", "--max-memory", "-1"),
@@ -169,6 +170,32 @@ def test_an_option_of_the_wrong_type_is_one_line(
     lines = capsys.readouterr().err.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith(f"error: argument: {option}: "), lines
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize(
+    ("args", "option", "command"),
+    [
+        (["info"], "dataset", "ultron info"),
+        (["compound", "D"], "--out", "ultron compound"),
+        (["import-ultranerf", "U", "--out", "O"], "--width-mm", "ultron import-ultranerf"),
+    ],
+)
+def test_a_missing_argument_is_one_line_naming_it(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture, args, option, command
+) -> None:
+    """click leaves a missing parameter's message empty: the line still says what is wrong."""
+    import sys
+
+    from ultron.cli.main import main
+
+    monkeypatch.setattr(sys, "argv", ["ultron", *args])
+    with pytest.raises(SystemExit) as caught:
+        main()
+    assert caught.value.code == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert lines == [
+        f"error: argument: {option}: missing; this is required (usage: {command} --help)"
+    ]
 
 
 def test_an_interrupted_command_says_how_to_resume(

@@ -308,6 +308,17 @@ def test_orientation_flips_back_to_the_same_world_points(tmp_path: Path, orienta
     assert np.abs(_dataset_world(tmp_path / "b", 1, i, j) - expected).max() < 1e-6
 
 
+def test_an_unknown_orientation_option_is_refused_even_where_the_file_has_one(tmp_path: Path):
+    """--orientation is used only where the file records none, but a value that names no
+    orientation is a mistake either way: refused before the recording is read."""
+    sequence = write_mha(tmp_path / "mf.mha", recording(), "MF")
+    config = write_config(tmp_path / "c.xml", calibration())
+    result = _import(sequence, config, tmp_path / "ds", "--orientation", "QQ")
+    assert result.exit_code == 2
+    assert "--orientation: unknown orientation 'QQ'" in result.stderr
+    assert not (tmp_path / "ds").exists()
+
+
 def test_invalid_frames_are_skipped_and_counted(tmp_path: Path):
     rec = recording(n=5)
     rec.statuses["ProbeToTracker"] = ["OK", "INVALID", "OK", "OK", "MISSING"]

@@ -5,6 +5,7 @@ file."""
 from __future__ import annotations
 
 import errno
+import os
 import resource
 import subprocess
 import sys
@@ -29,8 +30,11 @@ def test_memory_and_disk_errors_get_one_line_and_others_do_not() -> None:
     assert full is not None and full.startswith("/runs/a/mesh.ply: disk: No space left")
     too_big = resource_error(OSError(errno.EFBIG, "File too large"))
     assert too_big is not None and too_big.startswith("output: disk: File too large")
+    for code in (errno.ENOENT, errno.ENOTDIR, errno.EISDIR, errno.EEXIST):  # a path not made
+        made = resource_error(OSError(code, os.strerror(code), "/proc/runs"))
+        assert made is not None and made.startswith(f"/proc/runs: path: {os.strerror(code)}")
     for other in (
-        OSError(errno.ENOENT, "No such file"),
+        OSError(errno.ENOENT, "No such file"),  # no path to name
         RuntimeError("shape mismatch"),
         KeyError(),
     ):

@@ -107,6 +107,18 @@ def remove_stale_temps(path: str | Path, older_than_s: float = STALE_AFTER_S) ->
 
 
 @contextlib.contextmanager
+def _naming(path: Path) -> Iterator[None]:
+    """An :class:`OSError` raised while the temporary file or folder of ``path`` is created
+    (a read-only or pseudo file system) names ``path``, the output asked for, not the
+    temporary name the user never gave."""
+    try:
+        yield
+    except OSError as exc:
+        exc.filename = str(path)
+        raise
+
+
+@contextlib.contextmanager
 def atomic_open(path: str | Path) -> Iterator[BinaryIO]:
     """Open a binary temporary file next to ``path``; on clean exit it replaces ``path``.
 
@@ -117,7 +129,10 @@ def atomic_open(path: str | Path) -> Iterator[BinaryIO]:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     remove_stale_temps(path)
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=_TEMP_SUFFIX, dir=path.parent)
+    with _naming(path):
+        fd, tmp_name = tempfile.mkstemp(
+            prefix=f".{path.name}.", suffix=_TEMP_SUFFIX, dir=path.parent
+        )
     try:
         with os.fdopen(fd, "wb") as handle:
             if fcntl is not None:
@@ -149,7 +164,10 @@ def staged_directory(path: str | Path) -> Iterator[Path]:
     so ``path`` never holds half of it. ``path`` must not exist yet."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=_TEMP_SUFFIX, dir=path.parent))
+    with _naming(path):
+        staging = Path(
+            tempfile.mkdtemp(prefix=f".{path.name}.", suffix=_TEMP_SUFFIX, dir=path.parent)
+        )
     try:
         os.chmod(staging, directory_mode())
         yield staging

@@ -74,6 +74,8 @@ def read_json_file(path: str | Path, field: str) -> Any:
         raise UltronInputError(path, field, f"not valid JSON ({exc})") from None
     except RecursionError:
         raise UltronInputError(path, field, "JSON nested too deeply to read") from None
+    except ValueError as exc:  # e.g. an integer of more digits than Python converts
+        raise UltronInputError(path, field, f"not readable JSON ({exc})") from None
     except OSError as exc:
         raise UltronInputError(path, field, f"cannot be read ({exc.strerror})") from None
 
@@ -82,12 +84,16 @@ def read_json_file(path: str | Path, field: str) -> Any:
 _DISK_ERRNOS = {errno.ENOSPC, errno.EFBIG, getattr(errno, "EDQUOT", errno.ENOSPC)}
 #: errno values of a file or folder this user may not read or write.
 _PERMISSION_ERRNOS = {errno.EACCES, errno.EPERM, errno.EROFS}
+#: errno values of a path that cannot be made: a folder on the way missing or a file, a file
+#: where a folder is (or the reverse), a folder that takes no new entries (/proc).
+_PATH_ERRNOS = {errno.ENOENT, errno.ENOTDIR, errno.EISDIR, errno.EEXIST}
 #: What torch's and numpy's allocators say when memory runs out.
 _OUT_OF_MEMORY = ("can't allocate memory", "not enough memory", "out of memory")
 
 
 def resource_error(exc: BaseException) -> str | None:
-    """The one-line message for a run that ran out of memory or disk (None: another error).
+    """The one-line message for a run that ran out of memory or disk, or whose output path
+    cannot be made (None: another error).
     Outputs are written atomically, so what was written before is whole; a field fit resumes
     from its last checkpoint."""
     if isinstance(exc, MemoryError) or (
@@ -101,6 +107,11 @@ def resource_error(exc: BaseException) -> str | None:
         return (
             f"{exc.filename or 'output'}: permission: {exc.strerror} (check the permissions of"
             " the file and its folder, or give another path)"
+        )
+    if isinstance(exc, OSError) and exc.errno in _PATH_ERRNOS and exc.filename:
+        return (
+            f"{exc.filename}: path: {exc.strerror} (a folder on the way is missing or is a"
+            " file, or the file system takes no new files there); give another path"
         )
     if isinstance(exc, OSError) and exc.errno in _DISK_ERRNOS:
         where = exc.filename or "output"

@@ -93,10 +93,11 @@ def main() -> None:
 def _run() -> None:
     try:
         code = app(standalone_mode=False)
-    except typer.BadParameter as exc:
+    except typer.BadParameter as exc:  # click's MissingParameter too, whose message is empty
         names = exc.param.opts if exc.param is not None and exc.param.opts else [exc.param_hint]
         option = "/".join(str(n) for n in names if n) or "option"
-        print(f"error: argument: {option}: {exc.message}", file=sys.stderr)
+        message = exc.message or _missing(exc)
+        print(f"error: argument: {option}: {message}", file=sys.stderr)
         sys.exit(EXIT_BAD_INPUT)
     except typer.Abort:
         sys.exit(1)
@@ -108,6 +109,12 @@ def _run() -> None:
     if code == EXIT_INTERRUPTED:  # typer's answer to Ctrl-C (a KeyboardInterrupt)
         print(f"error: {INTERRUPTED}", file=sys.stderr)
     sys.exit(code if isinstance(code, int) else 0)
+
+
+def _missing(exc: typer.BadParameter) -> str:
+    """The message of a required argument or option not given (click leaves it empty)."""
+    command = exc.ctx.info_name if exc.ctx is not None and exc.ctx.info_name else "COMMAND"
+    return f"missing; this is required (usage: ultron {command} --help)"
 
 
 if __name__ == "__main__":

@@ -39,6 +39,7 @@ from typing import Any, TypeVar
 import numpy as np
 
 from ultron import atomic
+from ultron.data.import_records import check_import_records
 from ultron.data.validation import (
     LABEL_UNANNOTATED,
     contained_path,
@@ -306,6 +307,7 @@ class SweepDataset:
         metadata = meta.get("metadata", {})
         if not isinstance(metadata, dict):
             raise UltronInputError(meta_path, "metadata", "expected an object")
+        check_import_records(metadata, {s.name: s.n_frames for s in sweeps}, meta_path)
         return cls(
             probe=probe,
             sweeps=sweeps,

@@ -48,6 +48,7 @@ from ultron.data.plus_orientation import orientation_flips
 from ultron.data.tracking_files import frame_times
 from ultron.data.validation import LABEL_TARGET, LABEL_UNANNOTATED
 from ultron.errors import UltronInputError, argument_error
+from ultron.outputs import check_output_file
 
 #: Endings of MetaImage exports (one file: the header and the data together).
 METAIMAGE_SUFFIXES = (".igs.mha", ".seq.mha", ".mha")
@@ -239,7 +240,7 @@ def export_labels(
     recording whose frames differ from the import's is an error naming it. ``sweep`` None:
     the dataset's only sweep."""
     config = config or LabelExportConfig()
-    root, out = Path(root), Path(out)
+    root, out = Path(root), check_output_file(out, "--export")
     dataset = SweepDataset.load(root)
     if sweep is None:
         sweep = one_sweep([s.name for s in dataset.sweeps], "--export")

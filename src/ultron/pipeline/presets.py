@@ -21,6 +21,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 
+from ultron.arguments import check_integer
 from ultron.errors import argument_error
 from ultron.fields.context import ThetaContextConfig
 from ultron.mesh.echo_support import EchoSupportConfig
@@ -166,6 +167,8 @@ def preset_request(
             "visibility",
             f"{flag} applies to --method {' or '.join(FIELD_METHODS)} only, not {method!r}",
         )
+    if occupancy_iters is not None:  # 0 would mesh an untrained network
+        check_integer("occupancy_iters", occupancy_iters, 1)
     base = pipeline_preset(preset, seed)
     occupancy, on = base.ultron.occupancy, base.on
     given = {"iters": occupancy_iters, "precision": occupancy_precision}  # ultron* and on

@@ -26,6 +26,7 @@ from ultron.data.importers import (
 )
 from ultron.data.plus import sequence_stem
 from ultron.data.plus_import import PlusImportReport, read_plus
+from ultron.data.plus_orientation import orientation_flips
 from ultron.errors import argument_error
 from ultron.outputs import check_output_dir
 
@@ -198,6 +199,8 @@ def import_plus_sweep(
     """
     if kind not in SWEEP_KINDS:
         raise argument_error("--kind", f"{kind!r} is not one of {', '.join(SWEEP_KINDS)}")
+    if orientation is not None:  # checked when given, also where the file records its own
+        orientation_flips(orientation, "argument", "--orientation")
     check_output_dir(out)
     name = sweep_name or safe_sweep_name(sequence_stem(sequence))
     sweep, probe, report = read_plus(
