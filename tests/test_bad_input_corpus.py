@@ -295,6 +295,20 @@ CASES: dict[str, tuple[Callable[[Path, Path], list[str]], tuple[str, ...]]] = {
         lambda t, d: _after(_point_cloud(t / "m.ply"), _evaluate(t, "--out", str(t / "x.json"))),
         ("m.ply", "mesh", "no triangles"),
     ),
+    "evaluate_text_as_stl": (
+        lambda t, d: _after(
+            (_point_cloud(t / "m.ply"), (t / "m.stl").write_text("not a mesh\n")),
+            ["evaluate", str(t / "m.stl"), str(t / "r.ply"), "--out", str(t / "x.json")],
+        ),
+        ("m.stl", "mesh", "not a readable mesh"),
+    ),
+    "evaluate_bytes_as_obj": (
+        lambda t, d: _after(
+            (_point_cloud(t / "m.ply"), (t / "m.obj").write_bytes(bytes(range(256)))),
+            ["evaluate", str(t / "m.obj"), str(t / "r.ply"), "--out", str(t / "x.json")],
+        ),
+        ("m.obj", "mesh", "not a readable mesh"),
+    ),
     "reconstruct_unreadable_reference": (
         lambda t, d: _after(_bad_reference(d), _recon(d, t / "out")),
         ("reference.ply", "not a readable mesh"),
@@ -339,6 +353,14 @@ CASES: dict[str, tuple[Callable[[Path, Path], list[str]], tuple[str, ...]]] = {
     "label_export_under_a_file": (
         lambda t, d: ["label", str(d), "--export", str(_file(t / "notes") / "masks.npy")],
         ("notes/masks.npy", "--export", "not a directory"),
+    ),
+    "simulate_into_a_folder_of_other_files": (
+        lambda t, d: ["simulate", "--frames", "2", "--out", str(_foreign_dir(t / "sim"))],
+        ("sim", "--out", "holds no dataset.json"),
+    ),
+    "import_into_a_folder_of_other_files": (
+        lambda t, d: _import(_ultranerf(t, ["0.png"]), _foreign_dir(t / "ds")),
+        ("ds", "out", "holds no dataset.json"),
     ),
     "simulate_out_is_a_file": (
         lambda t, d: ["simulate", "--out", str(_file(t / "sim"))],

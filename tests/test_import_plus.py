@@ -319,6 +319,27 @@ def test_an_unknown_orientation_option_is_refused_even_where_the_file_has_one(tm
     assert not (tmp_path / "ds").exists()
 
 
+def test_a_calibration_given_twice_must_agree(tmp_path: Path):
+    """The same Image → Probe twice, or once each way, is one calibration; two that differ
+    are refused naming the second (PLUS's choice between them is not ultron's to guess)."""
+    from plus_synthetic import _matrix_text
+    from ultron.data.plus_config import read_config
+
+    cal = calibration()
+    config = write_config(tmp_path / "c.xml", cal)
+    text = config.read_text()
+    line = next(t for t in text.splitlines() if 'From="Image" To="Probe"' in t)
+    inverse = f'<Transform From="Probe" To="Image" Matrix="{_matrix_text(np.linalg.inv(cal))}"/>'
+    same = tmp_path / "same.xml"
+    same.write_text(text.replace(line, f"{line}\n{line}\n    {inverse}"))
+    assert np.allclose(read_config(same).image_to["Probe"], cal, atol=1e-9)
+    other = tmp_path / "other.xml"
+    identity = '<Transform From="Image" To="Probe" Matrix="1 0 0 0 0 1 0 0 0 0 1 0 0 0 0 1"/>'
+    other.write_text(text.replace(line, f"    {identity}\n{line}"))
+    with pytest.raises(UltronError, match=r"other\.xml: Transform Image → Probe: differs from"):
+        read_config(other)
+
+
 def test_invalid_frames_are_skipped_and_counted(tmp_path: Path):
     rec = recording(n=5)
     rec.statuses["ProbeToTracker"] = ["OK", "INVALID", "OK", "OK", "MISSING"]

@@ -199,3 +199,19 @@ def test_nifti_affine_maps_voxel_to_mm(tmp_path: Path):
     # NIfTI is RAS; ultron's world mm is read by Slicer as LPS: x and y flip sign
     np.testing.assert_allclose(image.affine @ [2, 3, 4, 1], [-world[0], -world[1], world[2], 1.0])
     np.testing.assert_allclose(nifti_affine(grid), image.affine)
+
+
+@pytest.mark.parametrize(
+    ("name", "content"),
+    [("e.stl", b"ultron".ljust(80, b" ") + bytes(4)), ("e.stl", b"solid empty\nendsolid empty\n"),
+     ("e.ply", b"ply\nformat ascii 1.0\nelement vertex 0\nend_header\n"),
+     ("e.obj", b"# nothing yet\n")],
+)  # fmt: skip
+def test_an_empty_mesh_file_reads_as_an_empty_reconstruction(tmp_path: Path, name, content):
+    """A mesh file of its format without triangles is an empty reconstruction (metrics inf);
+    text or bytes of something else under a mesh suffix are not (test_bad_input_corpus)."""
+    path = tmp_path / name
+    path.write_bytes(content)
+    assert len(load_mesh(path, allow_empty=True).faces) == 0
+    with pytest.raises(UltronInputError, match="empty"):
+        load_mesh(path)

@@ -65,6 +65,19 @@ def check_output_dir(path: str | Path, option: str = "--out") -> Path:
     return path
 
 
+def check_dataset_out(path: str | Path, option: str = "--out") -> Path:
+    """``path`` must be a directory a dataset can be written into: new, empty or holding a
+    dataset (``dataset.json``) already, never a folder of other files, which a dataset's
+    sweep folders would mix with. Returns it as a Path."""
+    path = check_output_dir(path, option)
+    if path.is_dir() and not (path / "dataset.json").exists() and any(path.iterdir()):
+        raise UltronInputError(
+            path, option, "exists, is not empty and holds no dataset.json; give a new or empty"
+            " directory",
+        )  # fmt: skip
+    return path
+
+
 def is_inside(path: str | Path, directory: str | Path) -> bool:
     """Whether ``path`` is ``directory`` or lies below it (symlinks resolved)."""
     inner, outer = Path(path).resolve(), Path(directory).resolve()

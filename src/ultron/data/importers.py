@@ -32,7 +32,7 @@ from ultron.data.validation import (
     validate_positive,
 )
 from ultron.errors import UltronInputError, argument_error
-from ultron.outputs import check_output_dir
+from ultron.outputs import check_dataset_out, check_output_dir
 
 #: Largest rotation-block deviation the importer repairs (above it a pose is refused).
 DEFAULT_ORTHONORMALIZE_TOLERANCE = 0.05
@@ -319,8 +319,7 @@ def add_sweep_to_dataset(
         )
         dataset.save(out, only_sweeps=[sweep.name])
         return dataset
-    if out.exists() and any(out.iterdir()):
-        raise UltronInputError(out, "out", "exists, is not empty and holds no dataset.json")
+    check_dataset_out(out, "out")  # not empty: a folder of other files
     metadata = _with_import({}, sweep.name, sweep_metadata)
     dataset = SweepDataset(probe=probe, sweeps=[sweep], metadata=metadata)
     dataset.save(out)

@@ -49,18 +49,29 @@ def _config_matrix(element: ET.Element, path: Path, label: str) -> np.ndarray:
 
 
 def _image_transforms(root: ET.Element, path: Path) -> dict[str, np.ndarray]:
-    found: dict[str, np.ndarray] = {}
+    """Image → X for every X the configuration relates to the image (X → Image inverted). A
+    frame given two different transforms (twice, or once each way) is an error: which one
+    PLUS would use is not for ultron to guess."""
+    found: dict[str, tuple[np.ndarray, str]] = {}
     for element in root.iter("Transform"):
         source, target = element.get("From", ""), element.get("To", "")
         label = f"Transform {source} → {target}"
         if source == "Image" and target:
-            found.setdefault(target, _config_matrix(element, path, label))
+            other, matrix = target, _config_matrix(element, path, label)
         elif target == "Image" and source:
-            matrix = _config_matrix(element, path, label)
+            other, matrix = source, _config_matrix(element, path, label)
             if abs(np.linalg.det(matrix[:3, :3])) < 1e-300:
                 raise UltronInputError(path, label, "Matrix is singular (cannot be inverted)")
-            found.setdefault(source, np.linalg.inv(matrix))
-    return found
+            matrix = np.linalg.inv(matrix)
+        else:
+            continue
+        if other in found and not np.allclose(found[other][0], matrix, rtol=0.0, atol=1e-6):
+            raise UltronInputError(
+                path, label, f"differs from the {found[other][1]} before it: one calibration"
+                " of the image per frame; remove the one not meant",
+            )  # fmt: skip
+        found.setdefault(other, (matrix, label))
+    return {other: matrix for other, (matrix, _) in found.items()}
 
 
 def _clip_rectangle(root: ET.Element, path: Path) -> tuple[tuple[int, int], tuple[int, int]] | None:

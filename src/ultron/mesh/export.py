@@ -123,6 +123,10 @@ def load_mesh(path: str | Path, allow_empty: bool = False):
         raise UltronInputError(path, "mesh", f"expected a triangle mesh, got {type(mesh).__name__}")
     if len(mesh.faces) == 0 and (not allow_empty or _holds_points(path)):
         raise UltronInputError(path, "mesh", "mesh is empty (no triangles)")
+    if len(mesh.faces) == 0 and not _an_empty_mesh_file(path):
+        raise UltronInputError(
+            path, "mesh", f"not a readable mesh: no {path.suffix or 'mesh'} header or content"
+        )
     if len(mesh.vertices) and not np.isfinite(mesh.vertices).all():
         raise UltronInputError(path, "mesh", "vertices contain NaN or inf")
     faces = np.asarray(mesh.faces)
@@ -134,6 +138,27 @@ def load_mesh(path: str | Path, allow_empty: bool = False):
     if len(mesh.vertices) and mesh_file_space(path) == "ras":
         mesh.vertices = np.asarray(mesh.vertices, dtype=np.float64) * _FLIP_XY
     return mesh
+
+
+#: The keywords of OBJ lines (and comments): an OBJ file with other lines is not one.
+_OBJ_KEYWORDS = (b"#", b"v", b"vt", b"vn", b"vp", b"f", b"l", b"p", b"o", b"g", b"s", b"mtllib",
+                 b"usemtl")  # fmt: skip
+
+
+def _an_empty_mesh_file(path: Path) -> bool:
+    """Whether ``path``, read as no triangles, is a mesh file of its format without any (what
+    an empty reconstruction writes), not text or bytes of something else: a PLY or OFF header,
+    an ASCII STL's ``solid`` or a binary STL of 0 triangles, an OBJ of OBJ lines alone."""
+    data = path.read_bytes()
+    suffix = path.suffix.lower()
+    if suffix == ".stl":
+        return data.lstrip().startswith(b"solid") or (
+            len(data) == 84 and int.from_bytes(data[80:84], "little") == 0
+        )
+    if suffix == ".obj":
+        words = (line.split(maxsplit=1) for line in data.splitlines())
+        return all(not w or w[0] in _OBJ_KEYWORDS or w[0].startswith(b"#") for w in words)
+    return data.lstrip().lower().startswith((b"ply", b"off"))
 
 
 def _holds_points(path: Path) -> bool:

@@ -70,8 +70,11 @@ def load_network(model_dir: str | Path) -> tuple[nn.Module, dict[str, Any]]:
         )  # fmt: skip
     try:
         payload = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as error:  # a truncated or foreign file
-        raise UltronInputError(str(path), NETWORK_FILE, f"unreadable ({error})") from error
+    except Exception as error:  # a truncated or foreign file: torch's message runs to lines
+        raise UltronInputError(
+            str(path), NETWORK_FILE, f"cannot be read ({type(error).__name__}): not a network"
+            " ultron saved, or damaged; run reconstruct again to write it",
+        ) from None  # fmt: skip
     if not isinstance(payload, dict) or payload.get("format") != NETWORK_FORMAT:
         raise UltronInputError(str(path), "format", f"expected {NETWORK_FORMAT!r}")
     classes = _network_classes()

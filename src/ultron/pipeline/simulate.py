@@ -13,7 +13,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ultron.data.dataset import SweepDataset
-from ultron.outputs import check_output_dir
+from ultron.outputs import check_dataset_out
 from ultron.phantom import SimulationConfig, simulate_dataset
 from ultron.phantom.dataset import Progress
 from ultron.phantom.preview import write_preview
@@ -52,10 +52,11 @@ def simulate_to(
     preview: bool = False,
     progress: Progress | None = None,
 ) -> SimulatedDataset:
-    """Simulate ``config``'s dataset into ``out`` (a new or empty directory; an existing file
-    is an error naming ``--out``), then ``out/preview.png`` when ``preview``. ``progress(what,
+    """Simulate ``config``'s dataset into ``out`` (a new or empty directory, or an earlier
+    dataset's, which it replaces; a file or a folder of other files is an error naming
+    ``--out``), then ``out/preview.png`` when ``preview``. ``progress(what,
     done, total)`` is told how the simulation advances."""
-    out = check_output_dir(out)
+    out = check_dataset_out(out)
     start = time.perf_counter()
     dataset = simulate_dataset(config, out=out, progress=progress)
     seconds = time.perf_counter() - start
