@@ -215,6 +215,11 @@ CASES: dict[str, tuple[Callable[[Path], None], str, str]] = {
         "transmission.npy",
         "float16",
     ),
+    "sweep_names_repeated": (
+        lambda r: _edit_json(r, lambda m: m["sweeps"].append(dict(m["sweeps"][0]))),
+        "dataset.json",
+        "row repeated",
+    ),
     "json_integer_too_long": (
         lambda r: (r / "dataset.json").write_text('{"format": ' + "9" * 5000 + "}"),
         "dataset.json",

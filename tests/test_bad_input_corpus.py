@@ -77,6 +77,16 @@ def _tiny_probe(data: Path) -> None:
     _edit_dataset(data, lambda m: m["probe"].update(width_mm=1e-3))
 
 
+def _two_pixel_frames(path: Path) -> Path:
+    """A dataset of frames 2 pixels deep, without labels, at ``path``."""
+    from conftest import make_sweep
+    from ultron.data.dataset import ProbeGeometry, SweepDataset
+
+    probe = ProbeGeometry(width_mm=12.0, depth_mm=2.0, height_px=2, width_px=6)
+    SweepDataset(probe, [make_sweep(h=2, labels=False)]).save(path)
+    return path
+
+
 def _point_cloud(path: Path) -> None:
     """``path``: a PLY of three vertices and no faces, and ``r.ply`` beside it a triangle."""
     vertices = "0 0 0\n1 0 0\n0 1 0\n"
@@ -353,6 +363,10 @@ CASES: dict[str, tuple[Callable[[Path, Path], list[str]], tuple[str, ...]]] = {
     "label_export_under_a_file": (
         lambda t, d: ["label", str(d), "--export", str(_file(t / "notes") / "masks.npy")],
         ("notes/masks.npy", "--export", "not a directory"),
+    ),
+    "auto_label_frames_under_3_pixels": (
+        lambda t, d: ["label", str(_two_pixel_frames(t / "small")), "--auto"],
+        ("small/dataset.json", "probe", "frames of 2 × 6 pixels", "at least 3 × 3"),
     ),
     "simulate_into_a_folder_of_other_files": (
         lambda t, d: ["simulate", "--frames", "2", "--out", str(_foreign_dir(t / "sim"))],

@@ -150,7 +150,11 @@ def test_bad_tracking_and_frames_are_one_line_errors(scene, tmp_path: Path):
     no_time = tmp_path / "T.seq.mha"
     no_time.write_text(scene["probe"].read_text().replace("_Timestamp = 9.980", "_Timestamp = x"))
     empty = _transform_file(tmp_path / "E.seq.mha", "X", [], _probe)
+    unrelated = _transform_file(tmp_path / "F.seq.mha", "FooToBar", FRAME_TIMES, _probe)
+    tracked = ["--tracking", str(scene["probe"]), "--tracking", str(scene["reference"])]
     cases = [
+        ([*base, "--orientation", "UN", *tracked, "--tracking", str(unrelated)],
+         "F.seq.mha: --tracking: holds FooToBarTransform; none is on the chain"),
         ([*base, "--tracking", str(scene["probe"])], "give the frames' orientation with"),
         ([*base, "--orientation", "UN"], "no per-frame transform"),
         ([*base, "--orientation", "UN", "--tracking", str(no_time)],

@@ -185,14 +185,22 @@ def check_labelling(
     option: str = "sweeps",
     what: str = "automatic labels",
     one: str | None = None,
+    min_frame_px: int = 3,
 ) -> tuple[SweepDataset, list[str]]:
     """Load the dataset at ``root`` and check that the chosen ``sweeps`` (default: all) exist,
     have no labels unless ``replace``, and can be written; returns the dataset and the names.
     A sweep that already has labels is an error naming it, ``--replace`` and ``what`` would
     overwrite them; an unknown sweep one naming it and ``option`` (the argument that chose
-    it); with ``one`` (the option that works on one sweep), other than one sweep chosen."""
+    it); with ``one`` (the option that works on one sweep), other than one sweep chosen; frames
+    of fewer than ``min_frame_px`` rows or columns (the detector needs rows about an echo)."""
     root = Path(root)
     dataset = SweepDataset.load(root)
+    if min(dataset.probe.image_shape) < min_frame_px:
+        raise UltronInputError(
+            root / "dataset.json", "probe", f"frames of {dataset.probe.height_px} ×"
+            f" {dataset.probe.width_px} pixels; {what} need at least {min_frame_px} ×"
+            f" {min_frame_px}",
+        )  # fmt: skip
     names = _chosen_sweeps(dataset, root, sweeps, option)
     if one is not None:
         names = [one_sweep(names, one)]

@@ -287,6 +287,12 @@ class SweepDataset:
             raise UltronInputError(meta_path, "sweeps", "expected a non-empty list of sweeps")
 
         sweeps = [_load_sweep(root, meta_path, i, entry) for i, entry in enumerate(entries)]
+        names = [s.name for s in sweeps]
+        twice = sorted({n for n in names if names.count(n) > 1})
+        if twice:
+            raise UltronInputError(
+                meta_path, "sweeps", f"sweep names must be unique; {', '.join(twice)} repeated"
+            )
         shape = sweeps[0].images.shape[1:]
         for sweep in sweeps[1:]:
             if sweep.images.shape[1:] != shape:

@@ -344,7 +344,7 @@ def import_mask_labels(
         raise argument_error("config", f"expected a MaskImportConfig, got {type(config).__name__}")
     root, masks_path = Path(root), Path(masks_path)
     dataset, (name,) = check_labelling(
-        root, None if sweep is None else [sweep], replace, "--sweeps", "the masks", "--masks"
+        root, None if sweep is None else [sweep], replace, "--sweeps", "the masks", "--masks", 1
     )
     masks, orientation, named = read_masks(masks_path, config.orientation)
     if named is not None:  # PNGs named by the frames they are of

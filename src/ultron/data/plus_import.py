@@ -49,7 +49,7 @@ from ultron.data.plus_geometry import (
     resample_to_rigid,
 )
 from ultron.data.plus_orientation import orientation_flips
-from ultron.data.plus_poses import Placement, placement
+from ultron.data.plus_poses import Placement, WorldPoses, placement
 from ultron.data.resolution import signal_columns
 from ultron.errors import UltronInputError, argument_error
 
@@ -172,6 +172,7 @@ def read_plus(
     seq = _tracked_sequence(sequence, orientation, tracking)
     placed = placement(seq, plus_config, target)
     world = placed.world
+    _check_tracking_used(tracking, world)
     frames, clip = _oriented_clipped(seq, plus_config)
     frames = frames[world.valid]
     wanted = signal_columns(frames) if columns == "signal" else columns
@@ -206,6 +207,21 @@ def read_plus(
     if tracking:
         metadata["tracking"] = [Path(path).name for path in tracking]
     return sweep, probe, replace(report, metadata=metadata)
+
+
+def _check_tracking_used(tracking: Sequence[str | Path], world: WorldPoses) -> None:
+    """Refuse a ``--tracking`` file none of whose transforms is on the chain that places the
+    frames (``world.chain``): given, it was meant to track them, and it would change nothing."""
+    from ultron.data.tracking_files import read_transform_sequences
+
+    for path in tracking:
+        names = [t.name for t in read_transform_sequences(path)]
+        if not set(names) & set(world.chain):
+            raise UltronInputError(
+                path, "--tracking", f"holds {', '.join(f'{n}Transform' for n in names)}; none is"
+                f" on the chain that places the frames ({world.description}), so it would"
+                " change nothing: give the file that tracks the probe, or --to its frame",
+            )  # fmt: skip
 
 
 def _tracked_sequence(

@@ -32,12 +32,14 @@ _FROM = re.compile(r"^(.+?)To(?=[A-Z])")
 @dataclass(frozen=True)
 class WorldPoses:
     """Per frame: the chain's source frame (Probe, or Image) → world matrix (NaN where
-    invalid), whether the frame is valid, and why the others were skipped (reason → count)."""
+    invalid), whether the frame is valid, and why the others were skipped (reason → count);
+    the chain's transforms by name (``ProbeToTracker``)."""
 
     source_to_world: np.ndarray
     valid: np.ndarray
     skipped: Counter[str]
     description: str
+    chain: tuple[str, ...] = ()
 
 
 def _status(seq: SequenceFile, frame: int, name: str) -> str:
@@ -137,7 +139,7 @@ def world_poses(seq: SequenceFile, chain: tuple[str, ...]) -> WorldPoses:
             pose = _affine_inverse(matrices[1][0]) @ pose
         poses[frame], valid[frame] = pose, True
     text = chain[0] if len(chain) == 1 else f"{chain[1]}⁻¹ · {chain[0]}"
-    return WorldPoses(poses, valid, skipped, text)
+    return WorldPoses(poses, valid, skipped, text, tuple(chain))
 
 
 def _probe_frame(seq: SequenceFile, config: PlusConfig) -> str:
