@@ -215,6 +215,16 @@ CASES: dict[str, tuple[Callable[[Path], None], str, str]] = {
         "transmission.npy",
         "float16",
     ),
+    "units_not_mm": (
+        lambda r: _edit_json(r, lambda m: m.update(units="cm")),
+        "dataset.json",
+        "units",
+    ),
+    "probe_wider_than_any_probe": (
+        lambda r: _edit_json(r, lambda m: m["probe"].update(width_mm=1e308)),
+        "dataset.json",
+        "probe.width_mm: 1e+308 mm; expected at most",
+    ),
     "sweep_names_repeated": (
         lambda r: _edit_json(r, lambda m: m["sweeps"].append(dict(m["sweeps"][0]))),
         "dataset.json",

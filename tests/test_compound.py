@@ -100,6 +100,20 @@ def test_stick_hole_filling_by_hand():
     assert not new.any() and np.array_equal(out, volume)
 
 
+def test_a_stick_limit_beyond_the_volume_fills_as_the_volume_allows():
+    """No stick is longer than the volume, so any larger limit fills the same (and costs no
+    more: the reach is the volume's, not the limit's)."""
+    volume = np.zeros((7, 3, 3), np.float32)
+    filled = np.zeros(volume.shape, bool)
+    volume[0], volume[6] = 10.0, 70.0
+    filled[0] = filled[6] = True
+    out, new = fill_holes_stick(volume, filled, 9)
+    for huge in (10**4, 10**9):
+        other, other_new = fill_holes_stick(volume, filled, huge)
+        assert np.array_equal(other, out) and np.array_equal(other_new, new)
+    assert np.allclose(out[:, 1, 1], [10, 20, 30, 40, 50, 60, 70])
+
+
 def test_stick_ties_are_averaged():
     # hole at the centre of a 3×3×3 cube: x stick ends 10 | 30, y stick ends 0 | 100
     volume = np.zeros((3, 3, 3), np.float32)

@@ -319,6 +319,15 @@ def test_an_unknown_orientation_option_is_refused_even_where_the_file_has_one(tm
     assert not (tmp_path / "ds").exists()
 
 
+def test_a_downsample_that_leaves_no_frame_is_refused(tmp_path: Path):
+    sequence = write_mha(tmp_path / "mf.mha", recording(), "MF")
+    config = write_config(tmp_path / "c.xml", calibration())
+    result = _import(sequence, config, tmp_path / "ds", "--downsample", "1e9")
+    assert result.exit_code == 2
+    assert "--downsample: 1e+09 leaves frames of 1 × 1 pixels" in result.stderr
+    assert not (tmp_path / "ds").exists()
+
+
 def test_a_calibration_given_twice_must_agree(tmp_path: Path):
     """The same Image → Probe twice, or once each way, is one calibration; two that differ
     are refused naming the second (PLUS's choice between them is not ultron's to guess)."""

@@ -50,6 +50,7 @@ from ultron.data.validation import (
     validate_mesh_file,
     validate_poses,
     validate_positive,
+    validate_probe_extent,
     validate_transmission,
 )
 from ultron.errors import UltronInputError, argument_error, read_json_file
@@ -275,13 +276,19 @@ class SweepDataset:
             raise UltronInputError(
                 meta_path, "format", f"unknown format {fmt!r}, expected {FORMAT!r}"
             )
+        if meta.get("units", "mm") != "mm":
+            raise UltronInputError(
+                meta_path, "units", f"{meta.get('units')!r}; {FORMAT} holds lengths in mm"
+            )
         probe_meta = meta.get("probe")
         if not isinstance(probe_meta, dict):
             raise UltronInputError(
                 meta_path, "probe", "expected an object with width_mm and depth_mm"
             )
-        width_mm = validate_positive(probe_meta.get("width_mm"), meta_path, "probe.width_mm")
-        depth_mm = validate_positive(probe_meta.get("depth_mm"), meta_path, "probe.depth_mm")
+        width_mm, depth_mm = (
+            validate_probe_extent(probe_meta.get(key), meta_path, f"probe.{key}")
+            for key in ("width_mm", "depth_mm")
+        )
         entries = meta.get("sweeps")
         if not isinstance(entries, list) or not entries:
             raise UltronInputError(meta_path, "sweeps", "expected a non-empty list of sweeps")

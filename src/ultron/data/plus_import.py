@@ -182,6 +182,11 @@ def read_plus(
     fit = fit_image_plane(calibration, width, height, placed.where, placed.field)
     poses = placed.probe_to_world @ fit.dataset_probe_to_probe(width)
     shape = downsampled_shape(height, width, downsample)
+    if min(shape) < MIN_FRAME_PX < min(height, width):
+        raise argument_error(
+            "--downsample", f"{downsample:g} leaves frames of {shape[0]} × {shape[1]} pixels (of"
+            f" {height} × {width}); keep them at least {MIN_FRAME_PX} × {MIN_FRAME_PX}",
+        )  # fmt: skip
     images, resampled = on_sweep_grid(frames, calibration, fit, shape)
     probe = ProbeGeometry(width * fit.spacing_mm[0], height * fit.spacing_mm[1], *shape)
     sweep = Sweep(name=name, kind=kind, images=images, probe_to_world=poses)
@@ -207,6 +212,11 @@ def read_plus(
     if tracking:
         metadata["tracking"] = [Path(path).name for path in tracking]
     return sweep, probe, replace(report, metadata=metadata)
+
+
+#: The fewest rows or columns ``--downsample`` may leave a frame: what a scanline needs about
+#: an echo (``label --auto``); a frame recorded smaller is imported as it is.
+MIN_FRAME_PX = 3
 
 
 def _check_tracking_used(tracking: Sequence[str | Path], world: WorldPoses) -> None:

@@ -262,3 +262,19 @@ def validate_positive(value: object, where: str | Path, field: str) -> float:
     if not np.isfinite(number) or number <= 0:
         raise UltronInputError(where, field, f"expected a positive number, got {value!r}")
     return number
+
+
+#: The widest or deepest image a probe may have, mm: far beyond any probe, far below where
+#: float arithmetic on the scanned region overflows (a width of 1e308).
+MAX_PROBE_EXTENT_MM = 1e4
+
+
+def validate_probe_extent(value: object, where: str | Path, field: str) -> float:
+    """A probe's image width or depth, mm: a positive number up to :data:`MAX_PROBE_EXTENT_MM`."""
+    extent = validate_positive(value, where, field)
+    if extent > MAX_PROBE_EXTENT_MM:
+        raise UltronInputError(
+            where, field, f"{extent:g} mm; expected at most {MAX_PROBE_EXTENT_MM:g} mm (are the"
+            " lengths in mm?)",
+        )  # fmt: skip
+    return extent

@@ -198,7 +198,7 @@ def reachable_holes(filled: np.ndarray, length: int) -> tuple[np.ndarray, ...]:
     doc)."""
     from scipy import ndimage
 
-    reach = (length - 1) // 2
+    reach = min((length - 1) // 2, max(filled.shape))  # beyond the volume: the same mask
     near = ndimage.maximum_filter(filled.view(np.uint8), size=2 * reach + 1, mode="constant")
     return np.nonzero(~filled & (near > 0))
 
