@@ -308,23 +308,19 @@ def test_orientation_flips_back_to_the_same_world_points(tmp_path: Path, orienta
     assert np.abs(_dataset_world(tmp_path / "b", 1, i, j) - expected).max() < 1e-6
 
 
-def test_an_unknown_orientation_option_is_refused_even_where_the_file_has_one(tmp_path: Path):
-    """--orientation is used only where the file records none, but a value that names no
-    orientation is a mistake either way: refused before the recording is read."""
+@pytest.mark.parametrize(
+    ("option", "message"),
+    [  # --orientation is used only where the file records none, but is checked when given
+        (["--orientation", "QQ"], "--orientation: unknown orientation 'QQ'"),
+        (["--downsample", "1e9"], "--downsample: 1e+09 leaves frames of 1 × 1 pixels"),
+    ],
+)
+def test_an_option_that_cannot_apply_is_refused_before_any_work(tmp_path: Path, option, message):
     sequence = write_mha(tmp_path / "mf.mha", recording(), "MF")
     config = write_config(tmp_path / "c.xml", calibration())
-    result = _import(sequence, config, tmp_path / "ds", "--orientation", "QQ")
+    result = _import(sequence, config, tmp_path / "ds", *option)
     assert result.exit_code == 2
-    assert "--orientation: unknown orientation 'QQ'" in result.stderr
-    assert not (tmp_path / "ds").exists()
-
-
-def test_a_downsample_that_leaves_no_frame_is_refused(tmp_path: Path):
-    sequence = write_mha(tmp_path / "mf.mha", recording(), "MF")
-    config = write_config(tmp_path / "c.xml", calibration())
-    result = _import(sequence, config, tmp_path / "ds", "--downsample", "1e9")
-    assert result.exit_code == 2
-    assert "--downsample: 1e+09 leaves frames of 1 × 1 pixels" in result.stderr
+    assert message in result.stderr
     assert not (tmp_path / "ds").exists()
 
 
