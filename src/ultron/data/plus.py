@@ -17,7 +17,8 @@ How each format is read:
   or directory".
 - **NRRD** (``.nrrd``/``.nhdr``) with pynrrd, which returns the per-frame ``key:=value`` fields
   as strings and decodes raw and gzip payloads (also detached data files), in
-  :mod:`ultron.data.plus_nrrd`; the frame layout and fields are interpreted here for both.
+  :mod:`ultron.data.plus_nrrd`; the frame layout, per-frame fields and orientation of both by
+  :mod:`ultron.data.sequence_frames`.
 
 The configuration is read by :mod:`ultron.data.plus_config`.
 
@@ -30,12 +31,19 @@ import math
 import re
 import zlib
 from collections.abc import Iterator, Mapping
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from ultron.data.plus_orientation import ORIENTATION_FLIPS, orientation_flips
+from ultron.data.sequence_frames import (
+    SequenceFile,
+    arrange_frames,
+    frame_axes,
+    lookup_field,
+    placeholder_pixels,
+    sequence_orientation,
+    split_frame_fields,
+)
 from ultron.data.validation import contained_path, input_file
 from ultron.errors import UltronInputError
 from ultron.memory import check_fits_in_memory
@@ -62,8 +70,6 @@ STATUS_OK = "OK"
 #: Image-status field names: MetaImage sequences write ``ImageStatus``, NRRD ones ``Status``.
 IMAGE_STATUS_FIELDS = ("ImageStatus", "Status")
 
-#: A per-frame field's key, ``Seq_Frame0012_ProbeToTrackerTransform``: (frame, field name).
-FRAME_FIELD = re.compile(r"^seq_frame(\d+)_(.+)$", re.IGNORECASE)
 _NAN_TOKEN = re.compile(r"^[-+]?nan(\(.*\))?$", re.IGNORECASE)
 _MAX_HEADER_LINE = 1 << 20
 #: What a labelmap sequence (``read_sequence(…, labelmap=True)``) may hold besides uint8: the
@@ -72,59 +78,7 @@ _MAX_HEADER_LINE = 1 << 20
 _LABELMAP_METAIMAGE = {"MET_UCHAR": "u1", "MET_CHAR": "i1", "MET_USHORT": "u2", "MET_SHORT": "i2"}
 
 
-@dataclass(frozen=True)
-class SequenceFile:
-    """The frames and fields of one sequence file.
-
-    ``pixels`` is uint8 (N, H, W) in the file's orientation (row = image y, column = image x);
-    ``fields`` are the header fields other than per-frame ones; ``frame_fields[k]`` holds frame
-    k's fields, named without their ``Seq_Frame<NNNN>_`` prefix. ``size_field`` names the field
-    holding the frame count (``DimSize`` or ``sizes``) for messages.
-    """
-
-    path: Path
-    pixels: np.ndarray
-    orientation: str
-    fields: Mapping[str, str]
-    frame_fields: tuple[Mapping[str, str], ...]
-    size_field: str
-
-    @property
-    def n_frames(self) -> int:
-        return int(self.pixels.shape[0])
-
-    def field(self, name: str) -> str | None:
-        """A header field by name, ignoring case and spaces (``UltrasoundImageType`` matches
-        NRRD's ``ultrasound image type``)."""
-        return _lookup(self.fields, name)
-
-    def frame_field_key(self, frame: int, name: str) -> str:
-        """The header key of frame ``frame``'s field ``name``, as PLUS writes it."""
-        return f"Seq_Frame{frame:04d}_{name}"
-
-    def transform_names(self) -> list[str]:
-        """The per-frame transforms some frame has (``ProbeToTracker`` for the field
-        ``ProbeToTrackerTransform``), sorted."""
-        names = {
-            key[: -len("Transform")]
-            for fields in self.frame_fields
-            for key in fields
-            if key.endswith("Transform") and len(key) > len("Transform")
-        }
-        return sorted(names)
-
-
 # --------------------------------------------------------------------------- helpers
-def _normal_key(name: str) -> str:
-    return name.replace(" ", "").replace("_", "").lower()
-
-
-def _lookup(fields: Mapping[str, str], name: str) -> str | None:
-    wanted = _normal_key(name)
-    for key, value in fields.items():
-        if _normal_key(key) == wanted:
-            return value
-    return None
 
 
 def sequence_stem(path: str | Path) -> str:
@@ -157,79 +111,6 @@ def parse_matrix(text: str, where: str | Path, field: str) -> np.ndarray:
         except ValueError:
             raise UltronInputError(where, field, f"{token!r} is not a number") from None
     return np.array(values, dtype=np.float64).reshape(4, 4)
-
-
-def _split_frame_fields(
-    fields: Mapping[str, str], n_frames: int, path: Path, size_field: str
-) -> tuple[dict[str, str], tuple[dict[str, str], ...]]:
-    """Header fields → (non-frame fields, per-frame fields); a frame number beyond the frame
-    count of ``size_field`` is an error."""
-    plain: dict[str, str] = {}
-    frames: list[dict[str, str]] = [{} for _ in range(n_frames)]
-    for key, value in fields.items():
-        match = FRAME_FIELD.match(key)
-        if match is None:
-            plain[key] = value
-            continue
-        frame = int(match.group(1))
-        if frame >= n_frames:
-            raise UltronInputError(
-                path,
-                key,
-                f"frame {frame} is beyond the {n_frames} frames of {size_field}"
-                f" (frame count does not match the per-frame fields)",
-            )
-        frames[frame][match.group(2)] = value
-    return plain, tuple(frames)
-
-
-def _frame_axes(
-    sizes: list[int], kinds: list[str] | None, path: Path, size_field: str, kinds_field: str
-) -> tuple[int, int, int | None]:
-    """File axes (0 = fastest) of image x, image y and the frame list (None: one frame)."""
-    if kinds is None:  # PLUS: without Kinds the last axis lists the frames
-        kinds = ["domain"] * len(sizes)
-        if len(sizes) > 2:
-            kinds[-1] = "list"
-    if len(kinds) != len(sizes):
-        raise UltronInputError(
-            path, kinds_field, f"{len(kinds)} kinds for the {len(sizes)} axes of {size_field}"
-        )
-    lists = [i for i, kind in enumerate(kinds) if kind.lower() in ("list", "time")]
-    domains = [i for i, kind in enumerate(kinds) if kind.lower() in ("domain", "space")]
-    other = [kind for kind in kinds if kind.lower() not in ("list", "time", "domain", "space")]
-    if other or len(lists) > 1 or len(domains) < 2:
-        raise UltronInputError(
-            path,
-            kinds_field,
-            f"axes {kinds} are not 2D frames: expected two spatial axes and at most one frame"
-            " list (no vector or colour axis)",
-        )
-    thick = [sizes[i] for i in domains[2:] if sizes[i] != 1]
-    if thick:
-        raise UltronInputError(
-            path, size_field, f"frames are 3D ({sizes}); only 2D frames can be imported"
-        )
-    return domains[0], domains[1], (lists[0] if lists else None)
-
-
-def _placeholder(sizes: list[int], axes: tuple[int, int, int | None], dtype) -> np.ndarray:
-    """A read-only all-zero (N, H, W) view of no memory: a header-only read's ``pixels``."""
-    x_axis, y_axis, list_axis = axes
-    n = sizes[list_axis] if list_axis is not None else 1
-    return np.broadcast_to(np.zeros((), dtype=dtype), (n, sizes[y_axis], sizes[x_axis]))
-
-
-def _arrange_frames(flat: np.ndarray, sizes: list[int], axes: tuple[int, int, int | None]):
-    """Raw values (fastest axis first in the file) → (N, H, W)."""
-    x_axis, y_axis, list_axis = axes
-    nd = len(sizes)
-    array = flat.reshape(sizes[::-1])
-    order = [nd - 1 - a for a in (list_axis, y_axis, x_axis) if a is not None]
-    rest = [k for k in range(nd) if k not in order]
-    array = array.transpose(order + rest)
-    n = sizes[list_axis] if list_axis is not None else 1
-    return np.ascontiguousarray(array.reshape(n, sizes[y_axis], sizes[x_axis]))
 
 
 # --------------------------------------------------------------------------- MetaImage
@@ -275,7 +156,7 @@ def read_metaimage_header(path: Path) -> tuple[dict[str, str], int]:
 
 
 def _int_list(fields: Mapping[str, str], name: str, path: Path) -> list[int] | None:
-    value = _lookup(fields, name)
+    value = lookup_field(fields, name)
     if value is None:
         return None
     try:
@@ -296,27 +177,27 @@ def _metaimage_layout(
     ndims = _int_list(fields, "NDims", path)
     if ndims is not None and ndims != [len(sizes)]:
         raise UltronInputError(path, "DimSize", f"has {len(sizes)} sizes but NDims is {ndims}")
-    element = (_lookup(fields, "ElementType") or "").upper()
+    element = (lookup_field(fields, "ElementType") or "").upper()
     if element != "MET_UCHAR" and not (labelmap and element in _LABELMAP_METAIMAGE):
         labelmap_types = "MET_UCHAR, MET_CHAR, MET_USHORT or MET_SHORT (a labelmap)"
         expected = labelmap_types if labelmap else "MET_UCHAR (8-bit B-mode)"
         raise UltronInputError(path, "ElementType", f"{element or 'missing'}; expected {expected}")
-    msb = (_lookup(fields, "BinaryDataByteOrderMSB") or "False").lower() == "true"
+    msb = (lookup_field(fields, "BinaryDataByteOrderMSB") or "False").lower() == "true"
     dtype = np.dtype(_LABELMAP_METAIMAGE[element]).newbyteorder(">" if msb else "<")
-    channels = _lookup(fields, "ElementNumberOfChannels")
+    channels = lookup_field(fields, "ElementNumberOfChannels")
     if channels not in (None, "1"):
         raise UltronInputError(
             path, "ElementNumberOfChannels", f"{channels}; expected 1 (grey B-mode)"
         )
-    if (_lookup(fields, "BinaryData") or "True").lower() != "true":
+    if (lookup_field(fields, "BinaryData") or "True").lower() != "true":
         raise UltronInputError(path, "BinaryData", "only binary pixel data can be read")
-    kinds = _lookup(fields, "Kinds")
-    axes = _frame_axes(sizes, kinds.split() if kinds else None, path, "DimSize", "Kinds")
+    kinds = lookup_field(fields, "Kinds")
+    axes = frame_axes(sizes, kinds.split() if kinds else None, path, "DimSize", "Kinds")
     return sizes, axes, dtype
 
 
 def _payload_source(fields: Mapping[str, str], path: Path, offset: int) -> tuple[Path, int]:
-    data_file = _lookup(fields, "ElementDataFile") or ""
+    data_file = lookup_field(fields, "ElementDataFile") or ""
     if data_file.upper() == "LOCAL":
         return path, offset
     if data_file.upper() == "LIST" or "%" in data_file or not data_file:
@@ -355,7 +236,7 @@ def _read_metaimage_payload(
     fields: Mapping[str, str], path: Path, offset: int, n_bytes: int
 ) -> np.ndarray:
     source, start = _payload_source(fields, path, offset)
-    compressed = (_lookup(fields, "CompressedData") or "False").lower() == "true"
+    compressed = (lookup_field(fields, "CompressedData") or "False").lower() == "true"
     held = source.stat().st_size - start
     if not compressed and held != n_bytes:
         problem = "truncated payload" if held < n_bytes else "payload longer than DimSize"
@@ -368,7 +249,7 @@ def _read_metaimage_payload(
         handle.seek(start)
         if not compressed:
             return np.frombuffer(handle.read(n_bytes), dtype=np.uint8)
-        size = _lookup(fields, "CompressedDataSize")
+        size = lookup_field(fields, "CompressedDataSize")
         limit = -1
         if size is not None:
             if not size.strip().isdigit():
@@ -384,20 +265,6 @@ def _read_metaimage_payload(
     return np.frombuffer(_inflate(blob, n_bytes, path), dtype=np.uint8)
 
 
-def _orientation(plain: Mapping[str, str], default: str | None, path: Path, field: str) -> str:
-    """The file's ``UltrasoundImageOrientation``, else ``default`` (None: it is required, and
-    its absence an error saying how to give it, as a volume sequence saved by Slicer lacks it)."""
-    orientation = _lookup(plain, "UltrasoundImageOrientation")
-    if orientation is None and default is None:
-        raise UltronInputError(
-            path, field, f"missing; expected one of {', '.join(sorted(ORIENTATION_FLIPS))};"
-            " give the frames' orientation with --orientation",
-        )  # fmt: skip
-    orientation = default if orientation is None else orientation
-    orientation_flips(orientation, path, field)
-    return str(orientation)
-
-
 def _read_metaimage(
     path: Path,
     default_orientation: str | None = None,
@@ -407,14 +274,16 @@ def _read_metaimage(
     fields, offset = read_metaimage_header(path)
     sizes, axes, dtype = _metaimage_layout(fields, path, labelmap)
     n_frames = sizes[axes[2]] if axes[2] is not None else 1
-    plain, frames = _split_frame_fields(fields, n_frames, path, "DimSize")
-    orientation = _orientation(plain, default_orientation, path, "UltrasoundImageOrientation")
+    plain, frames = split_frame_fields(fields, n_frames, path, "DimSize")
+    orientation = sequence_orientation(
+        plain, default_orientation, path, "UltrasoundImageOrientation"
+    )
     if header_only:
-        pixels = _placeholder(sizes, axes, dtype)
+        pixels = placeholder_pixels(sizes, axes, dtype)
         return SequenceFile(path, pixels, orientation, plain, frames, "DimSize")
     payload = _read_metaimage_payload(plain, path, offset, math.prod(sizes) * dtype.itemsize)
     flat = payload.view(dtype).astype(dtype.newbyteorder("="), copy=False)  # B-mode: no copy
-    pixels = _arrange_frames(flat, sizes, axes)
+    pixels = arrange_frames(flat, sizes, axes)
     return SequenceFile(path, pixels, orientation, plain, frames, "DimSize")
 
 

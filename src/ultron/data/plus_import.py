@@ -38,7 +38,7 @@ from typing import Any
 import numpy as np
 
 from ultron.data.dataset import ProbeGeometry, Sweep
-from ultron.data.plus import SequenceFile, read_sequence
+from ultron.data.plus import read_sequence
 from ultron.data.plus_config import PlusConfig, read_config
 from ultron.data.plus_geometry import (
     RESAMPLE_RESIDUAL_MM,
@@ -51,6 +51,7 @@ from ultron.data.plus_geometry import (
 from ultron.data.plus_orientation import orientation_flips
 from ultron.data.plus_poses import Placement, WorldPoses, placement
 from ultron.data.resolution import signal_columns
+from ultron.data.sequence_frames import SequenceFile
 from ultron.errors import UltronInputError, argument_error
 
 

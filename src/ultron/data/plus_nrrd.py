@@ -1,7 +1,7 @@
 """Reading a PLUS / Slicer sequence stored as NRRD (``.nrrd``/``.nhdr``, ``.igs.nrrd``,
 ``.seq.nrrd``) with pynrrd, which returns the per-frame ``key:=value`` fields as strings and
 decodes raw and gzip payloads (also detached data files). The frame layout, the per-frame
-fields and the orientation are interpreted as for MetaImage, by :mod:`ultron.data.plus`;
+fields and the orientation are interpreted as for MetaImage, by :mod:`ultron.data.sequence_frames`;
 :func:`ultron.data.plus.read_sequence` is the public entry point.
 
 Every problem is an :class:`~ultron.errors.UltronInputError` naming the file and the field.
@@ -15,13 +15,13 @@ from pathlib import Path
 
 import numpy as np
 
-from ultron.data.plus import (
+from ultron.data.sequence_frames import (
     SequenceFile,
-    _arrange_frames,
-    _frame_axes,
-    _orientation,
-    _placeholder,
-    _split_frame_fields,
+    arrange_frames,
+    frame_axes,
+    placeholder_pixels,
+    sequence_orientation,
+    split_frame_fields,
 )
 from ultron.data.validation import contained_path
 from ultron.errors import UltronInputError
@@ -76,16 +76,16 @@ def read_nrrd_sequence(
         if not sizes or min(sizes) < 1:
             raise UltronInputError(path, "sizes", f"expected positive sizes, got {sizes}")
         kinds = header.get("kinds")
-        axes = _frame_axes(
-            sizes, [str(k) for k in kinds] if kinds else None, path, "sizes", "kinds"
-        )
+        axes = frame_axes(sizes, [str(k) for k in kinds] if kinds else None, path, "sizes", "kinds")
         n_frames = sizes[axes[2]] if axes[2] is not None else 1
         text = {str(k): str(v) for k, v in header.items()}
-        plain, frames = _split_frame_fields(text, n_frames, path, "sizes")
-        orientation = _orientation(plain, default_orientation, path, "ultrasound image orientation")
+        plain, frames = split_frame_fields(text, n_frames, path, "sizes")
+        orientation = sequence_orientation(
+            plain, default_orientation, path, "ultrasound image orientation"
+        )
         dtype = np.dtype(_LABELMAP_NRRD[str(header["type"]).lower()] if labelmap else np.uint8)
         if header_only:
-            pixels = _placeholder(sizes, axes, dtype)
+            pixels = placeholder_pixels(sizes, axes, dtype)
             return SequenceFile(path, pixels, orientation, plain, frames, "sizes")
         try:
             data = nrrd.read_data(header, handle, str(path), index_order="F")
@@ -96,5 +96,5 @@ def read_nrrd_sequence(
         raise UltronInputError(
             path, "data", f"truncated payload: {flat.size} of {math.prod(sizes)} values"
         )
-    pixels = _arrange_frames(flat, sizes, axes)
+    pixels = arrange_frames(flat, sizes, axes)
     return SequenceFile(path, pixels, orientation, plain, frames, "sizes")

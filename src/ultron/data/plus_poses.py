@@ -15,9 +15,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ultron.data.plus import IMAGE_STATUS_FIELDS, STATUS_OK, SequenceFile, parse_matrix
+from ultron.data.plus import IMAGE_STATUS_FIELDS, STATUS_OK, parse_matrix
 from ultron.data.plus_config import PlusConfig
 from ultron.data.plus_geometry import factor_image_to_world
+from ultron.data.sequence_frames import SequenceFile
 from ultron.data.validation import ROTATION_TOLERANCE, pose_errors
 from ultron.errors import UltronInputError
 

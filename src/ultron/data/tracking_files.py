@@ -30,13 +30,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ultron.data.plus import (
-    FRAME_FIELD,
-    STATUS_OK,
-    SequenceFile,
-    parse_matrix,
-    read_metaimage_header,
-)
+from ultron.data.plus import STATUS_OK, parse_matrix, read_metaimage_header
+from ultron.data.sequence_frames import FRAME_FIELD, SequenceFile
 from ultron.data.validation import input_file
 from ultron.errors import UltronInputError
 
