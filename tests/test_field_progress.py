@@ -318,6 +318,21 @@ def test_stage_lines_print_each_tenth_once_a_gap_has_passed() -> None:
     assert slow == [f"slow: {k}/100 steps ({k} %)" for k in range(10, 101, 10)]
 
 
+def test_a_stage_progress_bar_prints_lines_into_a_log() -> None:
+    """Off a terminal (simulate, label --auto into a log) the bar is silent: each stage's start
+    is a line, named after the work; a closing report starts nothing."""
+    from ultron.cli.common import console, stage_progress
+
+    assert not console.is_terminal
+    with console.capture() as captured:
+        with stage_progress("labelling", unit="frames") as report:
+            report("row", 0, 10)
+            report("row", 5, 10)
+            report("column", 0, 3)
+            report("done", 3, 3)
+    assert captured.get().splitlines() == ["labelling row …", "labelling column …"]
+
+
 def test_stage_timer_tells_the_running_stage() -> None:
     from ultron.timing import StageTimer
 

@@ -176,6 +176,10 @@ def test_finetune_cli_writes_reconstruct_outputs(shapes, tmp_path):
     assert run["finetune_config"]["iters"] == 5 and run["n_label_frames"] == 3
     assert run["transmission_source"] == "field"  # the model's own source
     assert Path(run["model_dir"]) == shapes["model"].resolve()
+    stages = [s for s in run["timings_s"] if s != "total"]  # each printed as it starts and ends
+    lines = result.output.splitlines()
+    for stage in stages:
+        assert f"{stage} …" in lines and any(t.startswith(f"{stage}: ") for t in lines), stage
 
 
 def test_finetune_rejects_wrong_models(shapes, tmp_path):

@@ -253,7 +253,21 @@ def stage_progress(
     first: str, unit: str = "", width: int = 18
 ) -> Iterator[Callable[[str, int, int], None]]:
     """A transient progress bar; yields ``report(stage, done, total)`` for a library's
-    ``progress`` callback (the bar shows the stage's name and ``done/total unit``)."""
+    ``progress`` callback (the bar shows the stage's name and ``done/total unit``). Off a
+    terminal (a log), where the bar stays silent, a line as each stage starts (``first``
+    and the stage's name) and one as it passes each tenth of its work once 5 s have passed
+    (:class:`StageLines`) instead."""
+    if not console.is_terminal:
+        lines, current = StageLines(), [None]
+
+        def logged(stage: str, done: int, total: int) -> None:
+            if stage != current[0] and not 0 < total <= done:  # not the closing report
+                current[0] = stage
+                lines(f"{first} {stage}", None)
+            lines.advance(f"{first} {stage}", done, total, unit)
+
+        yield logged
+        return
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
     counter = "{task.completed}/{task.total}" + (f" {unit}" if unit else "")

@@ -226,6 +226,7 @@ def finetune(
         device=device,
     )
     field_config = preset_field_config("fast", seed, field_iters)
+    lines = StageLines()
     with _field_progress() as update:
         summary = run(
             model_dir,
@@ -238,6 +239,8 @@ def finetune(
             allow_other_field=allow_other_field,
             max_memory_gib=max_memory,
             warn=warning_line,
+            announce=lines,
+            advance=lines.advance,
         )
     name = f"fine-tuned ({label_fraction:g}, {iters} iter)" if iters else "w/o fine-tuning"
     _print_summary({name: summary})

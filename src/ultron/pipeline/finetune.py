@@ -19,7 +19,7 @@ from ultron.methods.catalog import FINETUNE_METHOD
 from ultron.methods.finetune import FinetuneConfig, check_theta_model, finetune_ultron
 from ultron.pipeline.model_io import NETWORK_FILE, load_network
 from ultron.pipeline.run import load_or_fit_field, prepare_run, write_outputs
-from ultron.timing import StageTimer
+from ultron.timing import Advance, Announce, StageTimer
 from ultron.train.field_fit import FieldTrainConfig
 from ultron.train.loop import Progress
 from ultron.train.visibility import VisibilityConfig, load_oracle_truth
@@ -37,6 +37,8 @@ def finetune(
     allow_other_field: bool = False,
     max_memory_gib: float | None = None,
     warn: Callable[[str], None] | None = None,
+    announce: Announce | None = None,
+    advance: Advance | None = None,
 ) -> dict[str, Any]:
     """Check everything cheap as ``reconstruct`` does (:func:`~ultron.pipeline.run.prepare_run`;
     DIR must be new, empty or an earlier ``finetune`` run), load MODEL_DIR's network and the
@@ -45,8 +47,10 @@ def finetune(
 
     A given ``field_dir`` must have been fitted on the new dataset unless
     ``allow_other_field`` (see :func:`~ultron.pipeline.run.load_or_fit_field`); ``warn`` is
-    told the label selection's warnings (:func:`~ultron.data.labels.selection_warnings`)."""
-    timer = StageTimer()
+    told the label selection's warnings (:func:`~ultron.data.labels.selection_warnings`);
+    ``announce`` and ``advance`` the stages and how far a long one has come, as
+    :func:`~ultron.pipeline.run.reconstruct` tells them."""
+    timer = StageTimer(announce=announce, advance=advance)
     where = str(Path(model_dir) / NETWORK_FILE)
     to_fit = (field_config or FieldTrainConfig()) if field_dir is None else None
     with timer.stage("load"):

@@ -404,7 +404,9 @@ def fit_field(
     fitted on the same dataset (field.json's ``dataset_sha256``, when recorded, equals
     :meth:`SweepDataset.content_hash`) with the same configuration (the check / checkpoint /
     log intervals may differ, and ``iterations`` may, but not below the checkpoint's step);
-    otherwise an :class:`UltronInputError` naming field.json. Without ``resume``, or without
+    otherwise an :class:`UltronInputError` naming field.json; a fit that ran to its end at
+    ``config.iterations`` (its :data:`~ultron.models.field_dir.FIT_DONE` marker, written last)
+    is loaded, its frames not prepared again. Without ``resume``, or without
     a checkpoint, the run starts afresh and first removes a previous fit's files from
     ``out_dir``. A save (every ``checkpoint_every`` steps and at the last) writes
     train_log.jsonl, then checkpoint.pt, then field.json; a resumed run keeps the log's
