@@ -126,7 +126,10 @@ def extract_surface_single_grid(
 def _check_occupied(n_inside: int, n_voxels: int, threshold: float, max_value: float) -> None:
     if n_inside == 0:
         raise NoSurfaceError(
-            f"no surface: no voxel has occupancy ≥ {threshold} (max {max_value:.3f})"
+            f"no surface: no voxel has occupancy ≥ {threshold} (max {max_value:.3f}); a learned"
+            " method's fit was too short or saw too little bone: more labelled frames"
+            " (--label-fraction), more steps (--occupancy-iters, --field-iters) or a field fitted"
+            " longer may reach it"
         )
     if n_inside == n_voxels:
         raise NoSurfaceError(
