@@ -32,7 +32,7 @@ from ultron.data.validation import (
     validate_positive,
 )
 from ultron.errors import UltronInputError, argument_error
-from ultron.outputs import check_dataset_out, check_output_dir
+from ultron.outputs import check_dataset_out
 
 #: Largest rotation-block deviation the importer repairs (above it a pose is refused).
 DEFAULT_ORTHONORMALIZE_TOLERANCE = 0.05
@@ -285,7 +285,7 @@ def add_sweep_to_dataset(
     import's provenance) is kept in ``dataset.json``'s metadata under ``"imports"`` → sweep
     name; a replaced sweep's earlier entry is dropped.
     """
-    out = check_output_dir(out, "out")
+    out = check_dataset_out(out, "out")  # new, empty or a dataset: not a folder of other files
     if (out / "dataset.json").exists():
         dataset = SweepDataset.load(out)
         same = (
@@ -319,7 +319,6 @@ def add_sweep_to_dataset(
         )
         dataset.save(out, only_sweeps=[sweep.name])
         return dataset
-    check_dataset_out(out, "out")  # not empty: a folder of other files
     metadata = _with_import({}, sweep.name, sweep_metadata)
     dataset = SweepDataset(probe=probe, sweeps=[sweep], metadata=metadata)
     dataset.save(out)

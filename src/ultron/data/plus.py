@@ -39,10 +39,9 @@ from ultron.data.sequence_frames import (
     SequenceFile,
     arrange_frames,
     frame_axes,
+    header_fields,
     lookup_field,
     placeholder_pixels,
-    sequence_orientation,
-    split_frame_fields,
 )
 from ultron.data.validation import contained_path, input_file
 from ultron.errors import UltronInputError
@@ -273,10 +272,8 @@ def _read_metaimage(
 ) -> SequenceFile:
     fields, offset = read_metaimage_header(path)
     sizes, axes, dtype = _metaimage_layout(fields, path, labelmap)
-    n_frames = sizes[axes[2]] if axes[2] is not None else 1
-    plain, frames = split_frame_fields(fields, n_frames, path, "DimSize")
-    orientation = sequence_orientation(
-        plain, default_orientation, path, "UltrasoundImageOrientation"
+    plain, frames, orientation = header_fields(
+        fields, sizes, axes, default_orientation, path, "DimSize", "UltrasoundImageOrientation"
     )
     if header_only:
         pixels = placeholder_pixels(sizes, axes, dtype)

@@ -19,9 +19,8 @@ from ultron.data.sequence_frames import (
     SequenceFile,
     arrange_frames,
     frame_axes,
+    header_fields,
     placeholder_pixels,
-    sequence_orientation,
-    split_frame_fields,
 )
 from ultron.data.validation import contained_path
 from ultron.errors import UltronInputError
@@ -77,11 +76,9 @@ def read_nrrd_sequence(
             raise UltronInputError(path, "sizes", f"expected positive sizes, got {sizes}")
         kinds = header.get("kinds")
         axes = frame_axes(sizes, [str(k) for k in kinds] if kinds else None, path, "sizes", "kinds")
-        n_frames = sizes[axes[2]] if axes[2] is not None else 1
         text = {str(k): str(v) for k, v in header.items()}
-        plain, frames = split_frame_fields(text, n_frames, path, "sizes")
-        orientation = sequence_orientation(
-            plain, default_orientation, path, "ultrasound image orientation"
+        plain, frames, orientation = header_fields(
+            text, sizes, axes, default_orientation, path, "sizes", "ultrasound image orientation"
         )
         dtype = np.dtype(_LABELMAP_NRRD[str(header["type"]).lower()] if labelmap else np.uint8)
         if header_only:

@@ -164,3 +164,21 @@ def sequence_orientation(
     orientation = default if orientation is None else orientation
     orientation_flips(orientation, path, field)
     return str(orientation)
+
+
+def header_fields(
+    fields: Mapping[str, str],
+    sizes: list[int],
+    axes: tuple[int, int, int | None],
+    default_orientation: str | None,
+    path: Path,
+    size_field: str,
+    orientation_field: str,
+) -> tuple[dict[str, str], tuple[dict[str, str], ...], str]:
+    """A header's (non-frame fields, per-frame fields, orientation) for frames laid out as
+    ``sizes`` / ``axes`` (:func:`frame_axes`): :func:`split_frame_fields` over the frame count
+    and :func:`sequence_orientation`, as every format's reader needs them."""
+    n_frames = sizes[axes[2]] if axes[2] is not None else 1
+    plain, frames = split_frame_fields(fields, n_frames, path, size_field)
+    orientation = sequence_orientation(plain, default_orientation, path, orientation_field)
+    return plain, frames, orientation

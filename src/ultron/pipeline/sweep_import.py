@@ -28,7 +28,7 @@ from ultron.data.plus import sequence_stem
 from ultron.data.plus_import import PlusImportReport, read_plus
 from ultron.data.plus_orientation import orientation_flips
 from ultron.errors import argument_error
-from ultron.outputs import check_output_dir
+from ultron.outputs import check_dataset_out
 
 #: The reader's report: :class:`ImportReport` (Ultra-NeRF) or :class:`PlusImportReport`.
 ReportT = TypeVar("ReportT", ImportReport, PlusImportReport)
@@ -147,7 +147,7 @@ def import_ultranerf_sweep(
             repaired (nearest rotation), in [0, 1).
         replace: Replace an existing sweep of the same name.
     """
-    check_output_dir(out)
+    check_dataset_out(out)  # before the frames are read
     name = sweep_name or safe_sweep_name(src)
     sweep, probe, report = read_ultranerf(
         src, width_mm, depth_mm, name, kind, orthonormalize_tolerance
@@ -201,7 +201,7 @@ def import_plus_sweep(
         raise argument_error("--kind", f"{kind!r} is not one of {', '.join(SWEEP_KINDS)}")
     if orientation is not None:  # checked when given, also where the file records its own
         orientation_flips(orientation, "argument", "--orientation")
-    check_output_dir(out)
+    check_dataset_out(out)  # before the recording is read
     name = sweep_name or safe_sweep_name(sequence_stem(sequence))
     sweep, probe, report = read_plus(
         sequence, config, to=to, name=name, kind=kind, downsample=downsample,
