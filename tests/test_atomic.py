@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import fcntl
 import os
+import shutil
 import stat
 import subprocess
 import sys
@@ -105,28 +106,35 @@ def test_stale_temporary_files_of_the_target_are_removed(tmp_path: Path) -> None
     ]
     for path in kept[2:]:
         age(path, 3600)
-    (tmp_path / ".field.json.dir45678.tmp").mkdir()  # only regular files are removed
-    age(tmp_path / ".field.json.dir45678.tmp", 3600)
+    staging = tmp_path / ".field.json.dir45678.tmp"  # a killed staged_directory's, unlocked
+    staging.mkdir()
+    (staging / "half.npy").write_bytes(b"partial")
+    age(staging, 3600)
     with open(locked, "rb") as handle:
         fcntl.flock(handle, fcntl.LOCK_EX)  # a live writer's file, however old
         atomic.write_json(target, {"ok": 1})
     assert target.is_file() and not stale.exists()
     assert all(path.exists() for path in kept)
-    assert (tmp_path / ".field.json.dir45678.tmp").is_dir()
+    assert not staging.exists()
+
+
+def killed_mid_write(block: str, target: Path) -> None:
+    """Run ``block`` (a ``with`` statement of :mod:`ultron.atomic` writing ``sys.argv[1]``)
+    in a new process with ``target`` as its argument, SIGKILLed inside the block."""
+    code = "import os, signal, sys\nfrom ultron import atomic\n" + block
+    code += "    os.kill(os.getpid(), signal.SIGKILL)\n"
+    result = subprocess.run([sys.executable, "-c", code, str(target)], check=False)
+    assert result.returncode == -9
 
 
 def test_orphan_of_a_killed_writer_is_removed_on_the_next_write(tmp_path: Path) -> None:
     target = tmp_path / "checkpoint.pt"
-    code = (
-        "import os, signal, sys\n"
-        "from ultron import atomic\n"
+    killed_mid_write(
         "with atomic.atomic_open(sys.argv[1]) as handle:\n"
         "    handle.write(b'half a checkpoint')\n"
-        "    handle.flush()\n"
-        "    os.kill(os.getpid(), signal.SIGKILL)\n"
+        "    handle.flush()\n",
+        target,
     )
-    result = subprocess.run([sys.executable, "-c", code, str(target)], check=False)
-    assert result.returncode == -9
     orphans = list(tmp_path.glob(".checkpoint.pt.*.tmp"))
     assert len(orphans) == 1 and not target.exists()
     atomic.write_bytes(target, b"new")  # too young to be called stale: kept
@@ -134,6 +142,33 @@ def test_orphan_of_a_killed_writer_is_removed_on_the_next_write(tmp_path: Path) 
     age(orphans[0], atomic.STALE_AFTER_S + 5)
     atomic.write_bytes(target, b"newer")
     assert not orphans[0].exists() and target.read_bytes() == b"newer"
+
+
+def test_the_staging_directory_of_a_killed_writer_is_removed_and_a_live_ones_kept(
+    tmp_path: Path,
+) -> None:
+    """``simulate`` killed mid-write leaves ``.OUT.XXXXXXXX.tmp/``; the next staged write of
+    ``OUT`` removes it once stale, while a live writer's (locked) staging is never touched."""
+    out = tmp_path / "sim"
+    killed_mid_write(
+        "with atomic.staged_directory(sys.argv[1]) as staging:\n"
+        "    (staging / 'frames.npy').write_bytes(b'half a sweep')\n",
+        out,
+    )
+    (orphan,) = tmp_path.glob(".sim.*.tmp")
+    assert orphan.is_dir() and not out.exists()
+    with atomic.staged_directory(tmp_path / "sim2") as live:
+        age(live, atomic.STALE_AFTER_S + 5)
+        assert atomic.remove_stale_temps(tmp_path / "sim2") == []  # locked by this writer
+    with atomic.staged_directory(out) as staging:  # too young to be called stale: kept
+        (staging / "a").write_bytes(b"1")
+    assert orphan.is_dir()
+    shutil.rmtree(out)
+    age(orphan, atomic.STALE_AFTER_S + 5)
+    with atomic.staged_directory(out) as staging:
+        (staging / "a").write_bytes(b"2")
+    assert not orphan.exists() and (out / "a").read_bytes() == b"2"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["sim", "sim2"]
 
 
 def test_failed_write_leaves_no_temporary_file(tmp_path: Path) -> None:

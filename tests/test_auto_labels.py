@@ -316,6 +316,68 @@ def test_cli_labels_a_sweep_without_labels(phantom_copy: Path):
     assert SweepDataset.load(phantom_copy).sweep("column").labels is not None
 
 
+def _interrupt_on(monkeypatch: pytest.MonkeyPatch, name: str, call: int) -> None:
+    """Make the ``call``-th call (from 1) of auto_label_dataset's ``name`` raise Ctrl-C."""
+    import ultron.data.auto_label_dataset as module
+
+    original, calls = getattr(module, name), []
+
+    def interrupted(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == call:
+            raise KeyboardInterrupt
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(module, name, interrupted)
+
+
+@pytest.mark.parametrize(
+    ("name", "call", "written"),
+    [("save_dataset_json", 1, False), ("save_dataset_json", 2, True)],
+    ids=["before-the-labels", "before-the-last-dataset-json"],
+)
+def test_an_interrupted_label_auto_tells_the_truth_and_its_rerun_resumes(
+    phantom_copy: Path, monkeypatch: pytest.MonkeyPatch, name: str, call: int, written: bool
+):
+    """Ctrl-C anywhere in ``label --auto``'s writes leaves labels whose record is true (the
+    new labels recorded as automatic, or the old ones as they were), and the same command run
+    again finishes the job (once the new labels are written, without ``--replace`` too)."""
+    from ultron.data.label_import import label_sources
+
+    (phantom_copy / "column" / "labels.npy").unlink()
+    _interrupt_on(monkeypatch, name, call)
+    with pytest.raises(KeyboardInterrupt):
+        auto_label_dataset(phantom_copy, ["row", "column"], replace=True)
+    monkeypatch.undo()
+    data = SweepDataset.load(phantom_copy)
+    sources = label_sources(data)
+    assert sources == ({"row": "auto", "column": "auto"} if written else
+                       {"row": "given", "column": "none"})  # fmt: skip
+    # the rerun: the same command, or, once the new labels are written, one without --replace
+    auto_label_dataset(phantom_copy, ["row", "column"], replace=not written)
+    data = SweepDataset.load(phantom_copy)
+    assert label_sources(data) == {"row": "auto", "column": "auto"}
+    for sweep in data.sweeps:
+        assert np.array_equal(sweep.labels, auto_label_frames(sweep.images, data.probe)[0])
+
+
+def test_automatic_labels_of_other_settings_or_changed_labels_are_not_relabelled(
+    phantom_copy: Path,
+):
+    auto_label_dataset(phantom_copy, ["row"], replace=True)
+    other = AutoLabelConfig(bright=AutoLabelConfig().bright + 0.1)
+    with pytest.raises(UltronInputError, match="already has labels"):
+        auto_label_dataset(phantom_copy, ["row"], config=other)
+    # labels changed since (a person edited them): the record no longer describes them
+    data = SweepDataset.load(phantom_copy)
+    edited = data.sweep("row").labels.copy()
+    edited[0, 0, 0] = 1 - min(int(edited[0, 0, 0]), 1)
+    np.save(phantom_copy / "row" / "labels.npy", edited)
+    assert auto_label_records(SweepDataset.load(phantom_copy)) == {}
+    with pytest.raises(UltronInputError, match="already has labels"):
+        auto_label_dataset(phantom_copy, ["row"])
+
+
 @pytest.mark.parametrize(
     ("extra", "needle"),
     [

@@ -220,6 +220,38 @@ def test_an_interrupted_command_says_how_to_resume(
     assert "run the same command again to resume" in lines[0].lower()
 
 
+def test_an_interrupt_while_the_commands_load_is_one_line(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture
+) -> None:
+    """Ctrl-C while the console script imports typer and the commands (its first ≈ 0.2 s)
+    is the same line and exit code as one during a command, not an import traceback."""
+    import sys
+
+    import ultron.__main__ as entry
+    import ultron.cli as cli
+
+    class InterruptedImport:
+        def find_spec(self, name, path=None, target=None):
+            if name == "ultron.cli.main":
+                raise KeyboardInterrupt
+            return None
+
+    monkeypatch.delitem(sys.modules, "ultron.cli.main", raising=False)
+    monkeypatch.setattr(sys, "meta_path", [InterruptedImport(), *sys.meta_path])
+    with pytest.raises(SystemExit) as caught:
+        entry.main()
+    assert caught.value.code == cli.EXIT_INTERRUPTED == 130
+    lines = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert lines == [f"error: {cli.INTERRUPTED}"]
+
+
+def test_the_console_script_is_the_interrupt_safe_entry_point() -> None:
+    from importlib.metadata import entry_points
+
+    (script,) = [e for e in entry_points(group="console_scripts") if e.name == "ultron"]
+    assert script.value == "ultron.__main__:main"
+
+
 def _field_config(**changes):
     from ultron.train.field_config import FieldTrainConfig
 

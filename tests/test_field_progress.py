@@ -216,6 +216,38 @@ def test_render_warns_when_the_fit_did_not_finish(tmp_path: Path) -> None:
     assert result.exit_code == 0 and result.stderr.strip() == ""
 
 
+def test_reconstruct_refuses_an_unfinished_field_saying_how_to_finish_it(tmp_path: Path) -> None:
+    data = make_dataset()
+    labels = np.full(data.sweeps[0].images.shape, 255, dtype=np.uint8)
+    labels[:, :12], labels[:, 12] = 0, 1
+    data.sweeps[0].labels = labels
+    data.save(tmp_path / "d")
+
+    def interrupt(entry: dict) -> None:
+        if entry["step"] == 11:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        fit_field(data, quick_config(iterations=20), tmp_path / "f", progress=interrupt)
+    args = ["reconstruct", str(tmp_path / "d"), "--field", str(tmp_path / "f")]
+    result = runner.invoke(app, [*args, "--out", str(tmp_path / "o")])
+    assert result.exit_code == 2, result.output
+    one_line(result, "stderr", "error: ", "f/field.json", "step 10 of 20", "run `ultron fit-field`")
+    assert not (tmp_path / "o").exists()
+
+
+def test_fit_field_says_when_it_resumed_and_from_which_step(tmp_path: Path) -> None:
+    make_dataset().save(tmp_path / "d")
+    base = ["fit-field", str(tmp_path / "d"), "--out", str(tmp_path / "f"), "--holdout-every", "0"]
+    first = runner.invoke(app, [*base, "--iters", "4"])
+    assert first.exit_code == 0 and "resumed" not in first.stdout
+    more = runner.invoke(app, [*base, "--iters", "6"])
+    assert more.exit_code == 0, more.output
+    assert f"resumed the fit in {tmp_path / 'f'} from its checkpoint at step 4 of 6" in more.stdout
+    again = runner.invoke(app, [*base, "--iters", "6"])
+    assert again.exit_code == 0 and "had finished its 6 steps; loaded it" in again.stdout
+
+
 def test_fit_progress_of_older_checkpoints() -> None:
     # a checkpoint without "iterations" (from before it was saved): field.json's total
     assert fit_progress({"train": {"iterations": 20}}, {"step": 10}) == FitProgress(10, 20)

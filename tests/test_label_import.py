@@ -130,6 +130,42 @@ def test_masks_replace_automatic_labels_and_drop_their_record(own_frames: Path, 
     assert int((data.sweep("s").labels == 1).sum()) == 6
 
 
+def test_masks_interrupted_before_the_last_write_are_still_called_masks(
+    own_frames: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+):
+    """Ctrl-C after the new labels are written, before ``dataset.json`` drops the sweep's
+    automatic-label record: the record no longer describes the labels, so the sweep's labels
+    are the masks'."""
+    import ultron.data.auto_label_dataset as module
+    from ultron.data.label_import import import_mask_labels, label_sources
+
+    meta_path = own_frames / "dataset.json"
+    meta = json.loads(meta_path.read_text())
+    meta.setdefault("metadata", {})["auto_labels"] = {"s": {"method": "x"}}
+    meta["sweeps"][0]["labels"] = "labels.npy"
+    np.save(own_frames / "s" / "labels.npy", np.full((5, 6, 8), 255, dtype=np.uint8))
+    meta_path.write_text(json.dumps(meta))
+    assert label_sources(SweepDataset.load(own_frames)) == {"s": "auto"}  # an old record
+    masks = np.zeros((5, 6, 8), dtype=np.uint8)
+    masks[2, 4, 1:7] = 1
+    np.save(tmp_path / "m.npy", masks)
+    original, calls = module.save_dataset_json, []
+
+    def interrupted(*args):
+        calls.append(1)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        original(*args)
+
+    monkeypatch.setattr(module, "save_dataset_json", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        import_mask_labels(own_frames, None, tmp_path / "m.npy", replace=True)
+    data = SweepDataset.load(own_frames)
+    assert "s" in data.metadata["auto_labels"]  # not yet dropped, but stale
+    assert label_sources(data) == {"s": "masks"}
+    assert int((data.sweep("s").labels == 1).sum()) == 6
+
+
 def _recording_with_an_echo(n: int = 5):
     """Frames of tissue with a bright band (the bone's echo) and a stripe, blank columns at both
     sides, frame 2 invalid; the masks mark band and stripe, in MF, on every frame of the file."""

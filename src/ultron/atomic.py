@@ -12,7 +12,8 @@ process killed mid-write (SIGKILL, out of memory, power loss) leaves it behind; 
 the same target removes such orphans (:func:`remove_stale_temps`): only files of exactly that
 pattern, unlocked and older than :data:`STALE_AFTER_S` (a live writer holds an ``flock`` on its
 temporary file from its first microseconds, so a concurrent write of the same target is never
-disturbed).
+disturbed). A directory written whole (:func:`staged_directory`, the simulator's and an
+importer's output) is staged in ``.<name>.XXXXXXXX.tmp/`` and cleaned up the same way.
 """
 
 from __future__ import annotations
@@ -77,33 +78,43 @@ def _temp_pattern(name: str) -> re.Pattern[str]:
 
 
 def remove_stale_temps(path: str | Path, older_than_s: float = STALE_AFTER_S) -> list[Path]:
-    """Remove orphaned temporary files of target ``path`` left by interrupted writes.
+    """Remove orphaned temporary files and staging directories of target ``path`` left by
+    interrupted writes.
 
-    Only regular files named exactly as :func:`atomic_open` names the temporary files of
-    ``path`` (``.<name>.XXXXXXXX.tmp``), last modified more than ``older_than_s`` ago and not
-    locked by a live writer, are removed. Returns the removed paths (nothing without ``fcntl``).
+    Only regular files and directories named exactly as :func:`atomic_open` and
+    :func:`staged_directory` name their temporaries of ``path`` (``.<name>.XXXXXXXX.tmp``),
+    last modified more than ``older_than_s`` ago and not locked by a live writer, are removed.
+    Returns the removed paths (nothing without ``fcntl``).
     """
     path = Path(path)
     if fcntl is None or not path.parent.is_dir():
         return []
     pattern = _temp_pattern(path.name)
-    removed = []
     with os.scandir(path.parent) as entries:
         candidates = [e for e in entries if pattern.fullmatch(e.name)]
-    for entry in candidates:
-        with contextlib.suppress(OSError):
-            if not entry.is_file(follow_symlinks=False):
-                continue
-            if time.time() - entry.stat(follow_symlinks=False).st_mtime <= older_than_s:
-                continue
-            fd = os.open(entry.path, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0))
-            try:
-                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)  # raises if a writer holds it
+    return [Path(e.path) for e in candidates if _remove_if_stale(e, older_than_s)]
+
+
+def _remove_if_stale(entry: os.DirEntry, older_than_s: float) -> bool:
+    """Remove the temporary file or staging directory ``entry`` if it is older than
+    ``older_than_s`` and no live writer holds its lock; whether it was removed."""
+    with contextlib.suppress(OSError):
+        folder = entry.is_dir(follow_symlinks=False)
+        if not (folder or entry.is_file(follow_symlinks=False)):
+            return False
+        if time.time() - entry.stat(follow_symlinks=False).st_mtime <= older_than_s:
+            return False
+        fd = os.open(entry.path, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0))
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)  # raises if a writer holds it
+            if folder:
+                shutil.rmtree(entry.path)
+            else:
                 os.unlink(entry.path)
-                removed.append(Path(entry.path))
-            finally:
-                os.close(fd)
-    return removed
+            return True
+        finally:
+            os.close(fd)
+    return False
 
 
 @contextlib.contextmanager
@@ -160,15 +171,21 @@ def atomic_open(path: str | Path) -> Iterator[BinaryIO]:
 @contextlib.contextmanager
 def staged_directory(path: str | Path) -> Iterator[Path]:
     """A new hidden sibling of ``path`` (mode ``0o777 & ~umask``, not mkdtemp's 0700) to
-    write a whole directory into, renamed to ``path`` on success and removed on any failure,
-    so ``path`` never holds half of it. ``path`` must not exist yet."""
+        write a whole directory into, renamed to ``path`` on success and removed on any failure,
+        so ``path`` never holds half of it. ``path`` must not exist yet. The writer holds an
+    ``flock`` on the staging directory, so that a later write of ``path`` removes the staging
+    directory of a killed one (:func:`remove_stale_temps`) and never a live one's."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    remove_stale_temps(path)
     with _naming(path):
         staging = Path(
             tempfile.mkdtemp(prefix=f".{path.name}.", suffix=_TEMP_SUFFIX, dir=path.parent)
         )
+    lock = os.open(staging, os.O_RDONLY)
     try:
+        if fcntl is not None:
+            fcntl.flock(lock, fcntl.LOCK_EX)  # released when closed (or we die)
         os.chmod(staging, directory_mode())
         yield staging
         staging.rename(path)
@@ -177,6 +194,8 @@ def staged_directory(path: str | Path) -> Iterator[Path]:
         if isinstance(exc, OSError):  # name the output the user asked for, not the staging
             exc.filename = staged_as_output(exc.filename, staging, path)
         raise
+    finally:
+        os.close(lock)
 
 
 def staged_as_output(filename: object, staging: Path, output: Path) -> object:

@@ -56,6 +56,7 @@ def label(
         replace: Overwrite the labels a sweep already has.
     """
     from ultron.data.auto_label_dataset import check_labelling, label_checked_sweeps
+    from ultron.data.auto_labels import AutoLabelConfig
     from ultron.errors import argument_error
 
     if auto + (masks is not None) + (export is not None) != 1:
@@ -71,7 +72,9 @@ def label(
                       annotated, orientation, frames)  # fmt: skip
         return
     # refused before the progress bar opens; the checked dataset is the one labelled
-    data, names = check_labelling(dataset, sweep_names(sweeps), replace, option="--sweeps")
+    data, names = check_labelling(
+        dataset, sweep_names(sweeps), replace, option="--sweeps", relabel=AutoLabelConfig()
+    )
     with stage_progress("labelling", unit="frames", width=24) as report:
         summaries = label_checked_sweeps(dataset, data, names, progress=report)
     for summary in summaries:

@@ -11,24 +11,19 @@ import typer
 
 from ultron import __version__
 from ultron.cli import (
+    EXIT_INTERRUPTED,
+    INTERRUPTED,
     benchmark_cmds,
     data_cmds,
     eval_cmds,
     field_cmds,
+    interrupted,
     label_cmds,
     phantom_cmds,
     reconstruct_cmds,
     volume_cmds,
 )
 from ultron.cli.common import EXIT_BAD_INPUT
-
-#: Exit code of an interrupted command (128 + SIGINT, as a shell reports one).
-EXIT_INTERRUPTED = 130
-#: The line an interrupted command prints.
-INTERRUPTED = (
-    "interrupted; nothing half-written. Run the same command again to resume: a field fit and"
-    " reconstruct's network fits continue from their last checkpoint"
-)
 
 #: Every command under its name, in the order ``ultron --help`` lists them: the demo, then a
 #: dataset's life.
@@ -86,6 +81,8 @@ def main() -> None:
     interpreter's exit then skips collecting torch's ≈ 10⁵ objects, 0.3 s of every command."""
     try:
         return _run()
+    except KeyboardInterrupt:  # while typer builds the commands, before it catches Ctrl-C
+        interrupted()
     finally:
         gc.freeze()
 

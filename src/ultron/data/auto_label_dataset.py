@@ -1,13 +1,19 @@
 """Write automatic bone labels (:mod:`ultron.data.auto_labels`) into a dataset's sweeps.
 
-:func:`auto_label_dataset` labels the chosen sweeps of a dataset directory and writes each
-sweep's ``labels.npy`` atomically, then ``dataset.json`` (labels first, ``dataset.json`` last,
-as :meth:`~ultron.data.dataset.SweepDataset.save` orders its writes), recording under
-``metadata.auto_labels.<sweep>`` that the sweep's labels are automatic::
+:func:`auto_label_dataset` labels the chosen sweeps of a dataset directory and records under
+``metadata.auto_labels.<sweep>`` of ``dataset.json`` that the sweep's labels are automatic::
 
     {"method": "ultron-auto-labels/2", "config": {...AutoLabelConfig...}, "frames": N,
      "shares": {"bone": …, "background": …, "unsure": …},
-     "frames_without_bone": …, "frames_to_check": [...]}
+     "frames_without_bone": …, "frames_to_check": [...], "labels_digest": "…"}
+
+``labels_digest`` (:func:`labels_digest`) ties a record to the labels it describes, so that
+every write is atomic and any interruption leaves a dataset that tells the truth: the records
+are written first (``dataset.json``), then each sweep's ``labels.npy``, then ``dataset.json``
+again without the sweeps' earlier mask records. A record whose digest is not that of the
+sweep's labels (the run was stopped before it wrote them) is stale and ignored
+(:func:`auto_label_records`), and a rerun of the same ``label --auto`` relabels the sweeps
+whose labels are automatic labels of the same settings without ``--replace``: it resumes.
 
 and writing, per sweep, ``auto_labels_quality.csv``: one row per frame (``frame``,
 ``bone_scanlines``: the share of its scanlines with a surface, ``evidence``: the mean bone
@@ -17,13 +23,15 @@ for a sweep imported from PLUS also ``recording_frame``: the frame's number in t
 file, as Slicer and ``label --export``'s masks number it), so that a user sees which frames to
 look at before trusting them.
 
-Existing labels — manual or automatic — are never overwritten unless ``replace`` is true.
+Existing labels — a person's, or automatic labels of other settings — are never overwritten
+unless ``replace`` is true.
 Everything that can be checked (sweep names, existing labels, writable folders) is checked
 before any frame is labelled, so a refused call writes nothing.
 """
 
 from __future__ import annotations
 
+import hashlib
 import math
 import os
 import shlex
@@ -186,13 +194,17 @@ def check_labelling(
     what: str = "automatic labels",
     one: str | None = None,
     min_frame_px: int = 3,
+    relabel: AutoLabelConfig | None = None,
 ) -> tuple[SweepDataset, list[str]]:
     """Load the dataset at ``root`` and check that the chosen ``sweeps`` (default: all) exist,
     have no labels unless ``replace``, and can be written; returns the dataset and the names.
     A sweep that already has labels is an error naming it, ``--replace`` and ``what`` would
     overwrite them; an unknown sweep one naming it and ``option`` (the argument that chose
     it); with ``one`` (the option that works on one sweep), other than one sweep chosen; frames
-    of fewer than ``min_frame_px`` rows or columns (the detector needs rows about an echo)."""
+    of fewer than ``min_frame_px`` rows or columns (the detector needs rows about an echo).
+    With ``relabel``, labels that are automatic labels of those settings (their record's
+    digest matching) count as no labels: labelling them again reproduces them, and the rerun
+    of an interrupted ``label --auto`` resumes without ``--replace``."""
     root = Path(root)
     dataset = SweepDataset.load(root)
     if min(dataset.probe.image_shape) < min_frame_px:
@@ -205,8 +217,9 @@ def check_labelling(
     if one is not None:
         names = [one_sweep(names, one)]
     if not replace:
+        same = _same_auto_labels(dataset, relabel)
         for name in names:
-            if dataset.sweep(name).labels is not None:
+            if dataset.sweep(name).labels is not None and name not in same:
                 raise UltronInputError(
                     root / name / "labels.npy",
                     "labels",
@@ -217,7 +230,37 @@ def check_labelling(
     return dataset, names
 
 
-def _record(config: AutoLabelConfig, summary: SweepLabelSummary) -> dict[str, Any]:
+def _same_auto_labels(dataset: SweepDataset, config: AutoLabelConfig | None) -> set[str]:
+    """The sweeps whose labels are automatic labels of ``config`` (none without one)."""
+    if config is None:
+        return set()
+    wanted = config.to_dict()
+    records = auto_label_records(dataset).items()
+    return {name for name, record in records if record.get("config") == wanted}
+
+
+def labels_digest(labels: np.ndarray) -> str:
+    """A digest of a sweep's label array (its shape, dtype and bytes): BLAKE2b, 16 bytes, hex.
+    ``dataset.json``'s label records carry it, so that a record names the labels it was
+    written with (module docstring)."""
+    labels = np.ascontiguousarray(labels)
+    digest = hashlib.blake2b(f"{labels.shape}{labels.dtype.str}".encode(), digest_size=16)
+    digest.update(memoryview(labels).cast("B"))
+    return digest.hexdigest()
+
+
+def record_matches(record: dict[str, Any], labels: np.ndarray | None) -> bool:
+    """Whether a label record describes ``labels``: there are labels, and the record's
+    ``labels_digest`` is theirs (a record written before digests existed matches any)."""
+    if labels is None:
+        return False
+    digest = record.get("labels_digest")
+    return digest is None or digest == labels_digest(labels)
+
+
+def _record(
+    config: AutoLabelConfig, summary: SweepLabelSummary, labels: np.ndarray
+) -> dict[str, Any]:
     return {
         "method": AUTO_LABELS_METHOD,
         "config": config.to_dict(),
@@ -226,6 +269,7 @@ def _record(config: AutoLabelConfig, summary: SweepLabelSummary) -> dict[str, An
         "frames_without_bone": summary.frames_without_bone,
         "frames_to_check": list(summary.frames_to_check[:MAX_LISTED]),
         "quality": QUALITY_FILE,
+        "labels_digest": labels_digest(labels),
     }
 
 
@@ -241,7 +285,7 @@ def auto_label_dataset(
     every sweep is labelled first, then the labels are written, ``dataset.json`` last. Returns
     one summary per sweep, in the order given."""
     _checked_config(config)
-    dataset, names = check_labelling(root, sweeps, replace)
+    dataset, names = check_labelling(root, sweeps, replace, relabel=_checked_config(config))
     return label_checked_sweeps(root, dataset, names, config, progress)
 
 
@@ -285,18 +329,44 @@ def label_checked_sweeps(
         )
         summaries.append(summary)
     records = dict(dataset.metadata.get(METADATA_KEY) or {})
-    # a sweep labelled automatically now no longer holds a person's masks
-    dataset.metadata = without_sweeps(dataset.metadata, MASKS_KEY, names)
     for summary in summaries:
-        labels, qualities = computed[summary.name]
-        atomic.save_npy(root / summary.name / "labels.npy", labels)
-        csv = quality_csv(qualities, summary.recording_frames)
+        records[summary.name] = _record(cfg, summary, computed[summary.name][0])
+        csv = quality_csv(computed[summary.name][1], summary.recording_frames)
         atomic.write_text(root / summary.name / QUALITY_FILE, csv)
-        dataset.sweep(summary.name).labels = labels
-        records[summary.name] = _record(cfg, summary)
-    dataset.metadata = {**dataset.metadata, METADATA_KEY: records}
-    save_dataset_json(root, dataset)
+    write_labels(root, dataset, {n: computed[n][0] for n in names}, METADATA_KEY, records,
+                 MASKS_KEY)  # fmt: skip
     return summaries
+
+
+def write_labels(
+    root: Path,
+    dataset: SweepDataset,
+    labels: dict[str, np.ndarray],
+    key: str,
+    records: dict[str, Any],
+    other_key: str,
+) -> None:
+    """Write new ``labels`` (sweep name → array) into the dataset at ``root`` with their
+    records (``metadata[key]``, each with its :func:`labels_digest`), so that an interruption
+    at any point leaves records that tell the truth: ``dataset.json`` with the new records,
+    then each ``labels.npy``, then ``dataset.json`` without the sweeps' records under
+    ``other_key`` (the other source of labels; a record of it written before digests existed
+    first gets the digest of the labels it describes, so that it goes stale with them).
+    ``dataset`` is updated to match."""
+    others = dict(dataset.metadata.get(other_key) or {})
+    for name in labels:
+        record, current = others.get(name), dataset.sweep(name).labels
+        if isinstance(record, dict) and "labels_digest" not in record and current is not None:
+            others[name] = {**record, "labels_digest": labels_digest(current)}
+    dataset.metadata = {**dataset.metadata, key: records}
+    if others:
+        dataset.metadata[other_key] = others
+    save_dataset_json(root, dataset)
+    for name, array in labels.items():
+        atomic.save_npy(root / name / "labels.npy", array)
+        dataset.sweep(name).labels = array
+    dataset.metadata = without_sweeps(dataset.metadata, other_key, list(labels))
+    save_dataset_json(root, dataset)
 
 
 def _recording_of(dataset: SweepDataset, name: str) -> dict[str, Any]:
@@ -335,10 +405,15 @@ def save_dataset_json(root: Path, dataset: SweepDataset) -> None:
 
 def auto_label_records(dataset: SweepDataset) -> dict[str, dict[str, Any]]:
     """``metadata.auto_labels`` of a loaded dataset: sweep name → record, for the sweeps that
-    have labels (an entry of a sweep without ``labels.npy`` is stale and left out); {} for a
-    dataset without automatic labels (every dataset written before they existed)."""
+    have the labels it records (an entry of a sweep without ``labels.npy``, or whose digest is
+    not that of its labels, is stale and left out: :func:`record_matches`); {} for a dataset
+    without automatic labels (every dataset written before they existed)."""
     records = dataset.metadata.get(METADATA_KEY)
     if not isinstance(records, dict):
         return {}
-    labelled = {s.name for s in dataset.sweeps if s.labels is not None}
-    return {k: v for k, v in records.items() if k in labelled and isinstance(v, dict)}
+    labels = {s.name: s.labels for s in dataset.sweeps}
+    return {
+        k: v
+        for k, v in records.items()
+        if k in labels and isinstance(v, dict) and record_matches(v, labels[k])
+    }

@@ -39,15 +39,15 @@ from typing import Any
 
 import numpy as np
 
-from ultron import atomic
 from ultron.data.auto_label_dataset import MASKS_KEY as METADATA_KEY
 from ultron.data.auto_label_dataset import METADATA_KEY as AUTO_LABELS_KEY
 from ultron.data.auto_label_dataset import (
     auto_label_records,
     check_labelling,
     label_shares,
-    save_dataset_json,
-    without_sweeps,
+    labels_digest,
+    record_matches,
+    write_labels,
 )
 from ultron.data.dataset import SweepDataset
 from ultron.data.importers import png_numbers, read_png_files
@@ -335,9 +335,10 @@ def import_mask_labels(
     replace: bool = False,
 ) -> MaskImportSummary:
     """Write the labels of the masks at ``masks_path`` into sweep ``sweep`` of the dataset at
-    ``root``: ``labels.npy`` atomically, then ``dataset.json`` with the masks' provenance under
-    ``metadata.label_imports.<sweep>`` (an automatic-labels record of the sweep is dropped: its
-    labels are a person's now). Everything is checked before anything is written; a sweep that
+    ``root``, with the masks' provenance under ``metadata.label_imports.<sweep>`` of
+    ``dataset.json`` (an automatic-labels record of the sweep is dropped: its labels are a
+    person's now), in :func:`~ultron.data.auto_label_dataset.write_labels`' interruptible
+    order. Everything is checked before anything is written; a sweep that
     has labels is refused unless ``replace``. ``sweep`` None: the dataset's only sweep."""
     config = config or MaskImportConfig()
     if not isinstance(config, MaskImportConfig):
@@ -361,13 +362,13 @@ def import_mask_labels(
             f" {config.bone_value if config.bone_value is not None else 'any non-zero'})",
         )  # fmt: skip
     replaced = dataset.sweep(name).labels is not None
-    atomic.save_npy(root / name / "labels.npy", labels)
-    metadata = without_sweeps(dataset.metadata, AUTO_LABELS_KEY, [name])
-    imports = dict(metadata.get(METADATA_KEY) or {})
-    imports[name] = {"masks": str(masks_path.resolve()), "config": asdict(config)}
-    dataset.metadata = {**metadata, METADATA_KEY: imports}
-    dataset.sweep(name).labels = labels
-    save_dataset_json(root, dataset)
+    imports = dict(dataset.metadata.get(METADATA_KEY) or {})
+    imports[name] = {
+        "masks": str(masks_path.resolve()),
+        "config": asdict(config),
+        "labels_digest": labels_digest(labels),
+    }
+    write_labels(root, dataset, {name: labels}, METADATA_KEY, imports, AUTO_LABELS_KEY)
     annotated = int((labels != LABEL_UNANNOTATED).any(axis=(1, 2)).sum())
     return MaskImportSummary(
         name, int(labels.shape[0]), annotated, **label_shares(labels), replaced=replaced
@@ -387,7 +388,9 @@ def label_sources(dataset: SweepDataset) -> dict[str, str]:
         elif sweep.name in automatic:
             sources[sweep.name] = "auto"
         else:
-            sources[sweep.name] = "masks" if sweep.name in imported else "given"
+            record = imported.get(sweep.name)
+            masks = isinstance(record, dict) and record_matches(record, sweep.labels)
+            sources[sweep.name] = "masks" if masks else "given"
     return sources
 
 

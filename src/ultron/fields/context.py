@@ -127,7 +127,10 @@ def theta_features(
     then at each neighbour (a long stage's progress: every labelled pixel of a long sweep).
     """
     if fitted.theta_stats is None:
-        raise argument_error("fitted", "the field has no θ statistics (refit it)")
+        raise argument_error(
+            "fitted",
+            "the field has no θ statistics (its fit was interrupted: run fit-field again to finish it)",
+        )
     points = torch.as_tensor(points_mm).to(torch.float64)
     if points.ndim != 2 or points.shape[1] != 3:
         raise argument_error("points_mm", f"expected (M, 3), got {tuple(points.shape)}")

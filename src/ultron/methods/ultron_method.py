@@ -256,7 +256,11 @@ def occupancy_training_data(
     ``reads``, the settings of the fit to come, limits g(x) to the pixels that fit reads
     (:func:`~ultron.train.occupancy.rows_read`) when it reads fewer than all."""
     if fitted.theta_stats is None:
-        raise UltronInputError("field", "theta_stats", "the field has no θ statistics (refit it)")
+        raise UltronInputError(
+            "field",
+            "theta_stats",
+            "the field has no θ statistics (its fit was interrupted: run fit-field again to finish it)",
+        )
     fitted.check_probe(dataset.probe)
     pixels = gather_labelled_pixels(dataset, selection, outer_side_mm=outer_side_mm)
     theta, field_t = field_theta_transmission(dataset, fitted, pixels, keep)

@@ -63,6 +63,20 @@ class FitProgress:
         return self.step >= self.iterations
 
 
+def check_field_finished(fitted: FittedField, field_dir: str | Path) -> None:
+    """Refuse a field whose fit did not finish (no θ statistics: it was interrupted), naming
+    FIELD_DIR's field.json, how far the fit got and how to finish it."""
+    if fitted.theta_stats is not None:
+        return
+    progress = fitted.fit_progress
+    at = "" if progress is None else f" at step {progress.step} of {progress.iterations}"
+    raise UltronInputError(
+        Path(field_dir) / "field.json", "theta_stats", f"the field's fit stopped{at} before it"
+        " wrote its θ statistics (interrupted?); run `ultron fit-field` again with the same"
+        " --out to finish it",
+    )  # fmt: skip
+
+
 @dataclass(frozen=True)
 class ThetaStatistics:
     """Per-channel mean and standard deviation of θ, in the named channel order."""

@@ -27,6 +27,7 @@ from ultron.errors import argument_error
 from ultron.models.field_dir import (
     check_field_dataset,
     check_field_out,
+    read_field_json,
     read_train_log,
     read_transmission_check,
 )
@@ -49,12 +50,14 @@ class FieldFitResult:
     last held-out check (``holdout``: ``psnr``, ``ssim`` and, from fits since these were
     logged, ``mean_frame_psnr`` / ``nearest_frame_psnr``, what copying a training frame onto
     the held-out frames scores: :func:`ultron.train.frames.copy_baselines`; None without
-    held-out frames)."""
+    held-out frames), and the checkpoint the fit resumed (``resumed_from``: its step of the
+    fit's iterations; None for a fit from scratch)."""
 
     fitted: FittedField
     out: Path
     transmission_check: dict[str, Any] | None
     holdout: dict[str, float] | None = None
+    resumed_from: FitProgress | None = None
 
 
 @dataclass(frozen=True)
@@ -97,14 +100,16 @@ def fit_field_dir(
     check_field_out(out, dataset_dir)
     data = SweepDataset.load(dataset_dir)
     config = resolve_fit_shape(config, data)
-    if resume:
-        check_resumable(out, config, data.content_hash())
+    resumed_from = None
+    if resume and check_resumable(out, config, data.content_hash()):
+        resumed_from = FitProgress(int(read_field_json(out)["step"]), config.iterations)
     check_run_resources(
         data, Path(dataset_dir), mesh=False, field_config=config, max_memory_gib=max_memory_gib
     )
     with (progress or nullcontext)() as update:
         fitted = fit_field(data, config, out, progress=update, resume=resume, device=device)
-    return FieldFitResult(fitted, out, read_transmission_check(out), last_holdout_check(out))
+    holdout = last_holdout_check(out)
+    return FieldFitResult(fitted, out, read_transmission_check(out), holdout, resumed_from)
 
 
 def last_holdout_check(field_dir: Path) -> dict[str, float] | None:
@@ -212,15 +217,25 @@ def _dataset_poses(
 
 
 def fit_lines(result: FieldFitResult, device: str) -> list[str]:
-    """What ``fit-field`` prints: the files written, the fitted θ's statistics, the last
+    """What ``fit-field`` prints: whether it resumed a checkpoint (and from which step), the
+    files written, the fitted θ's statistics, the last
     held-out check against copying a training frame, and on a simulated dataset the fitted T
     against the simulator's."""
     fitted, out = result.fitted, result.out
-    lines = [
+    lines = []
+    resumed = result.resumed_from
+    if resumed is not None:
+        lines.append(
+            f"the fit in {out} had finished its {resumed.iterations} steps; loaded it"
+            if resumed.finished
+            else f"resumed the fit in {out} from its checkpoint at step {resumed.step} of"
+            f" {resumed.iterations}"
+        )
+    lines.append(
         f"wrote {out}: field.json, checkpoint.pt, theta_stats.json, train_log.jsonl"
         f" ({fitted.field_config.backend}, fitted at {fitted.probe.height_px}×"
         f"{fitted.probe.width_px} px on {device})"
-    ]
+    )
     stats = fitted.theta_stats
     if stats is not None:
         summary = ", ".join(

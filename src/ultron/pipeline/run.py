@@ -40,7 +40,7 @@ from ultron.methods.request import ReconstructionRequest
 from ultron.methods.ultron_method import Reconstruction
 from ultron.metrics.surface import MetricsConfig, evaluate_meshes
 from ultron.models.field_dir import check_field_dataset
-from ultron.models.fitted import load_field
+from ultron.models.fitted import check_field_finished, load_field
 from ultron.pipeline.field_cache import get_or_fit_field
 from ultron.pipeline.model_io import save_network
 from ultron.pipeline.record import write_run_json
@@ -430,6 +430,7 @@ def load_or_fit_field(
     """
     if field_dir is not None:
         fitted = load_field(field_dir, device)
+        check_field_finished(fitted, field_dir)
         fitted.check_probe(dataset.probe, where=str(dataset_dir))
         match = check_field_dataset(
             field_dir, dataset.content_hash(), str(dataset_dir), allow_other_field

@@ -1,0 +1,26 @@
+"""The ``ultron`` console script, also ``python -m ultron``.
+
+It imports only :mod:`sys` and :mod:`ultron.cli`'s constants before it can catch Ctrl-C, so
+that an interrupt while typer and the commands load (the first ≈ 0.2 s) is the same one line
+and exit code as an interrupt later, not a traceback of the import machinery. (An interrupt
+during Python's own start-up, before this module runs, is beyond any program's reach.)
+"""
+
+from __future__ import annotations
+
+from ultron.cli import interrupted
+
+
+def main() -> None:
+    """Load the commands, then run :func:`ultron.cli.main.main`. Ctrl-C at any moment after
+    this function starts prints ``error: interrupted …`` and exits with
+    :data:`ultron.cli.EXIT_INTERRUPTED`."""
+    try:
+        from ultron.cli.main import main as run_command
+    except KeyboardInterrupt:
+        interrupted()
+    run_command()
+
+
+if __name__ == "__main__":
+    main()
