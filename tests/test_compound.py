@@ -313,6 +313,27 @@ def test_frames_are_processed_in_chunks():
     assert np.array_equal(whole.filled, chunked.filled)
 
 
+def test_progress_counts_frames_in_order_and_the_log_names_each_stage(tmp_path: Path):
+    from ultron.pipeline.compound import compound_volume
+
+    dataset, _ = sweep_dataset(4)
+    dataset.save(tmp_path / "d")
+    events: list[tuple[str, int, int]] = []
+    config = ImageCompoundingConfig(0.5, fill_holes=3, chunk_pixels=1)  # a frame at a time
+    compound_volume(
+        tmp_path / "d", tmp_path / "v.nii.gz", config, progress=lambda *e: events.append(e)
+    )
+    n = dataset.sweeps[0].n_frames
+    assert events == [("splatting", k, n) for k in range(n + 1)] + [
+        ("filling holes", 0, 1),
+        ("writing", 0, 1),
+    ]
+    result = runner.invoke(app, ["compound", str(tmp_path / "d"), "--out", str(tmp_path / "w.nii")])
+    assert result.exit_code == 0, result.output
+    lines = result.stdout.splitlines()  # off a terminal: a line as each stage starts
+    assert lines[:2] == ["compound splatting …", "compound writing …"], lines
+
+
 # --------------------------------------------------------------------------- bad input
 def snapshot(root: Path) -> dict[str, object]:
     entries: dict[str, object] = {}

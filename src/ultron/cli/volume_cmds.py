@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from ultron.arguments import sweep_names
-from ultron.cli.common import command, print_lines
+from ultron.cli.common import command, print_lines, stage_progress
 
 
 @command(
@@ -48,5 +48,8 @@ def compound(
     from ultron.pipeline.compound import compound_volume
 
     config = ImageCompoundingConfig(spacing, SplatConfig(interpolation, reduce), fill_holes)
-    summary = compound_volume(dataset, out, config, sweep_names(sweeps), max_memory)
+    with stage_progress("compound", unit="frames") as report:
+        summary = compound_volume(
+            dataset, out, config, sweep_names(sweeps), max_memory, progress=report
+        )
     print_lines(summary.lines())

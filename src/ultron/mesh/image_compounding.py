@@ -24,7 +24,7 @@ PLUS (whose Reference frame Slicer also reads as LPS) in the same place.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -44,6 +44,9 @@ from ultron.mesh.splat import SplatConfig, Splatter
 BYTES_PER_VOXEL = 64
 #: Pixels splatted per chunk of frames (bounds the per-chunk memory to ≈ 100 MB).
 CHUNK_PIXELS = 1 << 21
+
+#: Progress callback: (stage, done, total).
+Progress = Callable[[str, int, int], None]
 
 
 @dataclass(frozen=True)
@@ -148,14 +151,27 @@ def compound_samples(
     samples: Iterable[tuple[torch.Tensor | np.ndarray, torch.Tensor | np.ndarray]],
     grid: GridSpec,
     config: ImageCompoundingConfig,
+    progress: Progress | None = None,
+    total: int = 0,
 ) -> CompoundedImage:
-    """Splat every chunk of (points, values) onto ``grid`` and fill the holes."""
+    """Splat every chunk of (points, values) onto ``grid`` and fill the holes. ``progress``,
+    when given, is told ("splatting", samples splatted, ``total``) before the first chunk and
+    after each, and
+    ("filling holes", 0, 1) before the hole filler runs."""
     splatter = Splatter(grid, config.splat)
+    done = 0
+    if progress is not None:
+        progress("splatting", 0, total)
     for points, values in samples:
         splatter.add(points, values)
+        done += len(values)
+        if progress is not None:
+            progress("splatting", done, max(total, done))
     volume, filled = splatter.result()
     hole_filled = np.zeros_like(filled)
     if config.fill_holes:
+        if progress is not None:
+            progress("filling holes", 0, 1)
         volume, hole_filled = fill_holes_stick(
             volume, filled, config.fill_holes, plus_weights=config.plus_weights
         )
@@ -167,13 +183,24 @@ def compound_images(
     config: ImageCompoundingConfig | None = None,
     sweep_names: Sequence[str] | None = None,
     grid: GridSpec | None = None,
+    progress: Progress | None = None,
 ) -> CompoundedImage:
     """Compound the B-mode frames of ``sweep_names`` (all sweeps when None) onto ``grid``
-    (default: :func:`compounding_grid` at ``config.spacing_mm``)."""
+    (default: :func:`compounding_grid` at ``config.spacing_mm``). ``progress``, when given, is
+    told (stage, done, total) as :func:`compound_samples` says, counting frames."""
     config = config or ImageCompoundingConfig()
     sweeps = select_sweeps(dataset, sweep_names)
     grid = grid or compounding_grid(dataset, sweeps, config.spacing_mm)
-    return compound_samples(frame_samples(dataset, sweeps, config.chunk_pixels), grid, config)
+    samples = frame_samples(dataset, sweeps, config.chunk_pixels)
+    per_frame = dataset.probe.height_px * dataset.probe.width_px
+
+    def in_frames(stage: str, done: int, total: int) -> None:
+        if stage == "splatting":  # whole frames are splatted at a time
+            done, total = done // per_frame, total // per_frame
+        progress(stage, done, total)  # type: ignore[misc]
+
+    total = sum(s.n_frames for s in sweeps) * per_frame
+    return compound_samples(samples, grid, config, progress and in_frames, total)
 
 
 def save_compounded(result: CompoundedImage, path: str | Path) -> Path:

@@ -21,6 +21,7 @@ from ultron.memory import memory_limit
 from ultron.mesh.image_compounding import (
     CompoundedImage,
     ImageCompoundingConfig,
+    Progress,
     check_volume_memory,
     compound_images,
     compounding_grid,
@@ -84,6 +85,7 @@ def compound_volume(
     config: ImageCompoundingConfig,
     sweep_names: Sequence[str] | None = None,
     max_memory_gib: float | None = None,
+    progress: Progress | None = None,
 ) -> CompoundSummary:
     """Compound the B-mode frames of the sweeps ``sweep_names`` (all when None) of the dataset
     at ``dataset_dir`` onto PLUS's grid at ``config.spacing_mm`` and write the volume to
@@ -93,7 +95,9 @@ def compound_volume(
     (``--out``), the dataset, the sweep names (``--sweeps``), outlier poses (which would make
     the grid span the outlier) and the grid's working memory against ``max_memory_gib``
     (GiB, ``--max-memory``) or this process's limit (:func:`ultron.memory.memory_limit`;
-    ``--spacing``)."""
+    ``--spacing``). ``progress``, when given, is told (stage, done, total) as the frames are
+    splatted (:func:`~ultron.mesh.image_compounding.compound_images`) and as the volume is
+    written ("writing", 0, 1)."""
     if not isinstance(config, ImageCompoundingConfig):
         raise argument_error(
             "config", f"expected an ImageCompoundingConfig, got {type(config).__name__}"
@@ -105,7 +109,9 @@ def compound_volume(
     grid = compounding_grid(data, chosen, config.spacing_mm)
     check_volume_memory(grid, *memory_limit(max_memory_gib))
     start = time.perf_counter()
-    result = compound_images(data, config, [s.name for s in chosen], grid)
+    result = compound_images(data, config, [s.name for s in chosen], grid, progress)
+    if progress is not None:
+        progress("writing", 0, 1)
     save_compounded(result, path)
     return CompoundSummary(
         result=result,
