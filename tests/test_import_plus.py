@@ -255,6 +255,32 @@ def test_sheared_calibration_puts_every_echo_where_plus_does(tmp_path: Path, at,
         assert np.linalg.norm(_dataset_world(out, frame, col, row) - expected) < 0.05
 
 
+def test_import_progress_and_threaded_resampling(tmp_path: Path, monkeypatch):
+    """A sheared recording of 70 frames (two runs of resampling): the import tells each stage
+    in order and counts the frames resampled; the frames resampled on threads equal those
+    resampled one at a time; off a terminal the log names each stage as it starts."""
+    import ultron.data.plus_geometry as plus_geometry
+    from ultron.pipeline.sweep_import import import_plus_sweep
+
+    rec = recording(n=70, height=20, width=30)
+    sequence = _files(tmp_path, rec, "mha")
+    config = write_config(tmp_path / "c.xml", calibration(spacing=(0.3, 0.3), shear_deg=4.0))
+    events: list[tuple[str, int, int]] = []
+    import_plus_sweep(sequence, config, tmp_path / "a", progress=lambda *e: events.append(e))
+    run = plus_geometry.RESAMPLE_RUN
+    assert events == [("reading", 0, 1), ("resampling", 0, 70), ("resampling", run, 70),
+                      ("resampling", 70, 70), ("writing", 0, 1)]  # fmt: skip
+    threaded = SweepDataset.load(tmp_path / "a").sweeps[0].images
+    one = plus_geometry.thread_map
+    monkeypatch.setattr(plus_geometry, "thread_map", lambda f, items: one(f, items, workers=1))
+    import_plus_sweep(sequence, config, tmp_path / "b")
+    assert np.array_equal(SweepDataset.load(tmp_path / "b").sweeps[0].images, threaded)
+    result = _import(sequence, config, tmp_path / "c")
+    assert result.exit_code == 0, result.output
+    starts = [line for line in result.stdout.splitlines() if line.endswith("…")]
+    assert starts == ["import reading …", "import resampling …", "import writing …"]
+
+
 def test_an_exact_scaled_rotation_keeps_the_frames_as_they_are(tmp_path: Path):
     rec = recording()
     out = tmp_path / "ds"

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from ultron.cli.common import command, console, print_lines
+from ultron.cli.common import command, console, print_lines, stage_progress
 
 
 @command(
@@ -49,11 +49,12 @@ def import_plus(
     """Import a tracked PLUS / 3D Slicer recording as a sweep (repeat to add sweeps)."""
     from ultron.pipeline.sweep_import import import_plus_sweep
 
-    imported = import_plus_sweep(
-        sequence, config, out, to=to, sweep_name=sweep_name, kind=kind, downsample=downsample,
-        replace=replace, keep_blank_columns=keep_blank_columns, tracking=tracking or (),
-        orientation=orientation,
-    )  # fmt: skip
+    with stage_progress("import", unit="frames") as report:
+        imported = import_plus_sweep(
+            sequence, config, out, to=to, sweep_name=sweep_name, kind=kind,
+            downsample=downsample, replace=replace, keep_blank_columns=keep_blank_columns,
+            tracking=tracking or (), orientation=orientation, progress=report,
+        )  # fmt: skip
     print_lines(imported.lines(out, kind))
 
 

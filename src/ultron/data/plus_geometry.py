@@ -15,12 +15,14 @@ with these.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from ultron.errors import UltronInputError
+from ultron.parallel import thread_map
 
 #: Largest angle (degrees) between the calibration's image axes and a right angle that is
 #: factored into a rigid pose; beyond it the matrix is refused as far from a scaled rotation.
@@ -142,12 +144,18 @@ def rigid_to_image_pixels(calibration: np.ndarray, fit: ImagePlaneFit) -> np.nda
 
 
 def resample_to_rigid(
-    frames: np.ndarray, calibration: np.ndarray, fit: ImagePlaneFit
+    frames: np.ndarray,
+    calibration: np.ndarray,
+    fit: ImagePlaneFit,
+    advance: Callable[[int, int], None] | None = None,
 ) -> np.ndarray:
     """uint8 (N, H, W) frames resampled onto the rigid fit's pixel grid (module doc): new pixel
     (row j', column i') is the original frame bilinearly interpolated at the pixel
     (:func:`rigid_to_image_pixels`) PLUS's ``calibration`` puts at the same probe point; 0
-    (PLUS's background) where that lies outside the frame."""
+    (PLUS's background) where that lies outside the frame. Frames are resampled on
+    :func:`~ultron.parallel.thread_map`'s threads (ndimage releases the GIL), a run of
+    :data:`RESAMPLE_RUN` frames at a time; ``advance``, when given, is told (frames done, N)
+    before the first run and after each."""
     from scipy import ndimage
 
     pixels = rigid_to_image_pixels(calibration, fit)
@@ -155,13 +163,26 @@ def resample_to_rigid(
     swap = np.array([[0, 1, 0], [1, 0, 0], [0, 0, 1]], dtype=np.float64)
     rows_cols = swap @ pixels @ swap
     out = np.empty_like(frames)
-    for k, frame in enumerate(frames):
+
+    def resample(k: int) -> None:
         values = ndimage.affine_transform(
-            frame.astype(np.float32), rows_cols[:2, :2], rows_cols[:2, 2],
+            frames[k].astype(np.float32), rows_cols[:2, :2], rows_cols[:2, 2],
             order=1, mode="constant", cval=0.0,
         )  # fmt: skip
         out[k] = np.clip(np.rint(values), 0, 255).astype(np.uint8)
+
+    n = len(frames)
+    if advance is not None:
+        advance(0, n)
+    for start in range(0, n, RESAMPLE_RUN):
+        thread_map(resample, range(start, min(start + RESAMPLE_RUN, n)))
+        if advance is not None:
+            advance(min(start + RESAMPLE_RUN, n), n)
     return out
+
+
+#: Frames :func:`resample_to_rigid` resamples between two progress reports.
+RESAMPLE_RUN = 64
 
 
 #: Largest displacement (mm, at a frame corner) between one frame's calibration and the

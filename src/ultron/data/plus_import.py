@@ -30,7 +30,7 @@ fit's residual (a few pixels at each corner, read as 0 on one side and left out 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -144,6 +144,7 @@ def read_plus(
     columns: tuple[int, int] | str | None = "signal",
     tracking: Sequence[str | Path] = (),
     orientation: str | None = None,
+    progress: Callable[[str, int, int], None] | None = None,
 ) -> tuple[Sweep, ProbeGeometry, PlusImportReport]:
     """Read a PLUS / Slicer sequence and its PLUS configuration as one :class:`Sweep` in the
     ``to`` frame (Reference or Tracker, or any frame the file tracks) and its probe geometry.
@@ -159,6 +160,8 @@ def read_plus(
     ``tracking``: transform sequences saved apart from the frames (3D Slicer's; each frame gets
     their transforms at its time, :func:`~ultron.data.tracking_files.with_tracking`);
     ``orientation``: the frames' orientation where the file does not record it.
+    ``progress``, when given, is told (stage, done, total): ("reading", 0, 1) as the file is
+    read, then ("resampling", frames done, frames) as sheared frames are resampled.
     """
     if isinstance(columns, str) and columns != "signal":
         raise argument_error(
@@ -170,6 +173,8 @@ def read_plus(
     if not target.isascii() or not target.isalnum():
         raise argument_error("--to", f"expected a frame name such as Reference, got {to!r}")
     plus_config = read_config(config) if config is not None else None
+    if progress is not None:
+        progress("reading", 0, 1)
     seq = _tracked_sequence(sequence, orientation, tracking)
     placed = placement(seq, plus_config, target)
     world = placed.world
@@ -188,7 +193,8 @@ def read_plus(
             "--downsample", f"{downsample:g} leaves frames of {shape[0]} × {shape[1]} pixels (of"
             f" {height} × {width}); keep them at least {MIN_FRAME_PX} × {MIN_FRAME_PX}",
         )  # fmt: skip
-    images, resampled = on_sweep_grid(frames, calibration, fit, shape)
+    advance = None if progress is None else (lambda done, n: progress("resampling", done, n))
+    images, resampled = on_sweep_grid(frames, calibration, fit, shape, advance)
     probe = ProbeGeometry(width * fit.spacing_mm[0], height * fit.spacing_mm[1], *shape)
     sweep = Sweep(name=name, kind=kind, images=images, probe_to_world=poses)
     report = PlusImportReport(
@@ -258,14 +264,19 @@ def clipped_calibration(image_to_probe: np.ndarray, clip: tuple | None) -> np.nd
 
 
 def on_sweep_grid(
-    frames: np.ndarray, calibration: np.ndarray, fit: ImagePlaneFit, shape: tuple[int, int]
+    frames: np.ndarray,
+    calibration: np.ndarray,
+    fit: ImagePlaneFit,
+    shape: tuple[int, int],
+    advance: Callable[[int, int], None] | None = None,
 ) -> tuple[np.ndarray, bool]:
     """uint8 clipped, MF ``frames`` on the sweep's pixel grid: resampled onto the rigid fit's
-    grid where the fit moves a pixel by more than :data:`RESAMPLE_RESIDUAL_MM` (then True),
-    then area-downsampled to ``shape``."""
+    grid where the fit moves a pixel by more than :data:`RESAMPLE_RESIDUAL_MM` (then True;
+    ``advance`` is told the frames resampled, :func:`resample_to_rigid`), then
+    area-downsampled to ``shape``."""
     resampled = fit.residual_max_mm > RESAMPLE_RESIDUAL_MM
     if resampled:  # the rigid map places pixels off PLUS's: move the grey levels instead
-        frames = resample_to_rigid(frames, calibration, fit)
+        frames = resample_to_rigid(frames, calibration, fit, advance)
     return downsample_frames(frames, shape), resampled
 
 

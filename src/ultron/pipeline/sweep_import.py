@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import json
 import re
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Generic, TypeVar
@@ -169,6 +169,7 @@ def import_plus_sweep(
     keep_blank_columns: bool = False,
     tracking: Sequence[str | Path] = (),
     orientation: str | None = None,
+    progress: Callable[[str, int, int], None] | None = None,
 ) -> ImportedSweep[PlusImportReport]:
     """Add a tracked PLUS / 3D Slicer recording to a dataset as a sweep
     (:func:`~ultron.data.plus_import.read_plus`); the import's provenance is kept in
@@ -196,6 +197,8 @@ def import_plus_sweep(
             interpolated at the frame's time (docs/data.md).
         orientation: The frames' orientation (MF, MN, UF or UN) where the file does not record
             it, as in a volume sequence saved by 3D Slicer.
+        progress: Told (stage, done, total) as the import reads, resamples (read_plus) and
+            writes ("writing", 0, 1) the sweep.
     """
     if kind not in SWEEP_KINDS:
         raise argument_error("--kind", f"{kind!r} is not one of {', '.join(SWEEP_KINDS)}")
@@ -206,8 +209,10 @@ def import_plus_sweep(
     sweep, probe, report = read_plus(
         sequence, config, to=to, name=name, kind=kind, downsample=downsample,
         columns=None if keep_blank_columns else _dataset_columns(Path(out)),
-        tracking=tracking, orientation=orientation,
+        tracking=tracking, orientation=orientation, progress=progress,
     )  # fmt: skip
+    if progress is not None:
+        progress("writing", 0, 1)
     dataset = add_sweep_to_dataset(
         out, sweep, probe, replace=replace, sweep_metadata=report.metadata
     )
