@@ -153,6 +153,56 @@ def test_trace_surface_follows_the_best_continuous_path_hand_worked():
     assert (trace_surface(score, 1, column_mm=0.1, open_cost=1.0) == -1).all()
 
 
+def _path_value(score, path, max_step, column_mm, open_cost) -> float:
+    """The objective of ``path`` (−inf where a step within a run exceeds ``max_step``)."""
+    value, previous = 0.0, -1
+    for column, row in enumerate(path):
+        if row >= 0:
+            if previous < 0:
+                value -= open_cost
+            elif abs(row - previous) > max_step:
+                return -math.inf
+            value += score[row, column] * column_mm
+        previous = row
+    return value
+
+
+def test_batched_traces_are_the_best_paths_by_enumeration():
+    """Every frame of a batch gets the path that enumerating all (H + 1)^W paths finds best,
+    whatever the other frames of the batch hold (random scores: a unique optimum)."""
+    import itertools
+
+    from ultron.data.auto_labels import trace_surfaces
+
+    rng = np.random.default_rng(3)
+    scores = rng.normal(0.0, 1.0, size=(6, 3, 5))
+    scores[2] = -np.inf  # a blank frame's score: no bone anywhere
+    paths = trace_surfaces(scores, max_step=1, column_mm=0.7, open_cost=0.8)
+    for score, path in zip(scores, paths, strict=True):
+        candidates = itertools.product(range(-1, 3), repeat=5)
+        best = max(candidates, key=lambda p: _path_value(score, p, 1, 0.7, 0.8))
+        np.testing.assert_array_equal(path, best)
+    assert (paths[2] == -1).all()
+
+
+def test_frames_detected_in_runs_equal_frames_detected_one_by_one(
+    small_phantom: Path, monkeypatch: pytest.MonkeyPatch
+):
+    import ultron.data.auto_labels as module
+
+    dataset = SweepDataset.load(small_phantom)
+    images = np.concatenate([s.images for s in dataset.sweeps])
+    together, qualities = auto_label_frames(images, dataset.probe)  # one run of 12
+    monkeypatch.setattr(module, "DETECT_RUN", 5)  # runs of 5, 5 and 2
+    done: list[int] = []
+    in_runs, _ = auto_label_frames(images, dataset.probe, progress=lambda d, n: done.append(d))
+    assert done == [5, 10, 12]
+    single = [detect_frame(image, dataset.probe) for image in images]
+    assert np.array_equal(together, in_runs)
+    assert np.array_equal(together, np.stack([labels for labels, _ in single]))
+    assert qualities == [quality for _, quality in single]
+
+
 def test_drop_narrow_runs():
     path = np.array([-1, 3, 3, -1, 4, 4, 4, 4, -1, 2])
     np.testing.assert_array_equal(drop_narrow_runs(path, 3), [-1, -1, -1, -1, 4, 4, 4, 4, -1, -1])

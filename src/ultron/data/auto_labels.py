@@ -60,6 +60,7 @@ from ultron.arguments import check_integer
 from ultron.data.dataset import ProbeGeometry
 from ultron.data.validation import LABEL_BACKGROUND, LABEL_TARGET, LABEL_UNANNOTATED
 from ultron.errors import argument_error
+from ultron.parallel import thread_map
 
 #: Names the algorithm in the dataset's metadata (bumped when its definition changes).
 AUTO_LABELS_METHOD = "ultron-auto-labels/2"
@@ -251,35 +252,47 @@ def trace_surface(score: np.ndarray, max_step: int, column_mm: float, open_cost:
     """The path (W,) of rows (−1: no bone) maximising Σ score·``column_mm`` over its bone
     columns minus ``open_cost`` per run of bone columns, moving ≤ ``max_step`` rows between
     neighbouring bone columns (step 2 of the module docstring; Viterbi over the columns)."""
-    height, width = score.shape
-    gain = score.astype(np.float64) * column_mm
+    return trace_surfaces(np.asarray(score)[None], max_step, column_mm, open_cost)[0]
+
+
+def trace_surfaces(
+    scores: np.ndarray, max_step: int, column_mm: float, open_cost: float
+) -> np.ndarray:
+    """:func:`trace_surface` of each frame's score (B, H, W) at once → paths (B, W): the same
+    operations, each on all B frames, so that a column's step costs numpy's overhead once per
+    batch rather than once per frame (the same paths as frame by frame, to the bit)."""
+    n, height, width = scores.shape
+    gain = scores.astype(np.float64) * column_mm
     steps = np.arange(-max_step, max_step + 1)
-    best = gain[:, 0] - open_cost  # best total ending at (row, column) in bone
-    none = 0.0  # best total ending at the column with no bone
-    came_from = np.empty((height, width), dtype=np.int64)  # −1: from "no bone"
-    none_from = np.full(width, -1, dtype=np.int64)  # row the "no bone" state left, −1: stayed
+    frames, rows = np.arange(n)[:, None], np.arange(height)
+    best = gain[:, :, 0] - open_cost  # (B, H): best total ending at (row, column) in bone
+    none = np.zeros(n)  # best total ending at the column with no bone
+    came_from = np.empty((n, width, height), dtype=np.int32)  # −1: from "no bone"
+    none_from = np.full((n, width), -1, dtype=np.int64)  # row "no bone" left, −1: stayed
     came_from[:, 0] = -1
-    padded = np.full(height + 2 * max_step, -np.inf)
+    padded = np.full((n, height + 2 * max_step), -np.inf)
     for column in range(1, width):
-        padded[max_step : max_step + height] = best
-        # candidates[k, r] = best[r + steps[k]]: the predecessor row r + steps[k]
-        candidates = np.stack([padded[max_step + s : max_step + s + height] for s in steps])
-        pick = np.argmax(candidates, axis=0)
-        stay = candidates[pick, np.arange(height)]
+        padded[:, max_step : max_step + height] = best
+        # candidates[b, k, r] = best[b, r + steps[k]]: the predecessor row r + steps[k]
+        candidates = np.stack([padded[:, max_step + s : max_step + s + height] for s in steps], 1)
+        pick = np.argmax(candidates, axis=1)
+        stay = np.take_along_axis(candidates, pick[:, None], axis=1)[:, 0]
         opened = none - open_cost
-        from_none = opened > stay
-        ending = int(np.argmax(best))
-        none_from[column] = ending if best[ending] > none else -1
-        none = max(none, float(best[ending]))
-        came_from[:, column] = np.where(from_none, -1, np.arange(height) + steps[pick])
-        best = np.where(from_none, opened, stay) + gain[:, column]
-    path = np.full(width, -1, dtype=np.int64)
-    ending = int(np.argmax(best))
-    state = ending if best[ending] > none else -1
+        from_none = opened[:, None] > stay
+        ending = np.argmax(best, axis=1)
+        top = best[frames[:, 0], ending]
+        none_from[:, column] = np.where(top > none, ending, -1)
+        none = np.maximum(none, top)
+        came_from[:, column] = np.where(from_none, -1, rows + steps[pick])
+        best = np.where(from_none, opened[:, None], stay) + gain[:, :, column]
+    paths = np.full((n, width), -1, dtype=np.int64)
+    ending = np.argmax(best, axis=1)
+    state = np.where(best[frames[:, 0], ending] > none, ending, -1)
     for column in range(width - 1, -1, -1):
-        path[column] = state
-        state = came_from[state, column] if state >= 0 else none_from[column]
-    return path
+        paths[:, column] = state
+        back = came_from[frames[:, 0], column, np.maximum(state, 0)]
+        state = np.where(state >= 0, back, none_from[:, column])
+    return paths
 
 
 def drop_narrow_runs(path: np.ndarray, min_columns: int) -> np.ndarray:
@@ -372,13 +385,33 @@ def detect_frame(
 ) -> tuple[np.ndarray, FrameQuality]:
     """Labels (H, W) uint8 (1 bone, 0 background, 255 unsure) of one B-mode frame (H, W) and
     its :class:`FrameQuality`."""
+    return detect_frames(np.asarray(image)[None], probe, config)[0]
+
+
+def detect_frames(
+    images: np.ndarray, probe: ProbeGeometry, config: AutoLabelConfig | None = None
+) -> list[tuple[np.ndarray, FrameQuality]]:
+    """:func:`detect_frame` of each frame (B, H, W): each frame's evidence on
+    :func:`~ultron.parallel.thread_map`'s threads (its filters release the GIL), the surfaces
+    of all B traced at once (:func:`trace_surfaces`), the same labels as frame by frame."""
     cfg = config or AutoLabelConfig()
-    image = np.asarray(image)
-    _validate_frame(image, probe, cfg)
+    for image in images:
+        _validate_frame(np.asarray(image), probe, cfg)
     axial, lateral = probe.axial_spacing_mm, probe.lateral_spacing_mm
-    evidence = frame_evidence(image, probe, cfg)
+    evidences = thread_map(lambda image: frame_evidence(np.asarray(image), probe, cfg), images)
     max_step = max(1, math.ceil(cfg.max_slope * lateral / axial))
-    path = trace_surface(evidence.score, max_step, lateral, cfg.segment_cost)
+    scores = np.stack([evidence.score for evidence in evidences])
+    paths = trace_surfaces(scores, max_step, lateral, cfg.segment_cost)
+    return [
+        _labelled(evidence, path, axial, lateral, cfg)
+        for evidence, path in zip(evidences, paths, strict=True)
+    ]
+
+
+def _labelled(
+    evidence: FrameEvidence, path: np.ndarray, axial: float, lateral: float, cfg: AutoLabelConfig
+) -> tuple[np.ndarray, FrameQuality]:
+    """A frame's labels and quality from its evidence and traced path (steps 2–3)."""
     path = drop_narrow_runs(path, _rows(cfg.min_width_mm, lateral))
     surface = subpixel_rows(evidence.smoothed, path)
     labels = labels_from_surface(surface, evidence, axial, cfg)
@@ -400,6 +433,12 @@ def auto_label_frame(
     return detect_frame(image, probe, config)[0]
 
 
+#: At most this many frames, and :data:`DETECT_RUN_PIXELS` pixels, are detected at once by
+#: :func:`auto_label_frames` (evidence ≈ 18 bytes per pixel, back-pointers 4; docs/auto-labels.md).
+DETECT_RUN = 32
+DETECT_RUN_PIXELS = 1 << 24
+
+
 def auto_label_frames(
     images: np.ndarray,
     probe: ProbeGeometry,
@@ -407,17 +446,25 @@ def auto_label_frames(
     progress: Callable[[int, int], None] | None = None,
 ) -> tuple[np.ndarray, list[FrameQuality]]:
     """Labels (N, H, W) uint8 of the frames (N, H, W) and each frame's quality
-    (:func:`detect_frame` per frame)."""
+    (:func:`detect_frames`, a run of :data:`DETECT_RUN` frames, fewer where they would exceed
+    :data:`DETECT_RUN_PIXELS`, at a time; ``progress``, when given, is told (frames done, N)
+    after each run)."""
     images = np.asarray(images) if not hasattr(images, "shape") else images
     if len(images.shape) != 3:
         raise argument_error("images", f"expected (N, H, W) frames, got shape {images.shape}")
+    n = images.shape[0]
     out = np.empty(images.shape, dtype=np.uint8)
     qualities = []
-    for i in range(images.shape[0]):
-        out[i], quality = detect_frame(np.asarray(images[i]), probe, config)
-        qualities.append(quality)
+    run = max(1, min(DETECT_RUN, DETECT_RUN_PIXELS // max(1, images.shape[1] * images.shape[2])))
+    for start in range(0, n, run):
+        stop = min(start + run, n)
+        for offset, (labels, quality) in enumerate(
+            detect_frames(np.asarray(images[start:stop]), probe, config)
+        ):
+            out[start + offset] = labels
+            qualities.append(quality)
         if progress is not None:
-            progress(i + 1, images.shape[0])
+            progress(stop, n)
     return out, qualities
 
 
