@@ -552,6 +552,38 @@ def test_downsample_keeps_geometry_and_anti_aliases(tmp_path: Path):
     assert np.allclose(_dataset_world(half, 0, 4, 2), _dataset_world(full, 0, 8, 4), atol=1e-9)
 
 
+def test_downsample_auto_leaves_two_pixels_per_speckle_grain(tmp_path: Path):
+    """Frames whose speckle is Gaussian-filtered white noise (σ = 3 pixels on both axes: an
+    axial autocorrelation FWHM of 2·√(2 ln 2)·√2·σ ≈ 10 pixels) at 0.05 mm pixels are shrunk
+    by grain / 2; a second sweep added with auto takes the first sweep's factor; noise without
+    grain (independent pixels) is kept as it is."""
+    from scipy.ndimage import gaussian_filter
+
+    rng = np.random.default_rng(1)
+    rec = recording(n=4, height=120, width=96)
+    noise = gaussian_filter(rng.normal(size=rec.frames.shape), (0, 3.0, 3.0))
+    rec.frames[:] = np.clip(128 + noise / noise.std() * 30, 0, 255).astype(np.uint8)
+    config = write_config(tmp_path / "c.xml", calibration(spacing=(0.05, 0.05)))
+    out = tmp_path / "ds"
+    result = _import(write_mha(tmp_path / "s.mha", rec), config, out, "--downsample", "auto")
+    assert result.exit_code == 0, result.output
+    record = SweepDataset.load(out).metadata["imports"]["s"]
+    expected = 2 * math.sqrt(2 * math.log(2)) * math.sqrt(2) * 3.0
+    factor = record["downsample"]
+    assert expected / 2 * 0.85 < factor < expected / 2 * 1.15, factor
+    data = SweepDataset.load(out)
+    assert data.probe.image_shape == (round(120 / factor), round(96 / factor))
+    assert "axial speckle grain" in result.output and f"downsampled by {factor:g}" in result.output
+    added = _import(tmp_path / "s.mha", config, out, "--downsample", "auto", "--sweep-name", "b")
+    assert added.exit_code == 0, added.output
+    assert SweepDataset.load(out).metadata["imports"]["b"]["downsample"] == factor
+    rec.frames[:] = rng.integers(0, 256, size=rec.frames.shape, dtype=np.uint8)
+    plain = tmp_path / "plain"
+    result = _import(write_mha(tmp_path / "w.mha", rec), config, plain, "--downsample", "auto")
+    assert result.exit_code == 0, result.output
+    assert SweepDataset.load(plain).probe.image_shape == (120, 96)
+
+
 def test_downsample_frames_non_integer_factor():
     frames = np.full((1, 10, 15), 77, dtype=np.uint8)
     assert (downsample_frames(frames, (4, 6)) == 77).all()
@@ -780,6 +812,10 @@ BAD_CASES: dict[str, tuple[Callable[[Path], list[str]], tuple[str, ...]]] = {
         ("argument", "--downsample", "≥ 1"),
     ),
     "plus_downsample_nan": (_case(more=("--downsample", "nan")), ("argument", "--downsample")),
+    "plus_downsample_word": (
+        _case(more=("--downsample", "half")),
+        ("argument", "--downsample", "a number ≥ 1 or auto"),
+    ),
     "plus_unknown_kind": (_case(more=("--kind", "diagonal")), ("argument", "--kind", "diagonal")),
     "plus_all_frames_invalid": (
         _case(rec=_all_invalid()),

@@ -40,7 +40,7 @@ def import_plus(
     to: str = "Reference",
     sweep_name: str | None = None,
     kind: str = "other",
-    downsample: float = 1.0,
+    downsample: str = "1",
     replace: bool = False,
     keep_blank_columns: bool = False,
     tracking: list[Path] | None = None,
@@ -52,10 +52,25 @@ def import_plus(
     with stage_progress("import", unit="frames") as report:
         imported = import_plus_sweep(
             sequence, config, out, to=to, sweep_name=sweep_name, kind=kind,
-            downsample=downsample, replace=replace, keep_blank_columns=keep_blank_columns,
+            downsample=downsample_factor(downsample), replace=replace, keep_blank_columns=keep_blank_columns,
             tracking=tracking or (), orientation=orientation, progress=report,
         )  # fmt: skip
     print_lines(imported.lines(out, kind))
+
+
+def downsample_factor(text: str) -> float | str:
+    """``--downsample``'s value: ``auto`` or a number (checked by the library); anything else
+    is a one-line error naming the option."""
+    from ultron.errors import argument_error
+
+    if text.strip().lower() == "auto":
+        return "auto"
+    try:
+        return float(text)
+    except ValueError:
+        raise argument_error(
+            "--downsample", f"expected a number ≥ 1 or auto, got {text!r}"
+        ) from None
 
 
 @command("dataset")

@@ -50,7 +50,12 @@ from ultron.data.plus_geometry import (
 )
 from ultron.data.plus_orientation import orientation_flips
 from ultron.data.plus_poses import Placement, WorldPoses, placement
-from ultron.data.resolution import signal_columns
+from ultron.data.resolution import (
+    GRAIN_FRAMES,
+    PIXELS_PER_GRAIN,
+    axial_grain_px,
+    signal_columns,
+)
 from ultron.data.sequence_frames import SequenceFile
 from ultron.errors import UltronInputError, argument_error
 
@@ -74,6 +79,9 @@ class PlusImportReport:
     downsample: float
     #: The frames were resampled onto the rigid grid (plus_geometry.resample_to_rigid).
     resampled: bool = False
+    #: The frames' axial speckle grain, pixels (:func:`speckle_downsample`; ``--downsample
+    #: auto`` shrinks them to 2 pixels per grain).
+    grain_px: float | None = None
     #: The columns [start, stop) of the clipped frames that were kept (the others blank in
     #: every frame, :func:`signal_columns`); None: every column kept.
     kept_columns: tuple[int, int] | None = None
@@ -140,7 +148,7 @@ def read_plus(
     to: str = "Reference",
     name: str = "sweep",
     kind: str = "other",
-    downsample: float = 1.0,
+    downsample: float | str = 1.0,
     columns: tuple[int, int] | str | None = "signal",
     tracking: Sequence[str | Path] = (),
     orientation: str | None = None,
@@ -167,8 +175,13 @@ def read_plus(
         raise argument_error(
             "columns", f"expected 'signal', (start, stop) or None, got {columns!r}"
         )
-    if isinstance(downsample, bool) or not (math.isfinite(downsample) and downsample >= 1):
-        raise argument_error("--downsample", f"expected a finite number ≥ 1, got {downsample!r}")
+    auto = downsample == AUTO_DOWNSAMPLE
+    if not auto and (
+        isinstance(downsample, bool | str) or not (math.isfinite(downsample) and downsample >= 1)
+    ):
+        raise argument_error(
+            "--downsample", f"expected a finite number ≥ 1 or 'auto', got {downsample!r}"
+        )
     target = to[:1].upper() + to[1:]
     if not target.isascii() or not target.isalnum():
         raise argument_error("--to", f"expected a frame name such as Reference, got {to!r}")
@@ -187,6 +200,9 @@ def read_plus(
     height, width = frames.shape[1:]
     fit = fit_image_plane(calibration, width, height, placed.where, placed.field)
     poses = placed.probe_to_world @ fit.dataset_probe_to_probe(width)
+    factor, grain_px = speckle_downsample(frames, fit.spacing_mm)
+    if auto:
+        downsample = factor
     shape = downsampled_shape(height, width, downsample)
     if min(shape) < MIN_FRAME_PX < min(height, width):
         raise argument_error(
@@ -211,6 +227,7 @@ def read_plus(
         clip=clip,
         fit=fit,
         downsample=float(downsample),
+        grain_px=grain_px,
         resampled=resampled,
         kept_columns=kept,
         calibration_spread_mm=placed.spread_mm,
@@ -224,6 +241,23 @@ def read_plus(
 #: The fewest rows or columns ``--downsample`` may leave a frame: what a scanline needs about
 #: an echo (``label --auto``); a frame recorded smaller is imported as it is.
 MIN_FRAME_PX = 3
+#: ``--downsample``'s value that sets the factor from the frames' speckle
+#: (:func:`speckle_downsample`).
+AUTO_DOWNSAMPLE = "auto"
+
+
+def speckle_downsample(frames: np.ndarray, spacing_mm: tuple[float, float]) -> tuple[float, float]:
+    """The factor ≥ 1 that leaves :data:`~ultron.data.resolution.PIXELS_PER_GRAIN` pixels per
+    axial speckle grain, and the grain in pixels (nan where unmeasurable: factor 1), measured
+    on up to :data:`~ultron.data.resolution.GRAIN_FRAMES` evenly spaced frames of ``frames``
+    (N, H, W) with pixel spacings ``spacing_mm`` (lateral, axial) — the resolution the field is
+    fitted at (``fit_shape="auto"``), so that every stage works at the one the images carry."""
+    height, width = frames.shape[1:]
+    probe = ProbeGeometry(width * spacing_mm[0], height * spacing_mm[1], height, width)
+    picks = np.linspace(0, len(frames) - 1, min(GRAIN_FRAMES, len(frames))).round().astype(int)
+    grain = axial_grain_px(frames[picks], probe)
+    factor = grain / PIXELS_PER_GRAIN if math.isfinite(grain) else 1.0
+    return max(1.0, round(factor, 2)), grain
 
 
 def _check_tracking_used(tracking: Sequence[str | Path], world: WorldPoses) -> None:

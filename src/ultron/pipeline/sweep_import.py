@@ -11,6 +11,7 @@ so a long read cannot end in an unwritable ``--out``.
 from __future__ import annotations
 
 import json
+import math
 import re
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -25,7 +26,7 @@ from ultron.data.importers import (
     read_ultranerf,
 )
 from ultron.data.plus import sequence_stem
-from ultron.data.plus_import import PlusImportReport, read_plus
+from ultron.data.plus_import import AUTO_DOWNSAMPLE, PlusImportReport, read_plus
 from ultron.data.plus_orientation import orientation_flips
 from ultron.errors import argument_error
 from ultron.outputs import check_dataset_out
@@ -104,6 +105,17 @@ def plus_lines(report: PlusImportReport, probe: ProbeGeometry) -> list[str]:
     lines.append(
         f"skipped {skipped} of {report.n_frames_file} frames" + (f": {reasons}" if reasons else "")
     )
+    grain = report.grain_px
+    if grain is not None and math.isfinite(grain):
+        line = f"axial speckle grain: {grain:.2f} pixels of the file's frames"
+        if report.downsample == 1 and grain > FINE_GRAIN_PX:
+            line += (
+                "; on frames this much finer than their speckle UltrON is slower and less"
+                " accurate (the real fibula enlarged to its scanner's 0.054 mm pixels: CD 1.34 mm"
+                " in 17.7 min; at 2 pixels per grain 0.53 in 6.2 min; docs/data.md):"
+                " --downsample auto shrinks them to 2 pixels per grain"
+            )
+        lines.append(line)
     if report.downsample != 1:
         lines.append(f"downsampled by {report.downsample:g} to {probe.height_px}×{probe.width_px}")
     lines.append(
@@ -164,7 +176,7 @@ def import_plus_sweep(
     to: str = "Reference",
     sweep_name: str | None = None,
     kind: str = "other",
-    downsample: float = 1.0,
+    downsample: float | str = 1.0,
     replace: bool = False,
     keep_blank_columns: bool = False,
     tracking: Sequence[str | Path] = (),
@@ -187,7 +199,10 @@ def import_plus_sweep(
         to: World frame: Reference (moves with the patient) or Tracker.
         sweep_name: Name of the new sweep (default: the file's stem).
         kind: Sweep kind: row, column, tilted or other.
-        downsample: Shrink frames by this factor ≥ 1 (area-averaged; spacings updated).
+        downsample: Shrink frames by this factor ≥ 1 (area-averaged; spacings updated), or
+            auto: to two pixels per axial speckle grain, measured on the frames (the
+            resolution the field is fitted at; a sweep added to a dataset takes its first
+            PLUS sweep's factor).
         replace: Replace an existing sweep of the same name.
         keep_blank_columns: Keep the columns that are 0 in every frame (default: drop them,
             as outside the probe's aperture; a dataset holding PLUS sweeps already keeps its
@@ -206,6 +221,8 @@ def import_plus_sweep(
         orientation_flips(orientation, "argument", "--orientation")
     check_dataset_out(out)  # before the recording is read
     name = sweep_name or safe_sweep_name(sequence_stem(sequence))
+    if downsample == AUTO_DOWNSAMPLE:
+        downsample = _dataset_downsample(Path(out)) or downsample
     sweep, probe, report = read_plus(
         sequence, config, to=to, name=name, kind=kind, downsample=downsample,
         columns=None if keep_blank_columns else _dataset_columns(Path(out)),
@@ -219,19 +236,38 @@ def import_plus_sweep(
     return ImportedSweep(name, probe, len(dataset.sweeps), report)
 
 
+#: Pixels per axial speckle grain above which the import suggests ``--downsample auto``.
+FINE_GRAIN_PX = 3.0
+
+
+def _dataset_downsample(out: Path) -> float | None:
+    """The factor the first PLUS sweep of the dataset at ``out`` was downsampled by (None for
+    a new dataset), which a sweep added to it takes, so that they share one probe geometry."""
+    entry = _first_plus_import(out)
+    return None if entry is None else float(entry.get("downsample", 1.0))
+
+
+def _first_plus_import(out: Path) -> dict | None:
+    """The import record of the first PLUS sweep of the dataset at ``out``, or None."""
+    meta_path = out / "dataset.json"
+    if not meta_path.is_file():
+        return None
+    try:
+        imports = json.loads(meta_path.read_text()).get("metadata", {}).get("imports", {})
+    except (OSError, ValueError, AttributeError):
+        return None  # the dataset's own loader names what is wrong with it
+    for entry in imports.values() if isinstance(imports, dict) else ():
+        if isinstance(entry, dict) and entry.get("source") == "plus":
+            return entry
+    return None
+
+
 def _dataset_columns(out: Path) -> tuple[int, int] | str | None:
     """The columns a PLUS sweep added to the dataset at ``out`` keeps: those its first PLUS
     sweep kept (None: all, as a sweep imported before blank columns were dropped), or
     ``"signal"`` for a new dataset (:func:`~ultron.data.plus_import.read_plus`)."""
-    meta_path = out / "dataset.json"
-    if not meta_path.is_file():
+    entry = _first_plus_import(out)
+    if entry is None:
         return "signal"
-    try:
-        imports = json.loads(meta_path.read_text()).get("metadata", {}).get("imports", {})
-    except (OSError, ValueError, AttributeError):
-        return "signal"  # the dataset's own loader names what is wrong with it
-    for entry in imports.values() if isinstance(imports, dict) else ():
-        if isinstance(entry, dict) and entry.get("source") == "plus":
-            kept = entry.get("kept_columns")
-            return None if kept is None else (int(kept[0]), int(kept[1]))
-    return "signal"
+    kept = entry.get("kept_columns")
+    return None if kept is None else (int(kept[0]), int(kept[1]))
