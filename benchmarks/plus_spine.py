@@ -3,8 +3,8 @@
 ``../shared/data/plus-spine-phantom`` is a real PLUS recording (21 frames of 616 × 820 at
 0.08 mm, of which ``import-plus`` keeps the 445 columns that hold signal) with its device-set
 configuration. Every command runs as its own process with its
-defaults (no ``--downsample``, no ``--fit-shape``), so each row's wall time and peak RSS are its
-own (``os.wait4``'s rusage, as ``benchmarks/long_sweep.py`` measures them):
+defaults (the import at two pixels per speckle grain, ``--downsample auto``; no
+``--fit-shape``), so each row's wall time and peak RSS are its own (``os.wait4``'s rusage, as ``benchmarks/long_sweep.py`` measures them):
 
 1. ``ultron import-plus`` → ``ultron label --auto`` (no annotator);
 2. ``ultron reconstruct --method compounding --label-fraction 1``;

@@ -36,7 +36,9 @@ PLUS_CONFIG = PLUS_DIR / "PlusDeviceSet_SpinePhantomFreehandReconstructionOnly.x
 
 
 def _import(*args: str):
-    return runner.invoke(app, ["import-plus", *map(str, args)], terminal_width=400)
+    """``import-plus``, at the file's own pixels unless ``args`` set ``--downsample``."""
+    native = () if "--downsample" in args else ("--downsample", "1")
+    return runner.invoke(app, ["import-plus", *map(str, args), *native], terminal_width=400)
 
 
 def _image_to_reference(rec: Recording, cal: np.ndarray) -> np.ndarray:

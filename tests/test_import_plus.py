@@ -42,8 +42,10 @@ KEPT = (187, 632)
 
 
 def _import(sequence: Path, config: Path, out: Path, *more: str):
+    """``import-plus``, at the file's own pixels unless ``more`` sets ``--downsample``."""
+    native = () if "--downsample" in more else ("--downsample", "1")
     args = ["import-plus", str(sequence), "--config", str(config), "--out", str(out), *more]
-    return runner.invoke(app, args, terminal_width=400)
+    return runner.invoke(app, [*args, *native], terminal_width=400)
 
 
 def _dataset_world(out: Path, frame: int, i: float, j: float, sweep: int = 0) -> np.ndarray:
@@ -574,6 +576,10 @@ def test_downsample_auto_leaves_two_pixels_per_speckle_grain(tmp_path: Path):
     data = SweepDataset.load(out)
     assert data.probe.image_shape == (round(120 / factor), round(96 / factor))
     assert "axial speckle grain" in result.output and f"downsampled by {factor:g}" in result.output
+    default = runner.invoke(app, ["import-plus", str(tmp_path / "s.mha"), "--config", str(config),
+                                  "--out", str(tmp_path / "d")])  # fmt: skip
+    assert default.exit_code == 0, default.output  # auto is the default
+    assert SweepDataset.load(tmp_path / "d").metadata["imports"]["s"]["downsample"] == factor
     added = _import(tmp_path / "s.mha", config, out, "--downsample", "auto", "--sweep-name", "b")
     assert added.exit_code == 0, added.output
     assert SweepDataset.load(out).metadata["imports"]["b"]["downsample"] == factor

@@ -241,7 +241,7 @@ def _plain_import(tmp_path: Path) -> tuple[Path, np.ndarray]:
     out = tmp_path / "ds"
     imported = runner.invoke(
         app, ["import-plus", str(write_mha(tmp_path / "s.mha", rec)), "--config", str(config),
-              "--out", str(out)],
+              "--out", str(out), "--downsample", "1"],
     )  # fmt: skip
     assert imported.exit_code == 0, imported.output
     return out, masks

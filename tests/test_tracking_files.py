@@ -69,7 +69,9 @@ def _image_sequence(path: Path, frames: np.ndarray, times) -> Path:
 
 
 def _import(*args: str):
-    return runner.invoke(app, ["import-plus", *args], terminal_width=400)
+    """``import-plus``, at the file's own pixels unless ``args`` set ``--downsample``."""
+    native = () if "--downsample" in args else ("--downsample", "1")
+    return runner.invoke(app, ["import-plus", *args, *native], terminal_width=400)
 
 
 @pytest.fixture

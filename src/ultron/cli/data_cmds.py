@@ -40,7 +40,7 @@ def import_plus(
     to: str = "Reference",
     sweep_name: str | None = None,
     kind: str = "other",
-    downsample: str = "1",
+    downsample: str = "auto",
     replace: bool = False,
     keep_blank_columns: bool = False,
     tracking: list[Path] | None = None,

@@ -176,7 +176,7 @@ def import_plus_sweep(
     to: str = "Reference",
     sweep_name: str | None = None,
     kind: str = "other",
-    downsample: float | str = 1.0,
+    downsample: float | str = "auto",
     replace: bool = False,
     keep_blank_columns: bool = False,
     tracking: Sequence[str | Path] = (),
@@ -199,10 +199,10 @@ def import_plus_sweep(
         to: World frame: Reference (moves with the patient) or Tracker.
         sweep_name: Name of the new sweep (default: the file's stem).
         kind: Sweep kind: row, column, tilted or other.
-        downsample: Shrink frames by this factor ≥ 1 (area-averaged; spacings updated), or
-            auto: to two pixels per axial speckle grain, measured on the frames (the
-            resolution the field is fitted at; a sweep added to a dataset takes its first
-            PLUS sweep's factor).
+        downsample: auto (default): shrink the frames to two pixels per axial speckle grain,
+            measured on them (the resolution the field is fitted at; a sweep added to a
+            dataset takes its first PLUS sweep's factor); or this factor ≥ 1 (1: the file's
+            own pixels; area-averaged, spacings updated).
         replace: Replace an existing sweep of the same name.
         keep_blank_columns: Keep the columns that are 0 in every frame (default: drop them,
             as outside the probe's aperture; a dataset holding PLUS sweeps already keeps its
