@@ -171,8 +171,8 @@ def atomic_open(path: str | Path) -> Iterator[BinaryIO]:
 @contextlib.contextmanager
 def staged_directory(path: str | Path) -> Iterator[Path]:
     """A new hidden sibling of ``path`` (mode ``0o777 & ~umask``, not mkdtemp's 0700) to
-        write a whole directory into, renamed to ``path`` on success and removed on any failure,
-        so ``path`` never holds half of it. ``path`` must not exist yet. The writer holds an
+    write a whole directory into, renamed to ``path`` on success and removed on any failure,
+    so ``path`` never holds half of it. ``path`` must not exist yet. The writer holds an
     ``flock`` on the staging directory, so that a later write of ``path`` removes the staging
     directory of a killed one (:func:`remove_stale_temps`) and never a live one's."""
     path = Path(path)

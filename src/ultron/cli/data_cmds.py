@@ -52,8 +52,9 @@ def import_plus(
     with stage_progress("import", unit="frames") as report:
         imported = import_plus_sweep(
             sequence, config, out, to=to, sweep_name=sweep_name, kind=kind,
-            downsample=downsample_factor(downsample), replace=replace, keep_blank_columns=keep_blank_columns,
-            tracking=tracking or (), orientation=orientation, progress=report,
+            downsample=downsample_factor(downsample), replace=replace,
+            keep_blank_columns=keep_blank_columns, tracking=tracking or (),
+            orientation=orientation, progress=report,
         )  # fmt: skip
     print_lines(imported.lines(out, kind))
 

@@ -12,7 +12,6 @@ import typer
 from ultron import __version__
 from ultron.cli import (
     EXIT_INTERRUPTED,
-    INTERRUPTED,
     benchmark_cmds,
     data_cmds,
     eval_cmds,
@@ -104,7 +103,7 @@ def _run() -> None:
         exc.show()
         sys.exit(exc.exit_code)
     if code == EXIT_INTERRUPTED:  # typer's answer to Ctrl-C (a KeyboardInterrupt)
-        print(f"error: {INTERRUPTED}", file=sys.stderr)
+        interrupted()
     sys.exit(code if isinstance(code, int) else 0)
 
 

@@ -258,9 +258,7 @@ def record_matches(record: dict[str, Any], labels: np.ndarray | None) -> bool:
     return digest is None or digest == labels_digest(labels)
 
 
-def _record(
-    config: AutoLabelConfig, summary: SweepLabelSummary, labels: np.ndarray
-) -> dict[str, Any]:
+def _record(config: AutoLabelConfig, summary: SweepLabelSummary) -> dict[str, Any]:
     return {
         "method": AUTO_LABELS_METHOD,
         "config": config.to_dict(),
@@ -269,7 +267,6 @@ def _record(
         "frames_without_bone": summary.frames_without_bone,
         "frames_to_check": list(summary.frames_to_check[:MAX_LISTED]),
         "quality": QUALITY_FILE,
-        "labels_digest": labels_digest(labels),
     }
 
 
@@ -284,9 +281,9 @@ def auto_label_dataset(
     (:func:`~ultron.data.auto_labels.auto_label_frames`) and write them (module docstring):
     every sweep is labelled first, then the labels are written, ``dataset.json`` last. Returns
     one summary per sweep, in the order given."""
-    _checked_config(config)
-    dataset, names = check_labelling(root, sweeps, replace, relabel=_checked_config(config))
-    return label_checked_sweeps(root, dataset, names, config, progress)
+    cfg = _checked_config(config)
+    dataset, names = check_labelling(root, sweeps, replace, relabel=cfg)
+    return label_checked_sweeps(root, dataset, names, cfg, progress)
 
 
 def _checked_config(config: AutoLabelConfig | None) -> AutoLabelConfig:
@@ -330,7 +327,7 @@ def label_checked_sweeps(
         summaries.append(summary)
     records = dict(dataset.metadata.get(METADATA_KEY) or {})
     for summary in summaries:
-        records[summary.name] = _record(cfg, summary, computed[summary.name][0])
+        records[summary.name] = _record(cfg, summary)
         csv = quality_csv(computed[summary.name][1], summary.recording_frames)
         atomic.write_text(root / summary.name / QUALITY_FILE, csv)
     write_labels(root, dataset, {n: computed[n][0] for n in names}, METADATA_KEY, records,
@@ -347,8 +344,8 @@ def write_labels(
     other_key: str,
 ) -> None:
     """Write new ``labels`` (sweep name → array) into the dataset at ``root`` with their
-    records (``metadata[key]``, each with its :func:`labels_digest`), so that an interruption
-    at any point leaves records that tell the truth: ``dataset.json`` with the new records,
+    records (``metadata[key]``, each given its labels' :func:`labels_digest` here), so that an
+    interruption at any point leaves records that tell the truth: ``dataset.json`` with the new records,
     then each ``labels.npy``, then ``dataset.json`` without the sweeps' records under
     ``other_key`` (the other source of labels; a record of it written before digests existed
     first gets the digest of the labels it describes, so that it goes stale with them).
@@ -358,6 +355,9 @@ def write_labels(
         record, current = others.get(name), dataset.sweep(name).labels
         if isinstance(record, dict) and "labels_digest" not in record and current is not None:
             others[name] = {**record, "labels_digest": labels_digest(current)}
+    records = dict(records)
+    for name, array in labels.items():
+        records[name] = {**records[name], "labels_digest": labels_digest(array)}
     dataset.metadata = {**dataset.metadata, key: records}
     if others:
         dataset.metadata[other_key] = others

@@ -45,7 +45,6 @@ from ultron.data.auto_label_dataset import (
     auto_label_records,
     check_labelling,
     label_shares,
-    labels_digest,
     record_matches,
     write_labels,
 )
@@ -363,11 +362,7 @@ def import_mask_labels(
         )  # fmt: skip
     replaced = dataset.sweep(name).labels is not None
     imports = dict(dataset.metadata.get(METADATA_KEY) or {})
-    imports[name] = {
-        "masks": str(masks_path.resolve()),
-        "config": asdict(config),
-        "labels_digest": labels_digest(labels),
-    }
+    imports[name] = {"masks": str(masks_path.resolve()), "config": asdict(config)}
     write_labels(root, dataset, {name: labels}, METADATA_KEY, imports, AUTO_LABELS_KEY)
     annotated = int((labels != LABEL_UNANNOTATED).any(axis=(1, 2)).sum())
     return MaskImportSummary(

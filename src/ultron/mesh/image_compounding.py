@@ -156,8 +156,7 @@ def compound_samples(
 ) -> CompoundedImage:
     """Splat every chunk of (points, values) onto ``grid`` and fill the holes. ``progress``,
     when given, is told ("splatting", samples splatted, ``total``) before the first chunk and
-    after each, and
-    ("filling holes", 0, 1) before the hole filler runs."""
+    after each, and ("filling holes", 0, 1) before the hole filler runs."""
     splatter = Splatter(grid, config.splat)
     done = 0
     if progress is not None:

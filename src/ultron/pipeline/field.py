@@ -218,9 +218,8 @@ def _dataset_poses(
 
 def fit_lines(result: FieldFitResult, device: str) -> list[str]:
     """What ``fit-field`` prints: whether it resumed a checkpoint (and from which step), the
-    files written, the fitted θ's statistics, the last
-    held-out check against copying a training frame, and on a simulated dataset the fitted T
-    against the simulator's."""
+    files written, the fitted θ's statistics, the last held-out check against copying a
+    training frame, and on a simulated dataset the fitted T against the simulator's."""
     fitted, out = result.fitted, result.out
     lines = []
     resumed = result.resumed_from

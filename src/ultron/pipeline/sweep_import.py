@@ -111,8 +111,7 @@ def plus_lines(report: PlusImportReport, probe: ProbeGeometry) -> list[str]:
         if report.downsample == 1 and grain > FINE_GRAIN_PX:
             line += (
                 "; on frames this much finer than their speckle UltrON is slower and less"
-                " accurate (the real fibula enlarged to its scanner's 0.054 mm pixels: CD 1.34 mm"
-                " in 17.7 min; at 2 pixels per grain 0.53 in 6.2 min; docs/data.md):"
+                ' accurate (measured: docs/data.md, "The working resolution"):'
                 " --downsample auto shrinks them to 2 pixels per grain"
             )
         lines.append(line)
@@ -221,11 +220,12 @@ def import_plus_sweep(
         orientation_flips(orientation, "argument", "--orientation")
     check_dataset_out(out)  # before the recording is read
     name = sweep_name or safe_sweep_name(sequence_stem(sequence))
-    if downsample == AUTO_DOWNSAMPLE:
-        downsample = _dataset_downsample(Path(out)) or downsample
+    first = _first_plus_import(Path(out))  # a sweep added to a dataset shares its geometry
+    if downsample == AUTO_DOWNSAMPLE and first is not None:
+        downsample = float(first.get("downsample", 1.0))
     sweep, probe, report = read_plus(
         sequence, config, to=to, name=name, kind=kind, downsample=downsample,
-        columns=None if keep_blank_columns else _dataset_columns(Path(out)),
+        columns=None if keep_blank_columns else _kept_columns(first),
         tracking=tracking, orientation=orientation, progress=progress,
     )  # fmt: skip
     if progress is not None:
@@ -238,13 +238,6 @@ def import_plus_sweep(
 
 #: Pixels per axial speckle grain above which the import suggests ``--downsample auto``.
 FINE_GRAIN_PX = 3.0
-
-
-def _dataset_downsample(out: Path) -> float | None:
-    """The factor the first PLUS sweep of the dataset at ``out`` was downsampled by (None for
-    a new dataset), which a sweep added to it takes, so that they share one probe geometry."""
-    entry = _first_plus_import(out)
-    return None if entry is None else float(entry.get("downsample", 1.0))
 
 
 def _first_plus_import(out: Path) -> dict | None:
@@ -262,12 +255,12 @@ def _first_plus_import(out: Path) -> dict | None:
     return None
 
 
-def _dataset_columns(out: Path) -> tuple[int, int] | str | None:
-    """The columns a PLUS sweep added to the dataset at ``out`` keeps: those its first PLUS
-    sweep kept (None: all, as a sweep imported before blank columns were dropped), or
-    ``"signal"`` for a new dataset (:func:`~ultron.data.plus_import.read_plus`)."""
-    entry = _first_plus_import(out)
-    if entry is None:
+def _kept_columns(first: dict | None) -> tuple[int, int] | str | None:
+    """The columns a PLUS sweep added to a dataset keeps, from ``first``, the import record of
+    the dataset's first PLUS sweep (:func:`_first_plus_import`): the columns it kept (None: all,
+    as a sweep imported before blank columns were dropped), or ``"signal"`` for a new dataset
+    (:func:`~ultron.data.plus_import.read_plus`)."""
+    if first is None:
         return "signal"
-    kept = entry.get("kept_columns")
+    kept = first.get("kept_columns")
     return None if kept is None else (int(kept[0]), int(kept[1]))
