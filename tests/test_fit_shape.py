@@ -107,3 +107,21 @@ def test_the_meshing_voxel_is_no_finer_than_the_detail_the_frames_carry() -> Non
     assert meshing_voxel_mm(oversampled.probe, 0.7, 1.0, finest_mm=finest) == 0.7  # given
     white = speckle_dataset(0.0, spacing_mm)
     assert resolved_spacing_mm(white) == pytest.approx(spacing_mm)
+
+
+def test_info_names_the_grain_and_the_shape_the_field_is_fitted_at(tmp_path) -> None:
+    from typer.testing import CliRunner
+
+    from ultron.cli.main import app
+
+    for sigma_px, name in ((3.0, "coarse"), (0.0, "white")):
+        dataset = speckle_dataset(sigma_px)
+        dataset.save(tmp_path / name)
+        result = CliRunner().invoke(app, ["info", str(tmp_path / name)], terminal_width=200)
+        assert result.exit_code == 0, result.output
+        grain = axial_grain_px(np.stack(dataset.sweeps[0].images), dataset.probe)
+        assert f"axial speckle grain: {grain:.2f} pixels ({grain * 0.05:.3f} mm)" in result.output
+        shape = auto_fit_shape(dataset)
+        fitted = "their own size" if shape is None else f"{shape[0]} × {shape[1]}"
+        assert f"the field is fitted at {fitted} (fit-field" in result.output
+        assert (shape is None) == (sigma_px == 0.0)

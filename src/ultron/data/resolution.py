@@ -91,6 +91,20 @@ def measure_resolved_shape(dataset: SweepDataset) -> tuple[int, int] | None:
     already sample the axial grain with at most :data:`PIXELS_PER_GRAIN` pixels, else (H, W)
     with both spacings raised to at least grain / 2."""
     probe = dataset.probe
+    grain = dataset.memoized("axial_grain_px", dataset_grain_px)
+    if not grain > PIXELS_PER_GRAIN:
+        return None
+    spacing_mm = grain / PIXELS_PER_GRAIN * probe.axial_spacing_mm
+    rows = min(probe.height_px, max(1, round(probe.depth_mm / spacing_mm)))
+    cols = min(probe.width_px, max(1, round(probe.width_mm / spacing_mm)))
+    return None if (rows, cols) == probe.image_shape else (rows, cols)
+
+
+def dataset_grain_px(dataset: SweepDataset) -> float:
+    """The axial speckle grain (pixels, :func:`axial_grain_px`) of up to :data:`GRAIN_FRAMES`
+    frames evenly spaced over ``dataset``'s sweeps; nan where no frame has a measurable grain."""
+    if not isinstance(dataset, SweepDataset):
+        raise argument_error("dataset", "expected a SweepDataset")
     counts = [len(sweep.images) for sweep in dataset.sweeps]
     picks = np.linspace(0, sum(counts) - 1, min(GRAIN_FRAMES, sum(counts))).round().astype(int)
     starts = np.cumsum([0, *counts])
@@ -99,13 +113,7 @@ def measure_resolved_shape(dataset: SweepDataset) -> tuple[int, int] | None:
         for k in picks
         for s in [int(np.searchsorted(starts, k, side="right")) - 1]
     ]
-    grain = axial_grain_px(np.stack(frames), probe)
-    if not grain > PIXELS_PER_GRAIN:
-        return None
-    spacing_mm = grain / PIXELS_PER_GRAIN * probe.axial_spacing_mm
-    rows = min(probe.height_px, max(1, round(probe.depth_mm / spacing_mm)))
-    cols = min(probe.width_px, max(1, round(probe.width_mm / spacing_mm)))
-    return None if (rows, cols) == probe.image_shape else (rows, cols)
+    return axial_grain_px(np.stack(frames), dataset.probe)
 
 
 def resolved_spacing_mm(dataset: SweepDataset) -> float:

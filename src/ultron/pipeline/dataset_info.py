@@ -9,6 +9,7 @@ reference mesh, read only by :meth:`DatasetInfo.units_warnings`.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -17,7 +18,7 @@ import numpy as np
 from ultron.data.dataset import SweepDataset
 from ultron.data.geometry import field_of_view_bounds_mm
 from ultron.data.outliers import PoseOutlier, pose_outliers
-from ultron.data.resolution import lit_column_range
+from ultron.data.resolution import dataset_grain_px, lit_column_range, resolved_shape
 from ultron.data.units import units_warnings
 from ultron.mesh.export import load_mesh
 
@@ -58,6 +59,7 @@ class DatasetInfo:
             f"pixel spacing: {probe.lateral_spacing_mm:.4f} mm lateral ×"
             f" {probe.axial_spacing_mm:.4f} mm axial",
             *self._blank_columns_line(),
+            *self._grain_line(),
             "bounding box (mm): "
             + "  ".join(
                 f"{axis} [{lo:.2f}, {hi:.2f}]"
@@ -75,6 +77,20 @@ class DatasetInfo:
             f"columns with signal: {start}–{stop - 1} of {width}; the other"
             f" {width - (stop - start)} are 0 in every frame (outside the aperture: the field"
             " fit ignores them)"
+        ]
+
+    def _grain_line(self) -> list[str]:
+        """The frames' axial speckle grain and the shape ``fit-field --fit-shape auto`` fits
+        them at (:mod:`ultron.data.resolution`), when the grain can be measured."""
+        data = self.dataset
+        grain = data.memoized("axial_grain_px", dataset_grain_px)
+        if not math.isfinite(grain):
+            return []
+        shape = resolved_shape(data)
+        fit = "their own size" if shape is None else f"{shape[0]} × {shape[1]}"
+        return [
+            f"axial speckle grain: {grain:.2f} pixels ({grain * data.probe.axial_spacing_mm:.3f}"
+            f" mm); the field is fitted at {fit} (fit-field --fit-shape auto)"
         ]
 
     def outlier_lines(self) -> list[str]:
