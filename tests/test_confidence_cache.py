@@ -13,6 +13,7 @@ import pytest
 
 from ultron.errors import UltronInputError
 from ultron.train import confidence_cache
+from ultron.train.confidence import ConfidenceConfig, confidence_maps
 from ultron.train.confidence_cache import (
     FORMAT,
     cached_confidence_maps,
@@ -20,7 +21,6 @@ from ultron.train.confidence_cache import (
     read_cached_maps,
     write_cached_maps,
 )
-from ultron.train.visibility import ConfidenceConfig, confidence_maps
 
 
 def frames(n: int = 3, seed: int = 0) -> np.ndarray:

@@ -30,12 +30,11 @@ from ultron.pipeline.presets import preset_request
 from ultron.pipeline.run import ReconstructionRequest, reconstruct
 from ultron.render import RenderConfig, pixel_points_mm, render_properties
 from ultron.train import FieldTrainConfig, fit_field
+from ultron.train.confidence import ConfidenceConfig, confidence_map
 from ultron.train.occupancy import OccupancyTrainConfig, rows_read
 from ultron.train.visibility import (
-    ConfidenceConfig,
     LabelTransmissionConfig,
     VisibilityConfig,
-    confidence_map,
     frame_transmission,
     in_labelled_shadow,
     label_transmission,
@@ -223,7 +222,7 @@ def test_confidence_map_solves_monais_system():
 
 
 def test_confidence_maps_on_threads_equal_one_by_one():
-    from ultron.train.visibility import confidence_maps
+    from ultron.train.confidence import confidence_maps
 
     rng = np.random.default_rng(0)
     images = rng.integers(0, 256, size=(12, 20, 16)).astype(np.float32)

@@ -63,6 +63,17 @@ def check_range(
 MAX_COUNT = 10**9
 
 
+def check_finite(name: str, value: object, minimum: float, strict: bool) -> None:
+    """A one-line error naming ``name`` unless ``value`` is a finite number (not a bool)
+    ≥ ``minimum`` (> ``minimum`` when ``strict``)."""
+    ok = isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+    if not ok or value < minimum or (strict and value == minimum):  # type: ignore[operator]
+        relation = ">" if strict else "≥"
+        raise argument_error(
+            name, f"expected a finite number {relation} {minimum:g}, got {value!r}"
+        )
+
+
 def check_integer(name: str, value: object, low: int = 0, high: int | None = None) -> None:
     """A one-line error naming ``name`` unless ``value`` is an integer (not a bool) ≥ ``low``
     (and ≤ ``high`` when given)."""

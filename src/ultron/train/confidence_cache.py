@@ -31,8 +31,8 @@ import torch
 from ultron import atomic
 from ultron.errors import argument_error
 from ultron.models.field_dir import CONFIDENCE_CACHE
+from ultron.train.confidence import ConfidenceConfig, confidence_maps, solver_description
 from ultron.train.fit_checkpoint import fit_fingerprint
-from ultron.train.visibility import ConfidenceConfig, confidence_maps, solver_description
 
 #: Names the file's layout (bumped when it changes; another format is never read).
 FORMAT = "ultron-confidence-maps/1"
@@ -84,7 +84,7 @@ def cached_confidence_maps(
     workers: int = 1,
     report: Callable[[int, int], None] | None = None,
 ) -> tuple[np.ndarray, bool]:
-    """:func:`~ultron.train.visibility.confidence_maps` of ``images`` (N, H, W), read from
+    """:func:`~ultron.train.confidence.confidence_maps` of ``images`` (N, H, W), read from
     ``path`` when it holds this very computation's result, else computed and written there.
     Returns (maps, whether they were read). ``report`` is told (N, N) when they are read. A
     file that cannot be written (a full disk) is not an error: the maps are only not kept."""

@@ -14,9 +14,9 @@ import torch.nn.functional as F
 from ultron.data.dataset import ProbeGeometry, SweepDataset
 from ultron.data.resolution import lit_column_range
 from ultron.errors import argument_error
+from ultron.train.confidence import confidence_maps
 from ultron.train.confidence_cache import cached_confidence_maps
 from ultron.train.losses import psnr
-from ultron.train.visibility import confidence_maps
 
 
 def _resample_axis(images: torch.Tensor, new_size: int, dim: int) -> torch.Tensor:
@@ -112,7 +112,7 @@ class FrameSet:
         cache: Path | None = None,
     ) -> FrameSet:
         """These frames with their ultrasound confidence maps (at the fitting resolution,
-        :func:`ultron.train.visibility.confidence_maps` with its default settings, ``workers``
+        :func:`ultron.train.confidence.confidence_maps` with its default settings, ``workers``
         frames at a time); ``report`` is told (frames done, frames) as they are computed.
         ``cache``: a file that keeps them (:mod:`ultron.train.confidence_cache`), read when it
         holds these frames' maps, else written."""
