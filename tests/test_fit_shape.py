@@ -121,7 +121,7 @@ def test_info_names_the_grain_and_the_shape_the_field_is_fitted_at(tmp_path) -> 
         assert result.exit_code == 0, result.output
         grain = axial_grain_px(np.stack(dataset.sweeps[0].images), dataset.probe)
         assert f"axial speckle grain: {grain:.2f} pixels ({grain * 0.05:.3f} mm)" in result.output
-        shape = auto_fit_shape(dataset)
+        shape = resolve_fit_shape(field_preset(), dataset).fit_shape
         fitted = "their own size" if shape is None else f"{shape[0]} × {shape[1]}"
         assert f"the field is fitted at {fitted} (fit-field" in result.output
         assert (shape is None) == (sigma_px == 0.0)

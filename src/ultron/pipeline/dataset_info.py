@@ -18,9 +18,11 @@ import numpy as np
 from ultron.data.dataset import SweepDataset
 from ultron.data.geometry import field_of_view_bounds_mm
 from ultron.data.outliers import PoseOutlier, pose_outliers
-from ultron.data.resolution import dataset_grain_px, lit_column_range, resolved_shape
+from ultron.data.resolution import dataset_grain_px, lit_column_range
 from ultron.data.units import units_warnings
 from ultron.mesh.export import load_mesh
+from ultron.train.field_config import FieldTrainConfig
+from ultron.train.fit_shape import resolve_fit_shape
 
 
 @dataclass(frozen=True)
@@ -86,7 +88,7 @@ class DatasetInfo:
         grain = data.memoized("axial_grain_px", dataset_grain_px)
         if not math.isfinite(grain):
             return []
-        shape = resolved_shape(data)
+        shape = resolve_fit_shape(FieldTrainConfig(fit_shape="auto"), data).fit_shape
         fit = "their own size" if shape is None else f"{shape[0]} × {shape[1]}"
         return [
             f"axial speckle grain: {grain:.2f} pixels ({grain * data.probe.axial_spacing_mm:.3f}"
