@@ -242,7 +242,9 @@ def test_an_interrupt_while_the_commands_load_is_one_line(
         entry.main()
     assert caught.value.code == cli.EXIT_INTERRUPTED == 130
     lines = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
-    assert lines == [f"error: {cli.INTERRUPTED}"]
+    assert lines == [f"error: {cli.interrupted_line(sys.argv)}"]
+    assert cli.interrupted_line(["ultron", "label", "d", "--auto"]) == cli.INTERRUPTED
+    assert "field fit continues" in cli.interrupted_line(["ultron", "fit-field", "d"])
 
 
 def test_the_console_script_is_the_interrupt_safe_entry_point() -> None:

@@ -583,6 +583,17 @@ def test_downsample_auto_leaves_two_pixels_per_speckle_grain(tmp_path: Path):
     added = _import(tmp_path / "s.mha", config, out, "--downsample", "auto", "--sweep-name", "b")
     assert added.exit_code == 0, added.output
     assert SweepDataset.load(out).metadata["imports"]["b"]["downsample"] == factor
+    other = _import(tmp_path / "s.mha", config, out, "--downsample", "2", "--sweep-name", "c")
+    assert other.exit_code == 2 and "ProbeGeometry" not in other.output
+    assert f"the dataset's frames are {data.probe.height_px} × {data.probe.width_px} pixels" in (
+        other.output
+    )
+    one = tmp_path / "one"  # the file's pixels kept: the import suggests auto, once
+    kept = _import(tmp_path / "s.mha", config, one, "--downsample", "1")
+    assert kept.exit_code == 0 and "--downsample auto shrinks them" in kept.output
+    second = _import(tmp_path / "s.mha", config, one, "--sweep-name", "b")  # the dataset's 1
+    assert second.exit_code == 0 and "--downsample auto shrinks" not in second.output
+    assert SweepDataset.load(one).probe.image_shape == (120, 96)
     rec.frames[:] = rng.integers(0, 256, size=rec.frames.shape, dtype=np.uint8)
     plain = tmp_path / "plain"
     result = _import(write_mha(tmp_path / "w.mha", rec), config, plain, "--downsample", "auto")

@@ -78,6 +78,11 @@ def test_masks_of_the_sweeps_own_frames_round_trip(tmp_path: Path):
     again = runner.invoke(app, command[1:], terminal_width=400)
     assert again.exit_code == 0, again.output
     assert np.array_equal(SweepDataset.load(tmp_path / "d").sweep("s").labels, labels)
+    assert "warning" not in again.stderr
+    naive = _label(str(tmp_path / "d"), "--masks", str(tmp_path / "e.npy"), "--replace")
+    assert naive.exit_code == 0, naive.output  # unsure read as bone, as asked, and said so
+    assert "warning: the masks hold the values 1, 2 besides 0, all read as bone" in naive.stderr
+    assert (SweepDataset.load(tmp_path / "d").sweep("s").labels[1:4] != 255).all()
 
 
 def _simulated(tmp_path: Path) -> Path:
@@ -157,7 +162,8 @@ def test_sequence_export_is_the_recordings_twin(tmp_path: Path):
     assert f"header and per-frame fields from {sequence}" in found.output
     assert (tmp_path / "f.seq.mha").read_bytes() == (tmp_path / "e.seq.mha").read_bytes()
     sequence.rename(tmp_path / "moved.igs.mha")  # gone from there: frame numbers index it
-    assert _label(str(out), "--export", str(tmp_path / "f.seq.nrrd")).exit_code == 0
+    gone = _label(str(out), "--export", str(tmp_path / "f.seq.nrrd"))
+    assert gone.exit_code == 0 and f"{sequence}, which the import read, is no longer" in gone.stderr
     untimed = nrrd.read_header(str(tmp_path / "f.seq.nrrd"))
     assert untimed["axis 0 index values"] == "0 1 2 3 4" and untimed["labels"][0] == "frame"
     write_mha(sequence, _recording_with_an_echo(n=3)[0], "UN")  # another file in its place
@@ -205,11 +211,23 @@ def test_bad_exports_are_one_line_errors_and_write_nothing(tmp_path: Path):
         ([str(simulated), "--export", str(tmp_path / "x.npy"), "--orientation", "UN"],
          "its masks are of its own frames"),
         ([str(out), "--auto", "--export", str(tmp_path / "x.npy")], "pass exactly one of"),
-        ([str(out), "--recording", str(sequence), "--auto"], "goes with --export"),
+        ([str(out), "--recording", str(sequence), "--auto"], "goes with --export, not --auto"),
+        ([str(out), "--auto", "--frames", "0:3"], "goes with --masks, not --auto"),
+        ([str(out), "--auto", "--unsure-value", "2"], "goes with --masks or --export, not"),
+        ([str(out), "--export", str(tmp_path / "x.npy"), "--annotated", "all"],
+         "--annotated: goes with --masks, not --export"),
+        ([str(out), "--export", str(tmp_path / "x.npy"), "--replace"],
+         "goes with --auto or --masks, not --export"),
         ([str(out), "--export", str(tmp_path / "x.npy"), "--unsure-value", "1"],
          "must differ from bone_value"),
+        ([str(out), "--export", str(sequence)], "is the recording the sweep was imported from"),
+        ([str(out), "--export", str(out / "s" / "labels.npy")], "part of the dataset at"),
+        ([str(out), "--export", str(out / "s" / "new.npy")], "is in s, part of the dataset"),
     ]  # fmt: skip
+    before = {path: path.read_bytes() for path in (sequence, out / "s" / "labels.npy")}
     assert_refused(_label, cases)
+    assert all(path.read_bytes() == data for path, data in before.items())
+    assert not (out / "s" / "new.npy").exists()
     assert not list(tmp_path.glob("x*")) and not list(tmp_path.glob(".x*"))
     (out / "s" / "labels.npy").unlink()  # a sweep without labels
     with pytest.raises(UltronInputError, match="the sweep has no labels"):

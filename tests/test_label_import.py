@@ -24,7 +24,12 @@ from plus_synthetic import (
 from test_bad_input_corpus import runner
 from ultron.cli.main import app
 from ultron.data.dataset import ProbeGeometry, Sweep, SweepDataset
-from ultron.data.label_import import MaskImportConfig, mask_labels, parse_frames
+from ultron.data.label_import import (
+    MAX_LISTED_FRAMES,
+    MaskImportConfig,
+    mask_labels,
+    parse_frames,
+)
 from ultron.errors import UltronInputError
 
 #: Grey levels of the synthetic recording: tissue and the bone's echo band.
@@ -279,6 +284,10 @@ def test_frames_parse_as_numbers_and_ranges():
             parse_frames(bad)
     with pytest.raises(UltronInputError, match="more than once"):
         MaskImportConfig(frames=(1, 2, 1))
+    assert len(parse_frames(f"0:{MAX_LISTED_FRAMES}")) == MAX_LISTED_FRAMES
+    for huge in ("0:3000000000", f"0:{MAX_LISTED_FRAMES},{MAX_LISTED_FRAMES}"):
+        with pytest.raises(UltronInputError, match="lists more than"):  # not expanded first
+            parse_frames(huge)
 
 
 def test_masks_of_listed_frames_only(tmp_path: Path, own_frames: Path):

@@ -17,13 +17,25 @@ import sys
 #: Exit code of an interrupted command (128 + SIGINT, as a shell reports one).
 EXIT_INTERRUPTED = 130
 #: The line an interrupted command prints.
-INTERRUPTED = (
-    "interrupted; nothing half-written. Run the same command again to resume: a field fit and"
-    " reconstruct's network fits continue from their last checkpoint"
-)
+INTERRUPTED = "interrupted; nothing half-written. Run the same command again"
+#: What running again resumes, for the commands whose fits keep checkpoints.
+RESUMES = {
+    "fit-field": "the field fit continues from its last checkpoint",
+    **dict.fromkeys(
+        ("reconstruct", "finetune", "demo", "benchmark"),
+        "a field fit and the network fits continue from their last checkpoint",
+    ),
+}
+
+
+def interrupted_line(argv: list[str]) -> str:
+    """:data:`INTERRUPTED`, and what running again resumes where the command ``argv[1]`` (the
+    command line) keeps checkpoints (:data:`RESUMES`)."""
+    resumes = RESUMES.get(argv[1] if len(argv) > 1 else "")
+    return INTERRUPTED + (f" to resume: {resumes}" if resumes else "")
 
 
 def interrupted() -> None:
     """Print the interrupted line and exit with :data:`EXIT_INTERRUPTED`."""
-    print(f"error: {INTERRUPTED}", file=sys.stderr)
+    print(f"error: {interrupted_line(sys.argv)}", file=sys.stderr)
     sys.exit(EXIT_INTERRUPTED)

@@ -9,6 +9,16 @@ from pathlib import Path
 from ultron.arguments import sweep_names
 from ultron.cli.common import command, print_lines, stage_progress
 
+#: The modes each option of ``label`` goes with (any other mode refuses it, not ignores it).
+OPTION_MODES = {
+    "--recording": ("--export",),
+    "--bone-value": ("--masks", "--export"),
+    "--unsure-value": ("--masks", "--export"),
+    "--annotated": ("--masks",),
+    "--frames": ("--masks",),
+    "--replace": ("--auto", "--masks"),
+}
+
 
 @command("dataset", documented_by=("ultron.data.label_import:MaskImportConfig",))
 def label(
@@ -61,8 +71,17 @@ def label(
 
     if auto + (masks is not None) + (export is not None) != 1:
         raise argument_error("--auto", "pass exactly one of --auto, --masks MASKS and --export OUT")
-    if recording is not None and export is None:
-        raise argument_error("--recording", "goes with --export OUT")
+    mode = "--auto" if auto else "--masks" if masks is not None else "--export"
+    given = {
+        "--recording": recording is not None, "--bone-value": bone_value is not None,
+        "--unsure-value": unsure_value is not None, "--annotated": annotated != "nonempty",
+        "--frames": frames is not None, "--replace": replace,
+    }  # fmt: skip
+    for option in (option for option, on in given.items() if on):
+        if mode not in OPTION_MODES[option]:
+            raise argument_error(
+                option, f"goes with {' or '.join(OPTION_MODES[option])}, not {mode}"
+            )
     if export is not None:
         _export(dataset, export, sweep_names(sweeps), recording, bone_value, unsure_value,
                 orientation)  # fmt: skip
@@ -111,4 +130,4 @@ def _import_masks(dataset: Path, masks: Path, names: list[str] | None, replace: 
     config = MaskImportConfig(bone_value, unsure_value, annotated, orientation, numbers)
     summary = import_mask_labels(dataset, _one_sweep(names, "--masks"), masks, config,
                                  replace)  # fmt: skip
-    print_lines(summary.lines(dataset))
+    print_lines(summary.lines(dataset), summary.warnings)

@@ -270,6 +270,14 @@ def read_ultranerf(
     return sweep, probe, report
 
 
+def _frames(probe: ProbeGeometry) -> str:
+    """``probe``'s frames in words: pixels, and the mm they span."""
+    return (
+        f"{probe.height_px} × {probe.width_px} pixels over {probe.depth_mm:.3f} mm deep ×"
+        f" {probe.width_mm:.3f} mm wide"
+    )
+
+
 def add_sweep_to_dataset(
     out: str | Path,
     sweep: Sweep,
@@ -295,10 +303,10 @@ def add_sweep_to_dataset(
         )
         if not same:
             raise UltronInputError(
-                out / "dataset.json",
-                "probe",
-                f"existing probe {dataset.probe} differs from the new sweep's {probe}",
-            )
+                out / "dataset.json", "probe", f"the dataset's frames are {_frames(dataset.probe)},"
+                f" the new sweep's {_frames(probe)}: a dataset has one probe geometry (an"
+                " import-plus sweep added without --downsample takes the dataset's factor)",
+            )  # fmt: skip
         names = [s.name for s in dataset.sweeps]
         if sweep.name in names and not replace:
             raise argument_error(

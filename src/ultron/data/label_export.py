@@ -48,7 +48,7 @@ from ultron.data.plus_orientation import orientation_flips
 from ultron.data.tracking_files import frame_times
 from ultron.data.validation import LABEL_TARGET, LABEL_UNANNOTATED
 from ultron.errors import UltronInputError, argument_error
-from ultron.outputs import check_output_file
+from ultron.outputs import check_output_file, is_inside
 
 #: Endings of MetaImage exports (one file: the header and the data together).
 METAIMAGE_SUFFIXES = (".igs.mha", ".seq.mha", ".mha")
@@ -249,6 +249,7 @@ def export_labels(
         raise UltronInputError(root / sweep, "labels.npy", "missing: the sweep has no labels")
     kind = _format(out)
     record = _plus_record(dataset, sweep)
+    _check_not_an_input(out, root, dataset, [recording, (record or {}).get("sequence_path")])
     header, note = None, None
     if recording is not None:
         if record is None:
@@ -259,6 +260,12 @@ def export_labels(
             header = _recording_header(recording, record, kind)
         except UltronInputError as exc:
             note = f"written without the recording's header: {exc}"
+    elif record is not None and kind != "npy" and record.get("sequence_path"):
+        if not Path(str(record["sequence_path"])).is_file():
+            note = (
+                f"written without the recording's header: {record['sequence_path']}, which the"
+                " import read, is no longer there (--recording names where it is now)"
+            )
     labels = np.asarray(target.labels)
     n_unsure = np.count_nonzero(labels == LABEL_UNANNOTATED, axis=(1, 2))  # per frame, once
     unsure, annotated = n_unsure > 0, n_unsure < labels[0].size
@@ -283,6 +290,28 @@ def export_labels(
         int(empty.sum()), _read_back(root, sweep, out, config, orientation, kind),
         None if header is None else Path(recording), note,  # type: ignore[arg-type]
     )  # fmt: skip
+
+
+def _check_not_an_input(
+    out: Path, root: Path, dataset: SweepDataset, recordings: list[Any]
+) -> None:
+    """Refuse an export path that would replace what it is made from: a file of the dataset
+    (``dataset.json``, anything in a sweep's folder, the reference meshes) or the recording
+    (``recordings``: the one given and the one the import read; None where unknown)."""
+    owned = [root / "dataset.json", *(root / s.name for s in dataset.sweeps)]
+    owned += [p for p in (dataset.reference, dataset.reference_visible_path) if p is not None]
+    for path in owned:
+        if is_inside(out, path):
+            raise UltronInputError(
+                out, "--export", f"is {'in ' if path.is_dir() else ''}{path.name}, part of the"
+                f" dataset at {root}: the export would replace what it reads; write it elsewhere",
+            )  # fmt: skip
+    for recording in recordings:
+        if recording and Path(str(recording)).exists() and is_inside(out, str(recording)):
+            raise UltronInputError(
+                out, "--export", "is the recording the sweep was imported from: the masks"
+                " would replace its B-mode frames; write them to another file",
+            )  # fmt: skip
 
 
 def _recorded(record: dict[str, Any], kind: str) -> Path | None:

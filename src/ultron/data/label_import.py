@@ -131,6 +131,8 @@ class MaskImportSummary:
     background: float
     unsure: float
     replaced: bool
+    #: Lines the command prints as warnings (:func:`_coding_warning`).
+    warnings: tuple[str, ...] = ()
 
     def lines(self, root: str | Path) -> list[str]:
         """The command's report: where the labels went and what they hold."""
@@ -142,11 +144,17 @@ class MaskImportSummary:
         ]
 
 
+#: The most frames ``--frames`` may list: 11 hours of a recording at 25 frames/s, far beyond any
+#: sweep; counted before a range is expanded, so ``0:3000000000`` is refused at once.
+MAX_LISTED_FRAMES = 10**6
+
+
 def parse_frames(text: str) -> tuple[int, ...]:
     """``--frames``' text as frame numbers: comma-separated items, each a number ``N`` or a
     range ``A:B`` or ``A:B:S`` (from A up to B, B left out, in steps of S, as Python counts):
-    ``0:100:10,105`` is 0, 10, …, 90, 105."""
+    ``0:100:10,105`` is 0, 10, …, 90, 105. More than :data:`MAX_LISTED_FRAMES` is an error."""
     numbers: list[int] = []
+    listed = 0
     for item in text.split(","):
         parts = item.strip().split(":")
         try:
@@ -157,7 +165,14 @@ def parse_frames(text: str) -> tuple[int, ...]:
             raise argument_error(
                 "frames", f"expected numbers or ranges A:B[:S] of numbers ≥ 0, got {item!r}"
             )
-        numbers.extend(values if len(values) == 1 else range(*values))
+        span = values if len(values) == 1 else range(*values)
+        listed += len(span)
+        if listed > MAX_LISTED_FRAMES:
+            raise argument_error(
+                "frames", f"lists more than {MAX_LISTED_FRAMES:,} frames (at {item!r}): no"
+                " recording has that many; give the frames the masks are of",
+            )  # fmt: skip
+        numbers.extend(span)
     return tuple(numbers)
 
 
@@ -366,7 +381,28 @@ def import_mask_labels(
     write_labels(root, dataset, {name: labels}, METADATA_KEY, imports, AUTO_LABELS_KEY)
     annotated = int((labels != LABEL_UNANNOTATED).any(axis=(1, 2)).sum())
     return MaskImportSummary(
-        name, int(labels.shape[0]), annotated, **label_shares(labels), replaced=replaced
+        name, int(labels.shape[0]), annotated, **label_shares(labels), replaced=replaced,
+        warnings=_coding_warning(masks, config),
+    )  # fmt: skip
+
+
+def _coding_warning(masks: np.ndarray, config: MaskImportConfig) -> tuple[str, ...]:
+    """A warning where neither value was given and the masks hold more than one value besides
+    0: every one of them was read as bone, though one may mark unsure pixels (``label
+    --export`` writes unsure as 2)."""
+    if config.bone_value is not None or config.unsure_value is not None or masks.dtype == bool:
+        return ()
+    flat = np.asarray(masks).reshape(-1)
+    small = flat.dtype in (np.uint8, np.uint16)  # a count per value; else sort them
+    present = np.flatnonzero(np.bincount(flat)) if small else np.unique(flat)
+    values = [int(v) for v in present if v != 0]
+    if len(values) < 2:
+        return ()
+    listed = ", ".join(str(v) for v in values[:6]) + (", …" if len(values) > 6 else "")
+    return (
+        f"the masks hold the values {listed} besides 0, all read as bone: if one marks unsure"
+        " pixels (label --export writes them as 2), read them again with --unsure-value VALUE"
+        " --replace",
     )
 
 

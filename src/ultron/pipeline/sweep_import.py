@@ -49,7 +49,8 @@ class ImportedSweep(Generic[ReportT]):
         """What an import prints: for a PLUS recording its orientation, calibration, world
         frame, clip, kept and skipped frames and probe, then the frames added to ``out``."""
         report = self.report
-        lines = plus_lines(report, self.probe) if isinstance(report, PlusImportReport) else []
+        plus = isinstance(report, PlusImportReport)
+        lines = plus_lines(report, self.probe, self.n_sweeps == 1) if plus else []
         lines.append(
             f"imported {report.n_frames} frames of {report.image_shape[0]}×"
             f"{report.image_shape[1]} as sweep {self.name!r} ({kind}) into {out}"
@@ -64,8 +65,10 @@ class ImportedSweep(Generic[ReportT]):
         return lines
 
 
-def plus_lines(report: PlusImportReport, probe: ProbeGeometry) -> list[str]:
-    """The lines ``import-plus`` prints about the orientation, calibration, frames and world."""
+def plus_lines(report: PlusImportReport, probe: ProbeGeometry, first: bool = True) -> list[str]:
+    """The lines ``import-plus`` prints about the orientation, calibration, frames and world;
+    ``first``: the dataset's first sweep, whose ``--downsample`` the others share (only then
+    does the import suggest ``auto``)."""
     fit = report.fit
     flips = [axis for axis, flip in zip(("columns", "rows"), report.flips, strict=True) if flip]
     height, width = report.file_shape
@@ -108,7 +111,7 @@ def plus_lines(report: PlusImportReport, probe: ProbeGeometry) -> list[str]:
     grain = report.grain_px
     if grain is not None and math.isfinite(grain):
         line = f"axial speckle grain: {grain:.2f} pixels of the file's frames"
-        if report.downsample == 1 and grain > FINE_GRAIN_PX:
+        if first and report.downsample == 1 and grain > FINE_GRAIN_PX:
             line += (
                 "; on frames this much finer than their speckle UltrON is slower and less"
                 ' accurate (measured: docs/data.md, "The working resolution"):'
