@@ -247,6 +247,28 @@ def test_an_interrupt_while_the_commands_load_is_one_line(
     assert "field fit continues" in cli.interrupted_line(["ultron", "fit-field", "d"])
 
 
+def test_the_console_script_ignores_ctrl_c_once_the_command_is_over(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """After the command returns only the interpreter's exit is left; a Ctrl-C there would
+    print Python's atexit traceback and exit 0, so the console script ignores it."""
+    import signal
+    import sys
+
+    import ultron.__main__ as entry
+
+    before = signal.getsignal(signal.SIGINT)
+    monkeypatch.setattr(sys, "argv", ["ultron", "--version"])
+    try:
+        assert before is not signal.SIG_IGN
+        with pytest.raises(SystemExit) as caught:
+            entry.main()
+        assert caught.value.code == 0
+        assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+    finally:
+        signal.signal(signal.SIGINT, before)
+
+
 def test_the_console_script_is_the_interrupt_safe_entry_point() -> None:
     from importlib.metadata import entry_points
 

@@ -19,7 +19,19 @@ def main() -> None:
         from ultron.cli.main import main as run_command
     except KeyboardInterrupt:
         interrupted()
-    run_command()
+    try:
+        run_command()
+    finally:
+        _ignore_interrupts()
+
+
+def _ignore_interrupts() -> None:
+    """Ignore Ctrl-C from now on: the command is over, its outputs written and its line
+    printed, and an interrupt could only land in the interpreter's exit (its atexit
+    callbacks), which prints Python's "Exception ignored … KeyboardInterrupt" traceback."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 if __name__ == "__main__":
