@@ -164,7 +164,7 @@ CASES: dict[str, tuple[Callable[[Path], None], str, str]] = {
     "non_npy_file": (
         lambda r: (r / "row" / "poses.npy").write_text("1 0 0 0\n"),
         "poses.npy",
-        "not a readable .npy",
+        "does not start with NumPy's header",
     ),
     "sweep_folder_missing": (
         lambda r: _edit_json(r, lambda m: m["sweeps"].append({"name": "tilt", "kind": "tilted"})),

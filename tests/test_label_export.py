@@ -219,7 +219,7 @@ def test_bad_exports_are_one_line_errors_and_write_nothing(tmp_path: Path):
         ([str(out), "--export", str(tmp_path / "x.npy"), "--replace"],
          "goes with --auto or --masks, not --export"),
         ([str(out), "--export", str(tmp_path / "x.npy"), "--unsure-value", "1"],
-         "must differ from bone_value"),
+         "must differ from the bone value"),
         ([str(out), "--export", str(sequence)], "is the recording the sweep was imported from"),
         ([str(out), "--export", str(out / "s" / "labels.npy")], "part of the dataset at"),
         ([str(out), "--export", str(out / "s" / "new.npy")], "is in s, part of the dataset"),

@@ -431,7 +431,7 @@ def test_a_plus_sweeps_own_labels_edited_come_back_as_they_are(tmp_path: Path):
 @pytest.mark.parametrize(
     ("masks_of", "extra", "needle"),
     [
-        (lambda m: m[:4], [], "4 frames; the recording (s.mha) has 5"),
+        (lambda m: m[:4], [], "4 frames; the recording (s.mha) has 5 (or, masks of the sweep's"),
         (lambda m: m[:, :, :50], [], "frames of 40 × 50 pixels (rows × columns); the recording's"),
         (lambda m: m * 0, [], "no bone pixel reaches sweep 's'"),
         (lambda m: m.astype(np.float32), [], "expected integer values"),

@@ -94,7 +94,7 @@ class LabelExportConfig:
             if isinstance(value, bool) or not isinstance(value, int) or not 0 < value < 2**16:
                 raise argument_error(name, f"expected an integer in [1, 65535], got {value!r}")
         if self.bone_value == self.unsure_value:
-            raise argument_error("unsure_value", "must differ from bone_value")
+            raise argument_error("unsure_value", "must differ from the bone value")
         orientation_flips(self.orientation, "argument", "orientation")
 
     @property

@@ -104,7 +104,7 @@ class MaskImportConfig:
             ):
                 raise argument_error(name, f"expected an integer in [1, 65535], got {value!r}")
         if self.bone_value is not None and self.bone_value == self.unsure_value:
-            raise argument_error("unsure_value", "must differ from bone_value")
+            raise argument_error("unsure_value", "must differ from the bone value")
         if self.annotated not in ANNOTATED:
             raise argument_error(
                 "annotated", f"expected one of {', '.join(ANNOTATED)}, got {self.annotated!r}"
@@ -273,7 +273,15 @@ def sweep_mask_labels(
             where, "masks", f"{len(masks)} masks for the {len(numbers)} frames --frames lists"
         )
     if _of_recording(masks.shape, target.images.shape, record, numbers is None):
-        check_recording_frames(masks.shape, record, where, counted=numbers is None)
+        try:
+            check_recording_frames(masks.shape, record, where, counted=numbers is None)
+        except UltronInputError as exc:  # name the other form masks may take, too
+            n, height, width = target.images.shape
+            raise UltronInputError(
+                exc.where,
+                exc.field,
+                f"{exc.problem} (or, masks of the sweep's own frames, {n} of {height} × {width})",
+            ) from None
         flips = orientation_flips(orientation or config.orientation, where, "orientation")
         kept = np.asarray(record["frames"], dtype=np.int64)
         on_sweep, of_mask = _pairs(kept, numbers, record.get("file_frames"), where)

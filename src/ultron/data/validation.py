@@ -99,11 +99,20 @@ def _check_npy_size(path: Path, field: str) -> None:
         )  # fmt: skip
 
 
+#: The first bytes of every ``.npy`` file (NumPy's format, any version).
+NPY_MAGIC = b"\x93NUMPY"
+
+
 def load_npy(path: Path, field: str, mmap: bool = False) -> np.ndarray:
     """Load a ``.npy`` file without pickles, turning every failure into a clear error;
     ``mmap``: memory-mapped read-only (frames are read as they are indexed)."""
     input_file(path, field)
     _check_npy_size(path, field)
+    with open(path, "rb") as handle:  # else NumPy reads it as a pickle and says to trust it
+        if handle.read(len(NPY_MAGIC)) != NPY_MAGIC:
+            raise UltronInputError(
+                path, field, "not a readable .npy array (it does not start with NumPy's header)"
+            )
     try:
         return np.load(path, mmap_mode="r" if mmap else None, allow_pickle=False)
     except (ValueError, EOFError, OSError) as exc:
