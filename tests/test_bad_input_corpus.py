@@ -372,6 +372,10 @@ CASES: dict[str, tuple[Callable[[Path, Path], list[str]], tuple[str, ...]]] = {
         lambda t, d: ["simulate", "--frames", "2", "--out", str(_foreign_dir(t / "sim"))],
         ("sim", "--out", "holds no dataset.json"),
     ),
+    "simulate_over_a_dataset_it_did_not_write": (
+        lambda t, d: ["simulate", "--frames", "2", "--out", str(d)],
+        ("--out", "ultron simulate did not write"),
+    ),
     "import_into_a_folder_of_other_files": (
         lambda t, d: _import(_ultranerf(t, ["0.png"]), _foreign_dir(t / "ds")),
         ("ds", "out", "holds no dataset.json"),

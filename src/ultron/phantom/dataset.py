@@ -68,6 +68,9 @@ from ultron.phantom.visibility import reference_visibility
 Progress = Callable[[str, int, int], None]
 
 PHANTOM_JSON_FORMAT = "ultron-phantom/1"
+#: ``dataset.json``'s ``metadata.generator`` of a simulated dataset: the only kind of dataset
+#: a simulation replaces (:func:`ultron.pipeline.simulate.simulate_to`).
+GENERATOR = "ultron simulate"
 VISIBLE_REFERENCE = "reference_visible.ply"
 
 
@@ -305,7 +308,7 @@ def _write_simulation(
         reference_ply, sweeps, true_poses, config, root
     )
     metadata = {
-        "generator": "ultron simulate",
+        "generator": GENERATOR,
         "phantom": phantom.name,
         "seed": config.seed,
         "world_frame": "x lateral (left-right), y posterior->anterior (beam), z caudal->cranial; mm",

@@ -8,14 +8,16 @@ sweep with their labels); it returns what the command reports.
 
 from __future__ import annotations
 
+import json
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
 from ultron.data.dataset import SweepDataset
+from ultron.errors import UltronInputError
 from ultron.outputs import check_dataset_out
 from ultron.phantom import SimulationConfig, simulate_dataset
-from ultron.phantom.dataset import Progress
+from ultron.phantom.dataset import GENERATOR, Progress
 from ultron.phantom.preview import write_preview
 
 
@@ -46,6 +48,26 @@ class SimulatedDataset:
         return lines
 
 
+def _check_replaces_a_simulation(out: Path) -> None:
+    """Refuse an ``out`` holding a dataset that no simulation wrote (an imported recording,
+    labels a person made): a simulation replaces an earlier one's dataset.json, and would
+    leave that dataset's sweeps unlisted and its records gone."""
+    meta_path = out / "dataset.json"
+    if not meta_path.is_file():
+        return
+    try:
+        meta = json.loads(meta_path.read_text(encoding="utf-8"))
+        generator = meta.get("metadata", {}).get("generator")
+    except (OSError, ValueError, AttributeError):
+        generator = None
+    if generator != GENERATOR:
+        raise UltronInputError(
+            out, "--out", "holds a dataset that ultron simulate did not write (an import, your"
+            " own data); a simulation replaces only an earlier simulation: give a new or empty"
+            " directory",
+        )  # fmt: skip
+
+
 def simulate_to(
     config: SimulationConfig,
     out: str | Path,
@@ -53,10 +75,11 @@ def simulate_to(
     progress: Progress | None = None,
 ) -> SimulatedDataset:
     """Simulate ``config``'s dataset into ``out`` (a new or empty directory, or an earlier
-    dataset's, which it replaces; a file or a folder of other files is an error naming
-    ``--out``), then ``out/preview.png`` when ``preview``. ``progress(what,
+    simulation's, which it replaces; a file, a folder of other files or a dataset no
+    simulation wrote is an error naming ``--out``), then ``out/preview.png`` when ``preview``. ``progress(what,
     done, total)`` is told how the simulation advances."""
     out = check_dataset_out(out)
+    _check_replaces_a_simulation(out)
     start = time.perf_counter()
     dataset = simulate_dataset(config, out=out, progress=progress)
     seconds = time.perf_counter() - start
