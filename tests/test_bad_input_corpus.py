@@ -148,6 +148,12 @@ def _render(tmp: Path, out: Path, *more: str) -> list[str]:
     return ["render", str(tmp / "field"), "--poses", str(tmp / "p.npy"), "--out", str(out), *more]
 
 
+def _field_parent(tmp: Path) -> Path:
+    """``tmp``, holding ``field``: a directory with an ultron field.json."""
+    _field_like(tmp / "field")
+    return tmp
+
+
 def _evaluate(tmp: Path, *more: str) -> list[str]:
     return ["evaluate", str(tmp / "m.ply"), str(tmp / "r.ply"), *more]
 
@@ -257,6 +263,14 @@ CASES: dict[str, tuple[Callable[[Path, Path], list[str]], tuple[str, ...]]] = {
         lambda t, d: ["fit-field", str(d), "--out", str(_run_like(t / "run") / "field")],
         ("field", "--out", "lies inside", "an ultron run (run.json)"),
     ),
+    "compound_out_inside_a_run": (
+        lambda t, d: ["compound", str(d), "--out", str(_run_like(t / "run") / "occ.nii.gz")],
+        ("occ.nii.gz", "--out", "lies inside", "an ultron run (run.json)"),
+    ),
+    "render_out_inside_a_field": (
+        lambda t, d: _render(_field_parent(t), t / "field" / "frames.npy"),
+        ("frames.npy", "--out", "lies inside", "an ultron field (field.json)"),
+    ),
     "reconstruct_every_label_unsure": (
         lambda t, d: _recon(_labels_all(t, d, 255), t / "out"),
         ("relabelled", "labels", "no annotated frame", "auto_labels_quality.csv"),
@@ -318,6 +332,10 @@ CASES: dict[str, tuple[Callable[[Path, Path], list[str]], tuple[str, ...]]] = {
             ["evaluate", str(t / "m.obj"), str(t / "r.ply"), "--out", str(t / "x.json")],
         ),
         ("m.obj", "mesh", "not a readable mesh"),
+    ),
+    "evaluate_out_is_the_reference": (
+        lambda t, d: _after(_point_cloud(t / "m.ply"), _evaluate(t, "--out", str(t / "r.ply"))),
+        ("r.ply", "--out", "is REFERENCE, an input"),
     ),
     "reconstruct_unreadable_reference": (
         lambda t, d: _after(_bad_reference(d), _recon(d, t / "out")),

@@ -28,7 +28,7 @@ from ultron.mesh.image_compounding import (
     save_compounded,
     select_sweeps,
 )
-from ultron.outputs import check_output_file
+from ultron.outputs import check_not_inside_output, check_output_file
 
 #: File endings of a NIfTI volume.
 NIFTI_SUFFIXES = (".nii", ".nii.gz")
@@ -76,6 +76,7 @@ def check_nifti_out(out: str | Path, option: str = "--out") -> Path:
     if not path.name.endswith(NIFTI_SUFFIXES) or path.name in NIFTI_SUFFIXES:
         raise UltronInputError(path, option, "expected a NIfTI file name ending in .nii or .nii.gz")
     check_output_file(path, option)
+    check_not_inside_output(path, option)  # a run's own files are its run's to replace
     return path
 
 

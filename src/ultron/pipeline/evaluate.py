@@ -15,10 +15,10 @@ from typing import Any
 
 from ultron import atomic
 from ultron.data.units import box_mismatch
-from ultron.errors import argument_error
+from ultron.errors import UltronInputError, argument_error
 from ultron.mesh.export import load_mesh
 from ultron.metrics.surface import MetricsConfig, evaluate_meshes
-from ultron.outputs import check_output_file
+from ultron.outputs import check_output_file, is_inside
 
 
 @dataclass(frozen=True)
@@ -62,6 +62,13 @@ def evaluate_files(
     if config.crop_mm is not None and reference_visible is None:
         raise argument_error("--crop-mm", "needs --reference-visible (the surface to crop to)")
     target = check_output_file(out or default_metrics_path(mesh), "--out")
+    inputs = {"MESH": mesh, "REFERENCE": reference, "--reference-visible": reference_visible}
+    for name, given in inputs.items():
+        if given is not None and Path(given).exists() and is_inside(target, given):
+            raise UltronInputError(
+                target, "--out", f"is {name}, an input: the metrics would replace it; write them"
+                " to another file (default: MESH with .metrics.json)",
+            )  # fmt: skip
     mesh, reference = Path(mesh), Path(reference)
     recon = load_mesh(mesh, allow_empty=True)
     ref = load_mesh(reference)

@@ -32,7 +32,7 @@ from ultron.models.field_dir import (
     read_transmission_check,
 )
 from ultron.models.fitted import FitProgress, FittedField, load_field
-from ultron.outputs import check_output_file
+from ultron.outputs import check_not_inside_output, check_output_file
 from ultron.pipeline.resources import check_run_resources
 from ultron.train.field_config import FieldTrainConfig
 from ultron.train.field_fit import check_resumable, fit_field
@@ -163,6 +163,7 @@ def render_frames(
     paths = (out, *(out.with_suffix(suffix) for suffix in MAP_SUFFIXES)) if maps else (out,)
     for target in paths:
         check_output_file(target, "--out")
+    check_not_inside_output(out, "--out")  # a field's directory is its next fit's to replace
     pose_array = read_pose_file(poses, sweep) if poses is not None else None
     fitted = load_field(field_dir, device)
     if pose_array is None:
