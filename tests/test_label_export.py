@@ -306,3 +306,26 @@ def test_export_and_masks_need_one_sweep_named_where_there_are_more(tmp_path: Pa
     named = _label(two, "--masks", str(tmp_path / "m.npy"), "--sweeps", "t", "--unsure-value", "2")
     assert named.exit_code == 0, named.output
     assert np.array_equal(SweepDataset.load(two).sweep("t").labels, data.sweep("s").labels)
+
+
+def test_a_recording_of_the_same_size_with_other_fields_lends_no_header(tmp_path: Path):
+    """Another recording under the imported one's name, frame count and size (its probe
+    elsewhere) is not the recording: refused as --recording, and where it replaced the file
+    the import read, the export is written without its header and says so."""
+    out, sequence, _ = _import(tmp_path, 0.0, "1")
+    rec, _ = _recording_with_an_echo()
+    rec.transforms["ProbeToTracker"][:, 0, 3] += 1.0
+    (tmp_path / "elsewhere").mkdir()
+    other = write_mha(tmp_path / "elsewhere" / "s.igs.mha", rec, "UN")
+    assert_refused(
+        _label,
+        [([str(out), "--export", str(tmp_path / "x.seq.mha"), "--recording", str(other)],
+          "per-frame fields (timestamps, transforms, statuses) are not those")],
+    )  # fmt: skip
+    same = _label(str(out), "--export", str(tmp_path / "y.seq.mha"), "--recording", str(sequence))
+    assert same.exit_code == 0, same.output
+    write_mha(sequence, rec, "UN")  # the file the import read, replaced by the other
+    replaced = _label(str(out), "--export", str(tmp_path / "z.seq.mha"))
+    assert replaced.exit_code == 0, replaced.output
+    assert "written without the recording's header" in replaced.stderr
+    assert "per-frame fields" in replaced.stderr

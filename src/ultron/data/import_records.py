@@ -21,6 +21,10 @@ from ultron.errors import UltronInputError
 
 #: The key of the import records in ``dataset.json``'s metadata.
 IMPORTS_KEY = "imports"
+#: A PLUS record's digest of the recording's per-frame fields
+#: (:meth:`~ultron.data.sequence_frames.SequenceFile.frame_fields_digest`): ``label --export``
+#: copies a recording's header only when it is the one imported.
+FRAME_FIELDS_KEY = "frame_fields_digest"
 
 
 def check_import_records(
@@ -78,7 +82,7 @@ def _check_plus_record(record: dict, n_frames: int | None, where: str | Path, fi
             raise UltronInputError(
                 where, f"{field}.clip", "expected {origin: [i, j] ≥ 0, size: [w, h] ≥ 1}"
             )
-    for key in ("orientation", "sequence", "sequence_path"):
+    for key in ("orientation", "sequence", "sequence_path", FRAME_FIELDS_KEY):
         if record.get(key) is not None and not isinstance(record[key], str):
             raise UltronInputError(where, f"{field}.{key}", f"{record[key]!r:.60}; expected text")
 
@@ -107,4 +111,4 @@ def _is_number(value: object) -> bool:
     return isinstance(value, int | float) and not isinstance(value, bool)
 
 
-__all__ = ["IMPORTS_KEY", "check_import_records"]
+__all__ = ["FRAME_FIELDS_KEY", "IMPORTS_KEY", "check_import_records"]

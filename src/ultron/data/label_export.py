@@ -41,6 +41,7 @@ import numpy as np
 
 from ultron import atomic
 from ultron.data.dataset import SweepDataset, one_sweep
+from ultron.data.import_records import FRAME_FIELDS_KEY
 from ultron.data.plus import read_metaimage_header, read_sequence, sequence_stem
 from ultron.data.plus_geometry import RESAMPLE_RESIDUAL_MM, fit_image_plane, rigid_to_image_pixels
 from ultron.data.plus_import import check_recording_frames, clipped_calibration
@@ -361,6 +362,12 @@ def _recording_header(path: Path, record: dict[str, Any], kind: str) -> dict[str
         raise UltronInputError(
             path, "--recording", f"the sweep was imported from {record.get('sequence')}, not"
             f" {path.name}",
+        )  # fmt: skip
+    digest = record.get(FRAME_FIELDS_KEY)  # imports since 2026-12-05
+    if digest is not None and sequence.frame_fields_digest() != digest:
+        raise UltronInputError(
+            path, "--recording", "its per-frame fields (timestamps, transforms, statuses) are"
+            " not those of the recording the sweep was imported from",
         )  # fmt: skip
     per_frame = {
         sequence.frame_field_key(k, name): value

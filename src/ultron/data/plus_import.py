@@ -38,6 +38,7 @@ from typing import Any
 import numpy as np
 
 from ultron.data.dataset import ProbeGeometry, Sweep
+from ultron.data.import_records import FRAME_FIELDS_KEY
 from ultron.data.plus import read_sequence
 from ultron.data.plus_config import PlusConfig, read_config
 from ultron.data.plus_geometry import (
@@ -188,7 +189,7 @@ def read_plus(
     plus_config = read_config(config) if config is not None else None
     if progress is not None:
         progress("reading", 0, 1)
-    seq = _tracked_sequence(sequence, orientation, tracking)
+    raw, seq = _tracked_sequence(sequence, orientation, tracking)
     placed = placement(seq, plus_config, target)
     world = placed.world
     _check_tracking_used(tracking, world)
@@ -233,6 +234,7 @@ def read_plus(
         calibration_spread_mm=placed.spread_mm,
     )
     metadata = _import_metadata(seq, plus_config, placed, report, np.flatnonzero(world.valid))
+    metadata[FRAME_FIELDS_KEY] = raw.frame_fields_digest()  # tells the recording by its fields
     if tracking:
         metadata["tracking"] = [Path(path).name for path in tracking]
     return sweep, probe, replace(report, metadata=metadata)
@@ -277,15 +279,16 @@ def _check_tracking_used(tracking: Sequence[str | Path], world: WorldPoses) -> N
 
 def _tracked_sequence(
     sequence: str | Path, orientation: str | None, tracking: Sequence[str | Path]
-) -> SequenceFile:
-    """The recording (``orientation``: the frames' where the file does not record it), its
-    frames given the transforms of the ``tracking`` files at their times (:func:`read_plus`)."""
+) -> tuple[SequenceFile, SequenceFile]:
+    """The recording as the file holds it (``orientation``: the frames' where the file does
+    not record it), and with its frames given the transforms of the ``tracking`` files at
+    their times (:func:`read_plus`; the same recording without ``tracking``)."""
     seq = read_sequence(sequence, orientation)
     if not tracking:
-        return seq
+        return seq, seq
     from ultron.data.tracking_files import with_tracking
 
-    return with_tracking(seq, tracking)
+    return seq, with_tracking(seq, tracking)
 
 
 def clipped_calibration(image_to_probe: np.ndarray, clip: tuple | None) -> np.ndarray:

@@ -9,6 +9,8 @@ Every problem is an :class:`~ultron.errors.UltronInputError` naming the file and
 
 from __future__ import annotations
 
+import hashlib
+import json
 import re
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -52,6 +54,12 @@ class SequenceFile:
     def frame_field_key(self, frame: int, name: str) -> str:
         """The header key of frame ``frame``'s field ``name``, as PLUS writes it."""
         return f"Seq_Frame{frame:04d}_{name}"
+
+    def frame_fields_digest(self) -> str:
+        """A BLAKE2b digest (32 hex digits) of every frame's fields, in order: the timestamps,
+        transforms and statuses that tell one recording from another of the same size."""
+        text = json.dumps([sorted(fields.items()) for fields in self.frame_fields])
+        return hashlib.blake2b(text.encode("utf-8"), digest_size=16).hexdigest()
 
     def transform_names(self) -> list[str]:
         """The per-frame transforms some frame has (``ProbeToTracker`` for the field
