@@ -282,6 +282,11 @@ CASES: dict[str, tuple[Callable[[Path], None], str, str]] = {
         "dataset.json",
         "imports.row.file_shape",
     ),
+    "import_frame_fields_digest_not_text": (
+        _plus_record(frame_fields_digest=5),
+        "dataset.json",
+        "imports.row.frame_fields_digest",
+    ),
     "transmission_out_of_range": (
         lambda r: np.save(r / "row" / "transmission.npy", np.full((3, 8, 6), 2.0, np.float16)),
         "transmission.npy",
