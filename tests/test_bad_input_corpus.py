@@ -154,6 +154,22 @@ def _field_parent(tmp: Path) -> Path:
     return tmp
 
 
+def _imported_simulation(data: Path) -> None:
+    """``data`` recorded as a simulation whose sweep ``row`` was imported into it."""
+    imports = {"row": {"source": "ultranerf"}}
+    _edit_dataset(
+        data, lambda m: m.update(metadata={"generator": "ultron simulate", "imports": imports})
+    )
+
+
+def _copy_tree(src: Path, dst: Path) -> Path:
+    """``src``'s files copied into the existing folder ``dst``."""
+    import shutil
+
+    shutil.copytree(src, dst, dirs_exist_ok=True)
+    return dst
+
+
 def _evaluate(tmp: Path, *more: str) -> list[str]:
     return ["evaluate", str(tmp / "m.ply"), str(tmp / "r.ply"), *more]
 
@@ -270,6 +286,41 @@ CASES: dict[str, tuple[Callable[[Path, Path], list[str]], tuple[str, ...]]] = {
     "render_out_inside_a_field": (
         lambda t, d: _render(_field_parent(t), t / "field" / "frames.npy"),
         ("frames.npy", "--out", "lies inside", "an ultron field (field.json)"),
+    ),
+    "evaluate_out_onto_a_dataset_file": (
+        lambda t, d: _after(
+            _point_cloud(t / "m.ply"), _evaluate(t, "--out", str(d / "dataset.json"))
+        ),
+        ("dataset.json", "--out", "not an earlier evaluate result"),
+    ),
+    "render_out_onto_a_sweep_file": (
+        lambda t, d: _render(t, d / "row" / "images.npy"),
+        ("images.npy", "--out", "is a file of the dataset"),
+    ),
+    "render_out_onto_its_poses": (
+        lambda t, d: _after(_outlier_poses_file(t, d), _render(t, t / "p.npy")),
+        ("p.npy", "--out", "is the --poses file"),
+    ),
+    "import_from_the_sweep_folder_it_writes": (
+        lambda t, d: _after(
+            (d / "un").mkdir(),
+            _import(_copy_tree(_ultranerf(t, ["0.png"]), d / "un"), d),
+        ),
+        ("un", "SRC", "is the folder of sweep 'un'"),
+    ),
+    "simulate_into_a_run": (
+        lambda t, d: ["simulate", "--frames", "2", "--out", str(_run_like(t / "run") / "ds")],
+        ("ds", "--out", "lies inside", "an ultron run (run.json)"),
+    ),
+    "simulate_over_a_simulation_with_an_imported_sweep": (
+        lambda t, d: _after(
+            _imported_simulation(d), ["simulate", "--frames", "2", "--out", str(d)]
+        ),
+        ("--out", "holds a simulation with imported sweeps (row)"),
+    ),
+    "benchmark_out_onto_a_run": (
+        lambda t, d: ["benchmark", "--quick", "--out", str(_run_like(t / "run"))],
+        ("run", "--out", "is an ultron run's directory"),
     ),
     "reconstruct_every_label_unsure": (
         lambda t, d: _recon(_labels_all(t, d, 255), t / "out"),

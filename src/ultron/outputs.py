@@ -70,6 +70,7 @@ def check_dataset_out(path: str | Path, option: str = "--out") -> Path:
     dataset (``dataset.json``) already, never a folder of other files, which a dataset's
     sweep folders would mix with. Returns it as a Path."""
     path = check_output_dir(path, option)
+    check_not_inside_output(path, option)  # a run's or field's directory is replaced whole
     if path.is_dir() and not (path / "dataset.json").exists() and any(path.iterdir()):
         raise UltronInputError(
             path, option, "exists, is not empty and holds no dataset.json; give a new or empty"
@@ -103,6 +104,42 @@ def ultron_output_kind(directory: str | Path) -> str | None:
         if kind == "run" and ("command" in record or "method" in record):
             return kind
     return None
+
+
+def _dataset_sweeps(directory: Path) -> list[str] | None:
+    """The sweep names of the ultron dataset whose ``dataset.json`` is in ``directory`` (format
+    ``ultron-sweeps/…``), None where there is none."""
+    import json
+
+    try:
+        meta = json.loads((directory / "dataset.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    if not isinstance(meta, dict) or not str(meta.get("format", "")).startswith("ultron-sweeps"):
+        return None
+    sweeps = meta.get("sweeps")
+    entries = sweeps if isinstance(sweeps, list) else []
+    return [str(e.get("name")) for e in entries if isinstance(e, dict)]
+
+
+def check_not_a_dataset_file(path: str | Path, option: str = "--out") -> None:
+    """Refuse (one line naming ``path``) an output that would replace a file of an ultron
+    dataset: an existing file in the dataset's own directory (``dataset.json``, its reference
+    meshes) or in one of its sweeps' folders. A new file beside them is allowed."""
+    path = Path(path)
+    if not path.exists():
+        return
+    resolved = path.resolve()
+    folder = resolved.parent
+    owners = [folder] if _dataset_sweeps(folder) is not None else []
+    sweeps = _dataset_sweeps(folder.parent)
+    if sweeps is not None and folder.name in sweeps:
+        owners.append(folder.parent)
+    if owners:
+        raise UltronInputError(
+            path, option, f"is a file of the dataset at {owners[0]}: the output would replace"
+            " it; write it elsewhere",
+        )  # fmt: skip
 
 
 def check_not_inside_output(path: str | Path, option: str = "--out") -> None:

@@ -47,6 +47,7 @@ from ultron.benchmark.tables import (
 )
 from ultron.device import resolve_device
 from ultron.errors import UltronInputError, argument_error
+from ultron.outputs import check_not_inside_output, ultron_output_kind
 from ultron.report.bench_report import write_benchmark_report
 
 BENCHMARK_JSON = "benchmark.json"
@@ -81,6 +82,13 @@ def check_out_dir(out: Path, config: BenchmarkConfig) -> None:
     """``out`` must be a directory (or absent) whose earlier results used the same settings."""
     if out.exists() and not out.is_dir():
         raise argument_error("out", f"{out} exists and is not a directory")
+    kind = ultron_output_kind(out) or ("dataset" if (out / "dataset.json").exists() else None)
+    if kind is not None:
+        raise UltronInputError(
+            out, "--out", f"is an ultron {kind}'s directory, whose files the benchmark's"
+            " reports would mix with or replace: give another directory",
+        )  # fmt: skip
+    check_not_inside_output(out, "--out")
     previous = out / BENCHMARK_JSON
     if not previous.is_file():
         return

@@ -28,7 +28,7 @@ from ultron.mesh.image_compounding import (
     save_compounded,
     select_sweeps,
 )
-from ultron.outputs import check_not_inside_output, check_output_file
+from ultron.outputs import check_not_a_dataset_file, check_not_inside_output, check_output_file
 
 #: File endings of a NIfTI volume.
 NIFTI_SUFFIXES = (".nii", ".nii.gz")
@@ -77,6 +77,7 @@ def check_nifti_out(out: str | Path, option: str = "--out") -> Path:
         raise UltronInputError(path, option, "expected a NIfTI file name ending in .nii or .nii.gz")
     check_output_file(path, option)
     check_not_inside_output(path, option)  # a run's own files are its run's to replace
+    check_not_a_dataset_file(path, option)
     return path
 
 

@@ -8,6 +8,7 @@ units or another frame), and writes the result atomically.
 
 from __future__ import annotations
 
+import json
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -47,6 +48,23 @@ def default_metrics_path(mesh: str | Path) -> Path:
     return mesh.with_name(mesh.stem + ".metrics.json")
 
 
+def _check_replaces_only_metrics(target: Path) -> None:
+    """Refuse an existing ``target`` that is not an earlier ``evaluate`` result (a JSON object
+    naming its ``mesh`` and ``reference``): a dataset's, a field's or a run's file, or any
+    other, which the metrics would replace."""
+    if not target.exists():
+        return
+    try:
+        earlier = json.loads(target.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, ValueError):
+        earlier = None
+    if not (isinstance(earlier, dict) and {"mesh", "reference"} <= earlier.keys()):
+        raise UltronInputError(
+            target, "--out", "exists and is not an earlier evaluate result: the metrics would"
+            " replace it; write them to another file (default: MESH with .metrics.json)",
+        )  # fmt: skip
+
+
 def evaluate_files(
     mesh: str | Path,
     reference: str | Path,
@@ -69,6 +87,7 @@ def evaluate_files(
                 target, "--out", f"is {name}, an input: the metrics would replace it; write them"
                 " to another file (default: MESH with .metrics.json)",
             )  # fmt: skip
+    _check_replaces_only_metrics(target)
     mesh, reference = Path(mesh), Path(reference)
     recon = load_mesh(mesh, allow_empty=True)
     ref = load_mesh(reference)

@@ -23,7 +23,7 @@ from ultron.arguments import check_seed
 from ultron.data.dataset import SweepDataset
 from ultron.data.outliers import check_pose_array_outliers
 from ultron.data.validation import load_npy, validate_poses
-from ultron.errors import argument_error
+from ultron.errors import UltronInputError, argument_error
 from ultron.models.field_dir import (
     check_field_dataset,
     check_field_out,
@@ -32,7 +32,12 @@ from ultron.models.field_dir import (
     read_transmission_check,
 )
 from ultron.models.fitted import FitProgress, FittedField, load_field
-from ultron.outputs import check_not_inside_output, check_output_file
+from ultron.outputs import (
+    check_not_a_dataset_file,
+    check_not_inside_output,
+    check_output_file,
+    is_inside,
+)
 from ultron.pipeline.resources import check_run_resources
 from ultron.train.field_config import FieldTrainConfig
 from ultron.train.field_fit import check_resumable, fit_field
@@ -163,6 +168,9 @@ def render_frames(
     paths = (out, *(out.with_suffix(suffix) for suffix in MAP_SUFFIXES)) if maps else (out,)
     for target in paths:
         check_output_file(target, "--out")
+        check_not_a_dataset_file(target, "--out")
+        if poses is not None and Path(poses).exists() and is_inside(target, poses):
+            raise UltronInputError(target, "--out", "is the --poses file it renders from")
     check_not_inside_output(out, "--out")  # a field's directory is its next fit's to replace
     pose_array = read_pose_file(poses, sweep) if poses is not None else None
     fitted = load_field(field_dir, device)

@@ -59,7 +59,13 @@ def _check_replaces_a_simulation(out: Path) -> None:
         meta = json.loads(meta_path.read_text(encoding="utf-8"))
         generator = meta.get("metadata", {}).get("generator")
     except (OSError, ValueError, AttributeError):
-        generator = None
+        meta, generator = None, None
+    imported = meta.get("metadata", {}).get("imports") if isinstance(meta, dict) else None
+    if generator == GENERATOR and imported:
+        raise UltronInputError(
+            out, "--out", f"holds a simulation with imported sweeps ({', '.join(imported)}),"
+            " which a new simulation would replace or drop: give a new or empty directory",
+        )  # fmt: skip
     if generator != GENERATOR:
         raise UltronInputError(
             out, "--out", "holds a dataset that ultron simulate did not write (an import, your"

@@ -28,8 +28,8 @@ from ultron.data.importers import (
 from ultron.data.plus import sequence_stem
 from ultron.data.plus_import import AUTO_DOWNSAMPLE, PlusImportReport, read_plus
 from ultron.data.plus_orientation import orientation_flips
-from ultron.errors import argument_error
-from ultron.outputs import check_dataset_out
+from ultron.errors import UltronInputError, argument_error
+from ultron.outputs import check_dataset_out, is_inside
 
 #: The reader's report: :class:`ImportReport` (Ultra-NeRF) or :class:`PlusImportReport`.
 ReportT = TypeVar("ReportT", ImportReport, PlusImportReport)
@@ -163,6 +163,11 @@ def import_ultranerf_sweep(
     """
     check_dataset_out(out)  # before the frames are read
     name = sweep_name or safe_sweep_name(src)
+    if Path(out, name).exists() and is_inside(src, Path(out, name)):
+        raise UltronInputError(
+            src, "SRC", f"is the folder of sweep {name!r} of {out}, which the import would write:"
+            " import from a copy elsewhere, or name the sweep otherwise (--sweep-name)",
+        )  # fmt: skip
     sweep, probe, report = read_ultranerf(
         src, width_mm, depth_mm, name, kind, orthonormalize_tolerance
     )
