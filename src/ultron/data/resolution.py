@@ -91,7 +91,7 @@ def measure_resolved_shape(dataset: SweepDataset) -> tuple[int, int] | None:
     already sample the axial grain with at most :data:`PIXELS_PER_GRAIN` pixels, else (H, W)
     with both spacings raised to at least grain / 2."""
     probe = dataset.probe
-    grain = dataset.memoized("axial_grain_px", dataset_grain_px)
+    grain = dataset_grain_px(dataset)
     if not grain > PIXELS_PER_GRAIN:
         return None
     spacing_mm = grain / PIXELS_PER_GRAIN * probe.axial_spacing_mm
@@ -102,9 +102,15 @@ def measure_resolved_shape(dataset: SweepDataset) -> tuple[int, int] | None:
 
 def dataset_grain_px(dataset: SweepDataset) -> float:
     """The axial speckle grain (pixels, :func:`axial_grain_px`) of up to :data:`GRAIN_FRAMES`
-    frames evenly spaced over ``dataset``'s sweeps; nan where no frame has a measurable grain."""
+    frames evenly spaced over ``dataset``'s sweeps, measured once per dataset object
+    (:meth:`SweepDataset.memoized`); nan where no frame has a measurable grain."""
     if not isinstance(dataset, SweepDataset):
         raise argument_error("dataset", "expected a SweepDataset")
+    return dataset.memoized("axial_grain_px", _measure_grain_px)
+
+
+def _measure_grain_px(dataset: SweepDataset) -> float:
+    """The measurement behind :func:`dataset_grain_px`."""
     counts = [len(sweep.images) for sweep in dataset.sweeps]
     picks = np.linspace(0, sum(counts) - 1, min(GRAIN_FRAMES, sum(counts))).round().astype(int)
     starts = np.cumsum([0, *counts])

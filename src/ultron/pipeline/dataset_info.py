@@ -85,7 +85,7 @@ class DatasetInfo:
         """The frames' axial speckle grain and the shape ``fit-field --fit-shape auto`` fits
         them at (:mod:`ultron.data.resolution`), when the grain can be measured."""
         data = self.dataset
-        grain = data.memoized("axial_grain_px", dataset_grain_px)
+        grain = dataset_grain_px(data)
         if not math.isfinite(grain):
             return []
         shape = resolve_fit_shape(FieldTrainConfig(fit_shape="auto"), data).fit_shape

@@ -56,21 +56,19 @@ def _check_replaces_a_simulation(out: Path) -> None:
     if not meta_path.is_file():
         return
     try:
-        meta = json.loads(meta_path.read_text(encoding="utf-8"))
-        generator = meta.get("metadata", {}).get("generator")
+        metadata = json.loads(meta_path.read_text(encoding="utf-8")).get("metadata", {})
     except (OSError, ValueError, AttributeError):
-        meta, generator = None, None
-    imported = meta.get("metadata", {}).get("imports") if isinstance(meta, dict) else None
-    if generator == GENERATOR and imported:
-        raise UltronInputError(
-            out, "--out", f"holds a simulation with imported sweeps ({', '.join(imported)}),"
-            " which a new simulation would replace or drop: give a new or empty directory",
-        )  # fmt: skip
-    if generator != GENERATOR:
+        metadata = None
+    if not isinstance(metadata, dict) or metadata.get("generator") != GENERATOR:
         raise UltronInputError(
             out, "--out", "holds a dataset that ultron simulate did not write (an import, your"
             " own data); a simulation replaces only an earlier simulation: give a new or empty"
             " directory",
+        )  # fmt: skip
+    if imported := metadata.get("imports"):
+        raise UltronInputError(
+            out, "--out", f"holds a simulation with imported sweeps ({', '.join(imported)}),"
+            " which a new simulation would replace or drop: give a new or empty directory",
         )  # fmt: skip
 
 
@@ -81,9 +79,10 @@ def simulate_to(
     progress: Progress | None = None,
 ) -> SimulatedDataset:
     """Simulate ``config``'s dataset into ``out`` (a new or empty directory, or an earlier
-    simulation's, which it replaces; a file, a folder of other files or a dataset no
-    simulation wrote is an error naming ``--out``), then ``out/preview.png`` when ``preview``. ``progress(what,
-    done, total)`` is told how the simulation advances."""
+    simulation's, which it replaces; a file, a folder of other files, a dataset no simulation
+    wrote or a simulation with an imported sweep is an error naming ``--out``), then
+    ``out/preview.png`` when ``preview``. ``progress(what, done, total)`` is told how the
+    simulation advances."""
     out = check_dataset_out(out)
     _check_replaces_a_simulation(out)
     start = time.perf_counter()
