@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from ultron.data.dataset import ProbeGeometry, Sweep, SweepDataset
+from ultron.parallel import torch_threads
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 #: Under pytest-xdist (the README's test command runs ``-n auto``) the cores are shared out
@@ -33,11 +34,18 @@ def private_field_cache(tmp_path_factory):
 @pytest.fixture
 def one_thread():
     """Torch on one thread for the test (tiny workloads run faster and steadier on a shared
-    CPU); the previous thread count is restored afterwards."""
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
+    CPU)."""
+    with torch_threads(1):
+        yield
+
+
+@pytest.fixture(scope="module")
+def grid():
+    """The meshing tests' grid: 0.35 mm voxels over a box of 19 × 19 × 18 mm about the
+    origin, off-centre so that no axis is symmetric."""
+    from ultron.mesh.grid import GridSpec
+
+    return GridSpec.from_bounds(np.array([[-9.0, -11.0, -7.0], [10.0, 8.0, 11.0]]), 0.35)
 
 
 def rotation_z(degrees: float) -> np.ndarray:
@@ -105,11 +113,9 @@ def l2_sample() -> Path:
 
 @pytest.fixture(scope="module")
 def one_torch_thread():
-    """Run a module's tests on one torch thread (the simulator's own setting), then restore."""
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
+    """A module's tests on one torch thread (the simulator's own setting)."""
+    with torch_threads(1):
+        yield
 
 
 @pytest.fixture(scope="session")

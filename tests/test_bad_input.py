@@ -346,3 +346,16 @@ def test_label_check_finds_a_bad_value_in_any_frame(monkeypatch, value):
     labels[4, 2, 3] = value
     with pytest.raises(UltronInputError, match=rf"invalid label values \[{value}\]"):
         validation.validate_labels(labels, "x")
+
+
+def test_a_path_that_is_no_dataset_says_what_it_is(tmp_path: Path) -> None:
+    (tmp_path / "empty").mkdir()
+    (tmp_path / "file").write_text("")
+    expected = {
+        "missing": r"missing: directory: no such directory; expected a dataset's",
+        "file": r"file: directory: is not a directory; expected a dataset's",
+        "empty": r"empty: dataset.json: missing: not an ultron dataset directory",
+    }
+    for name, message in expected.items():
+        with pytest.raises(UltronInputError, match=message):
+            SweepDataset.load(tmp_path / name)

@@ -173,6 +173,46 @@ def test_an_option_of_the_wrong_type_is_one_line(
 
 
 @pytest.mark.parametrize(
+    ("args", "expected"),
+    [
+        (["label", "--atuo", "D"], "error: no such option: --atuo (Possible options: --auto)"
+         " (usage: ultron label --help)"),
+        (["labl"], "error: no such command 'labl'. Did you mean 'label'? (usage: ultron --help)"),
+        (["reconstruct", "A", "B", "--out", "O"], "error: got unexpected extra argument(s) (B)"
+         " (usage: ultron reconstruct --help)"),
+    ],
+)  # fmt: skip
+def test_every_other_usage_error_is_one_line(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture, args, expected
+) -> None:
+    """An unknown option or command is one line and exit 2, as every other bad input, not
+    click's usage block."""
+    import sys
+
+    from ultron.cli.main import main
+
+    monkeypatch.setattr(sys, "argv", ["ultron", *args])
+    with pytest.raises(SystemExit) as caught:
+        main()
+    assert caught.value.code == 2
+    assert capsys.readouterr().err.strip().splitlines() == [expected]
+
+
+def test_ultron_alone_prints_the_help(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture
+) -> None:
+    import sys
+
+    from ultron.cli.main import main
+
+    monkeypatch.setattr(sys, "argv", ["ultron"])
+    with pytest.raises(SystemExit):
+        main()
+    captured = capsys.readouterr()
+    assert "reconstruct" in captured.out + captured.err and "error:" not in captured.err
+
+
+@pytest.mark.parametrize(
     ("args", "option", "command"),
     [
         (["info"], "dataset", "ultron info"),

@@ -177,12 +177,6 @@ def test_ply_vertex_properties_round_trip(tmp_path: Path) -> None:
 
 
 # ------------------------------------------------------------------------ end to end
-@pytest.fixture(scope="module")
-def tiny(tiny_l3: Path) -> Path:
-    """L3, row + column sweeps of 12 frames of 64 × 48 pixels (conftest's ``tiny_l3``)."""
-    return tiny_l3
-
-
 def _as_slicer_ras(path: Path) -> np.ndarray:
     """The vertices of a mesh file in RAS, as 3D Slicer places them (its SPACE tag)."""
     raw = np.asarray(trimesh.load(path, force="mesh", process=False).vertices, np.float64)
@@ -190,12 +184,12 @@ def _as_slicer_ras(path: Path) -> np.ndarray:
 
 
 @pytest.mark.parametrize("space", MESH_COORDINATES)
-def test_mesh_vertices_land_on_the_occupied_boundary_of_the_nifti(tiny: Path, tmp_path, space):
+def test_mesh_vertices_land_on_the_occupied_boundary_of_the_nifti(tiny_l3: Path, tmp_path, space):
     request = ReconstructionRequest(
         method="compounding", label_fraction=1.0, metrics=FAST_METRICS, mesh_coordinates=space
     )
     out = tmp_path / "out"
-    reconstruct(tiny, request, out, report=False)
+    reconstruct(tiny_l3, request, out, report=False)
     image = nib.load(out / "occupancy.nii.gz")
     volume = np.asarray(image.get_fdata(), dtype=np.float32)
     ras = _as_slicer_ras(out / "mesh.ply")
@@ -215,9 +209,9 @@ def test_mesh_vertices_land_on_the_occupied_boundary_of_the_nifti(tiny: Path, tm
     assert (hit >= 0.5).mean() < 0.5
 
 
-def test_reconstruction_writes_per_vertex_evidence(tiny: Path, tmp_path: Path) -> None:
+def test_reconstruction_writes_per_vertex_evidence(tiny_l3: Path, tmp_path: Path) -> None:
     request = ReconstructionRequest(method="compounding", label_fraction=0.5, metrics=FAST_METRICS)
-    reconstruct(tiny, request, tmp_path / "out")
+    reconstruct(tiny_l3, request, tmp_path / "out")
     out = tmp_path / "out"
     run = json.loads((out / "run.json").read_text())
     mesh_props = load_vertex_properties(out / "mesh.ply")
@@ -236,10 +230,10 @@ def test_reconstruction_writes_per_vertex_evidence(tiny: Path, tmp_path: Path) -
     assert 'data-kind="evidence"' in html and "inferred" in html
 
 
-def test_all_surface_writes_no_extracted_copy(tiny: Path, tmp_path: Path) -> None:
+def test_all_surface_writes_no_extracted_copy(tiny_l3: Path, tmp_path: Path) -> None:
     runner = CliRunner()
     out = tmp_path / "all"
-    result = runner.invoke(app, ["reconstruct", str(tiny), "--method", "on", "--out", str(out),
+    result = runner.invoke(app, ["reconstruct", str(tiny_l3), "--method", "on", "--out", str(out),
                                  "--occupancy-iters", "30", "--points", "2000",
                                  "--mesh-coordinates", "ras"])  # fmt: skip
     assert result.exit_code == 0, result.output
@@ -251,7 +245,7 @@ def test_all_surface_writes_no_extracted_copy(tiny: Path, tmp_path: Path) -> Non
     assert mesh_file_space(out / "mesh.ply") == "ras"
     flags = load_vertex_properties(out / "mesh.ply")["observed"]
     assert flags.shape == (len(load_mesh(out / "mesh.ply").vertices),)
-    bad = runner.invoke(app, ["reconstruct", str(tiny), "--method", "compounding", "--out",
+    bad = runner.invoke(app, ["reconstruct", str(tiny_l3), "--method", "compounding", "--out",
                               str(tmp_path / "bad"), "--mesh-coordinates", "xyz"])  # fmt: skip
     assert bad.exit_code == 2
     assert "--mesh-coordinates" in bad.output and "Traceback" not in bad.output

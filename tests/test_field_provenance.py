@@ -11,7 +11,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import torch
 from torch.optim.optimizer import register_optimizer_step_pre_hook
 from typer.testing import CliRunner
 
@@ -21,6 +20,7 @@ from ultron.data.dataset import ProbeGeometry, Sweep, SweepDataset
 from ultron.errors import UltronInputError
 from ultron.metrics.surface import MetricsConfig
 from ultron.models.field_dir import check_field_dataset
+from ultron.parallel import torch_threads
 from ultron.pipeline import run as run_module
 from ultron.pipeline.run import ReconstructionRequest, load_or_fit_field, reconstruct
 from ultron.train.field_fit import FieldTrainConfig, fit_field, learning_rate_at
@@ -170,10 +170,8 @@ def two_datasets(tmp_path_factory) -> dict[str, Path]:
     images = np.load(root / "b" / "row" / "images.npy")
     images[3, 4, 5] ^= 1
     np.save(root / "b" / "row" / "images.npy", images)
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    fit_field(SweepDataset.load(root / "a"), quick_config(iterations=2), root / "field")
-    torch.set_num_threads(previous)
+    with torch_threads(1):
+        fit_field(SweepDataset.load(root / "a"), quick_config(iterations=2), root / "field")
     return {"a": root / "a", "b": root / "b", "field": root / "field"}
 
 

@@ -8,7 +8,6 @@ import pytest
 import torch
 
 from ultron.mesh import (
-    GridSpec,
     evaluate_coarse_to_fine,
     evaluate_on_grid,
     extract_surface,
@@ -24,11 +23,6 @@ def two_blobs(points: torch.Tensor) -> torch.Tensor:
     ball = torch.sigmoid(4 * (6.0 - (points - CENTER).norm(dim=-1)))
     plate = torch.sigmoid(4 * (0.6 - (points[:, 2] - 8.0).abs())) * (points[:, 0].abs() < 7)
     return torch.maximum(ball, plate)
-
-
-@pytest.fixture(scope="module")
-def grid() -> GridSpec:
-    return GridSpec.from_bounds(np.array([[-9.0, -11.0, -7.0], [10.0, 8.0, 11.0]]), 0.35)
 
 
 @pytest.mark.parametrize(("max_iters", "rel_tol"), [(500, 1e-6), (0, 1e-6), (7, 1e-6), (30, 0.0)])

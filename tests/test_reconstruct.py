@@ -23,12 +23,6 @@ from ultron.train.occupancy import OccupancyTrainConfig
 FAST_METRICS = MetricsConfig(n_points=5_000, repeats=1)
 
 
-@pytest.fixture(scope="module")
-def tiny(tiny_l3: Path) -> Path:
-    """L3, row + column sweeps of 12 frames of 64 × 48 pixels (conftest's ``tiny_l3``)."""
-    return tiny_l3
-
-
 def _check_outputs(out: Path, with_metrics: bool) -> dict:
     for name in ("mesh.ply", "mesh.stl", "mesh.obj", "occupancy.nii.gz", "run.json"):
         assert (out / name).is_file(), name
@@ -51,9 +45,9 @@ def _check_advance(events: dict[str, list[tuple]], units: dict[str, str]) -> Non
         assert events["mesh_evaluate"][-1][0] == events["mesh_evaluate"][-1][1]
 
 
-def test_compounding_end_to_end(tiny: Path, tmp_path: Path):
+def test_compounding_end_to_end(tiny_l3: Path, tmp_path: Path):
     request = ReconstructionRequest(method="compounding", label_fraction=1.0, metrics=FAST_METRICS)
-    summary = reconstruct(tiny, request, tmp_path / "out")
+    summary = reconstruct(tiny_l3, request, tmp_path / "out")
     run = _check_outputs(tmp_path / "out", with_metrics=True)
     assert run["n_label_frames"] == 24
     mesh = load_mesh(tmp_path / "out" / "mesh.ply")
@@ -62,9 +56,9 @@ def test_compounding_end_to_end(tiny: Path, tmp_path: Path):
     assert summary["metrics"]["mean"]["mad"] < 2.0
 
 
-def test_without_reference_no_metrics(tiny: Path, tmp_path: Path):
+def test_without_reference_no_metrics(tiny_l3: Path, tmp_path: Path):
     copy = tmp_path / "noref"
-    shutil.copytree(tiny, copy)
+    shutil.copytree(tiny_l3, copy)
     meta = json.loads((copy / "dataset.json").read_text())
     meta["reference"] = None
     (copy / "dataset.json").write_text(json.dumps(meta))
@@ -75,12 +69,12 @@ def test_without_reference_no_metrics(tiny: Path, tmp_path: Path):
     _check_outputs(tmp_path / "out", with_metrics=False)
 
 
-def test_a_sweep_without_labelled_frames_is_warned_of(tiny: Path, tmp_path: Path):
+def test_a_sweep_without_labelled_frames_is_warned_of(tiny_l3: Path, tmp_path: Path):
     """4 % of the 24 annotated frames is one frame: the other sweep gets none, and the run
     says so (and which fraction labels both) before it goes on."""
     warnings: list[str] = []
     request = ReconstructionRequest(method="compounding", label_fraction=0.04, metrics=FAST_METRICS)
-    reconstruct(tiny, request, tmp_path / "out", warn=warnings.append)
+    reconstruct(tiny_l3, request, tmp_path / "out", warn=warnings.append)
     run = _check_outputs(tmp_path / "out", with_metrics=True)
     (labelled,) = [name for name, frames in run["selection"]["frames"].items() if frames]
     (other,) = {"row", "column"} - {labelled}
@@ -90,12 +84,12 @@ def test_a_sweep_without_labelled_frames_is_warned_of(tiny: Path, tmp_path: Path
     ]
 
 
-def test_ultron_end_to_end(tiny: Path, tmp_path: Path, monkeypatch):
+def test_ultron_end_to_end(tiny_l3: Path, tmp_path: Path, monkeypatch):
     from dataclasses import replace
 
     monkeypatch.setenv("ULTRON_CACHE", str(tmp_path / "cache"))
     request, field_config = tiny_ultron_run(iters=600, field_iters=400, n_points=5_000)
-    summary = reconstruct(tiny, request, tmp_path / "out", field_config=field_config)
+    summary = reconstruct(tiny_l3, request, tmp_path / "out", field_config=field_config)
     run = _check_outputs(tmp_path / "out", with_metrics=True)
     assert run["field_cached"] is False
     assert run["n_bone_pixels"] > 0
@@ -120,7 +114,7 @@ def test_ultron_end_to_end(tiny: Path, tmp_path: Path, monkeypatch):
     # a second run reuses the cached field
     assert (tmp_path / "out" / "report.html").is_file()  # the others skip their report
     events: dict[str, list[tuple]] = {}
-    again = reconstruct(tiny, request, tmp_path / "again", field_config=field_config, report=False,
+    again = reconstruct(tiny_l3, request, tmp_path / "again", field_config=field_config, report=False,
                         advance=lambda *e: events.setdefault(e[0], []).append(e[1:]))  # fmt: skip
     assert json.loads((tmp_path / "again" / "run.json").read_text())["field_cached"] is True
     assert again["metrics"]["mean"]["mad"] == pytest.approx(ours["mad"])
@@ -141,7 +135,7 @@ def test_ultron_end_to_end(tiny: Path, tmp_path: Path, monkeypatch):
     # the same field twice: two candidates with the same label loss, the first kept, the
     # run that of one field
     field_dir = json.loads((tmp_path / "again" / "run.json").read_text())["field_dir"]
-    two = reconstruct(tiny, request, tmp_path / "two", [field_dir, field_dir], report=False)
+    two = reconstruct(tiny_l3, request, tmp_path / "two", [field_dir, field_dir], report=False)
     run = json.loads((tmp_path / "two" / "run.json").read_text())
     losses = [c["occupancy_label_loss"] for c in run["field_candidates"]]
     assert [c["field_dir"] for c in two["field_candidates"]] == [field_dir, field_dir]
@@ -150,7 +144,7 @@ def test_ultron_end_to_end(tiny: Path, tmp_path: Path, monkeypatch):
     # with the labels fused in: the same f (same seed and labels), meshed as max(f, C)
     fusion = replace(request.method_config, label_fusion=LabelFusionConfig(min_frame_share=0))
     fused = replace(request, method_config=fusion)
-    reconstruct(tiny, fused, tmp_path / "fused", field_config=field_config, report=False)
+    reconstruct(tiny_l3, fused, tmp_path / "fused", field_config=field_config, report=False)
     run = json.loads((tmp_path / "fused" / "run.json").read_text())
     assert (
         run["label_fusion"]["hole_fill_radius_mm"] > 0 and "mesh_label_fusion" in run["timings_s"]
@@ -158,10 +152,13 @@ def test_ultron_end_to_end(tiny: Path, tmp_path: Path, monkeypatch):
     # the labels' own surface where the kept one lacks it: its faces join the mesh and count
     added = run["label_fusion"]["label_surface_faces_added"]
     assert "mesh_label_surface" in run["timings_s"] and run["label_fusion"]["surface_gap_mm"] == 1
-    assert len(load_mesh(tmp_path / "fused" / "mesh.ply").faces) == run["faces_kept"]
+    assert len(load_mesh(tmp_path / "fused" / "mesh.ply").faces) == run["mesh"]["faces"]
+    assert 0 < run["mesh"]["faces"] <= run["faces_kept"]  # welded: no face without area
     no_surface = LabelFusionConfig(min_frame_share=0, surface_gap_mm=None)
     fused_only = replace(request, method_config=replace(fusion, label_fusion=no_surface))
-    reconstruct(tiny, fused_only, tmp_path / "fused-only", field_config=field_config, report=False)
+    reconstruct(
+        tiny_l3, fused_only, tmp_path / "fused-only", field_config=field_config, report=False
+    )
     alone = json.loads((tmp_path / "fused-only" / "run.json").read_text())
     assert "mesh_label_surface" not in alone["timings_s"]
     assert "label_surface_faces_added" not in alone["label_fusion"]
@@ -182,7 +179,7 @@ def test_ultron_end_to_end(tiny: Path, tmp_path: Path, monkeypatch):
     assert (with_labels >= 0.5).sum() > (plain >= 0.5).sum()
     # without echo support: no settings recorded, and the same f keeps every face it kept
     no_echo = replace(request.method_config, echo_support=None)
-    reconstruct(tiny, replace(request, method_config=no_echo), tmp_path / "no-echo",
+    reconstruct(tiny_l3, replace(request, method_config=no_echo), tmp_path / "no-echo",
                 field_config=field_config, report=False)  # fmt: skip
     run = json.loads((tmp_path / "no-echo" / "run.json").read_text())
     assert run["echo_support"] is False and "echo_support_config" not in run
@@ -193,7 +190,7 @@ def test_ultron_end_to_end(tiny: Path, tmp_path: Path, monkeypatch):
         config = None if method == "compounding" else request.method_config  # its defaults
         other, events = replace(request, method=method, method_config=config), {}
         result = reconstruct(
-            tiny, other, tmp_path / method, field_config=field_config, report=False,
+            tiny_l3, other, tmp_path / method, field_config=field_config, report=False,
             advance=lambda *e, got=events: got.setdefault(e[0], []).append(e[1:]),
         )  # fmt: skip
         others[method] = result["metrics"]["mean"]["cd_visible"]
@@ -213,7 +210,7 @@ def test_unknown_method_is_a_clear_error():
         ReconstructionRequest(method="magic")
 
 
-def test_on_end_to_end(tiny: Path, tmp_path: Path):
+def test_on_end_to_end(tiny_l3: Path, tmp_path: Path):
     from dataclasses import replace
 
     from ultron.methods.on_method import ONConfig
@@ -223,7 +220,7 @@ def test_on_end_to_end(tiny: Path, tmp_path: Path):
     request = ReconstructionRequest(
         method="on", label_fraction=1.0, method_config=on, metrics=FAST_METRICS
     )
-    summary = reconstruct(tiny, request, tmp_path / "out")
+    summary = reconstruct(tiny_l3, request, tmp_path / "out")
     run = _check_outputs(tmp_path / "out", with_metrics=True)
     assert run["n_label_frames"] == 24 and "unit_cube" in run
     assert run["occupancy_config"]["loss"] == "bce"
@@ -232,7 +229,7 @@ def test_on_end_to_end(tiny: Path, tmp_path: Path):
     assert summary["metrics"]["mean"]["mad"] < 4.0
 
 
-def test_a_bfloat16_fit_without_native_products_warns_before_any_work(tiny: Path, tmp_path: Path,
+def test_a_bfloat16_fit_without_native_products_warns_before_any_work(tiny_l3: Path, tmp_path: Path,
                                                                       monkeypatch):  # fmt: skip
     from dataclasses import replace
 
@@ -245,7 +242,7 @@ def test_a_bfloat16_fit_without_native_products_warns_before_any_work(tiny: Path
     request = ReconstructionRequest(method="on", label_fraction=1.0, method_config=on,
                                     metrics=FAST_METRICS)  # fmt: skip
     events: list[tuple[str, str]] = []
-    reconstruct(tiny, request, tmp_path / "out", warn=lambda line: events.append(("warn", line)),
+    reconstruct(tiny_l3, request, tmp_path / "out", warn=lambda line: events.append(("warn", line)),
                 announce=lambda stage, *_: events.append(("stage", stage)))  # fmt: skip
     assert [line for kind, line in events if kind == "warn" and "bfloat16" in line] == [
         "--occupancy-precision bfloat16: cpu has no native bfloat16 products (AVX512-BF16 or"
@@ -284,7 +281,7 @@ def test_a_request_carries_its_own_methods_settings():
     assert compounding == CompoundingMethodConfig()
 
 
-def test_several_fields_keep_the_lowest_label_loss(tiny: Path, monkeypatch):
+def test_several_fields_keep_the_lowest_label_loss(tiny_l3: Path, monkeypatch):
     """run_on_fields trains stage 2 on each field, meshes only the f with the lowest label loss
     (the first of equal ones) and records every candidate; one field is a plain run."""
     import ultron.pipeline.run as run_module
@@ -315,7 +312,7 @@ def test_several_fields_keep_the_lowest_label_loss(tiny: Path, monkeypatch):
     request = ReconstructionRequest(method="ultron")
     timer = StageTimer()
     result, extra = run_module.run_on_fields(
-        tiny, None, request, ["a", "b", "c", "d"], timer, None,
+        tiny_l3, None, request, ["a", "b", "c", "d"], timer, None,
         lambda name: (name, {"field_dir": f"/fields/{name}", "field_cached": True}),
     )  # fmt: skip
     assert result.name == "b" and extra["field_dir"] == "/fields/b" and finished == ["b"]
@@ -323,14 +320,16 @@ def test_several_fields_keep_the_lowest_label_loss(tiny: Path, monkeypatch):
     kept_losses = [c["occupancy_label_loss"] for c in extra["field_candidates"]]
     assert kept_losses == [0.03, 0.02, 0.025, 0.02]
     one, extra = run_module.run_on_fields(
-        tiny, None, request, ["c"], StageTimer(), None, lambda name: (name, {"field_dir": name})
+        tiny_l3, None, request, ["c"], StageTimer(), None, lambda name: (name, {"field_dir": name})
     )
     assert one.name == "c" and "field_candidates" not in extra and finished == ["b"]
     with pytest.raises(ValueError, match="field_dirs"):
-        run_module.run_on_fields(tiny, None, request, [], StageTimer(), None, lambda n: (n, {}))
+        run_module.run_on_fields(tiny_l3, None, request, [], StageTimer(), None, lambda n: (n, {}))
 
 
-def test_several_fields_are_each_checked_before_any_work(tiny: Path, tmp_path: Path, monkeypatch):
+def test_several_fields_are_each_checked_before_any_work(
+    tiny_l3: Path, tmp_path: Path, monkeypatch
+):
     """A second field that cannot be read fails the run in its pre-flight checks, before the
     first field's stage 2 (which would take minutes)."""
     import ultron.pipeline.run as run_module
@@ -351,13 +350,13 @@ def test_several_fields_are_each_checked_before_any_work(tiny: Path, tmp_path: P
     monkeypatch.setattr(run_module, "load_or_fit_field", load)
     request = ReconstructionRequest(method="ultron", label_fraction=0.5)
     with pytest.raises(UltronInputError, match="broken"):
-        reconstruct(tiny, request, tmp_path / "out", [tmp_path / "good", tmp_path / "broken"])
+        reconstruct(tiny_l3, request, tmp_path / "out", [tmp_path / "good", tmp_path / "broken"])
     assert loaded == [tmp_path / "good", tmp_path / "broken"]
     assert not (tmp_path / "out").exists()
 
 
-def test_several_fields_for_a_method_without_one_is_an_error(tiny: Path, tmp_path: Path):
+def test_several_fields_for_a_method_without_one_is_an_error(tiny_l3: Path, tmp_path: Path):
     request = ReconstructionRequest(method="compounding", label_fraction=1.0)
     with pytest.raises(ValueError, match=r"field_dir.*uses no acoustic field"):
-        reconstruct(tiny, request, tmp_path / "out", [tmp_path / "f1", tmp_path / "f2"])
+        reconstruct(tiny_l3, request, tmp_path / "out", [tmp_path / "f1", tmp_path / "f2"])
     assert not (tmp_path / "out").exists()

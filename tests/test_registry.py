@@ -6,6 +6,7 @@ import subprocess
 import sys
 from dataclasses import replace
 
+import numpy as np
 import pytest
 from typer.testing import CliRunner
 
@@ -170,3 +171,22 @@ def test_cli_unknown_method_is_one_line_naming_the_option(tmp_path):
     lines = [line for line in result.output.splitlines() if line.strip()]
     assert len(lines) == 1 and "--method" in lines[0] and "unsr-col" in lines[0]
     assert not out.exists()
+
+
+@pytest.mark.parametrize("fraction", [True, 0, 1.5, float("nan"), "0.1", None])
+def test_every_label_fraction_check_refuses_the_same_values(fraction, tiny_dataset):
+    from ultron.data.labels import select_label_frames
+    from ultron.methods.finetune import FinetuneConfig
+
+    for build in (
+        lambda: ReconstructionRequest("ultron", label_fraction=fraction),
+        lambda: FinetuneConfig(label_fraction=fraction),
+        lambda: select_label_frames(tiny_dataset, fraction, 0),
+    ):
+        with pytest.raises(UltronInputError, match=r"label_fraction: expected a value in \(0, 1\]"):
+            build()
+
+
+def test_a_label_fraction_of_numpy_float_or_one_is_taken():
+    assert ReconstructionRequest("ultron", label_fraction=np.float32(0.05)).label_fraction > 0
+    assert ReconstructionRequest("ultron", label_fraction=1).label_fraction == 1

@@ -8,14 +8,13 @@ import torch.nn.functional as F
 
 import ultron.fields.grid as grid
 from ultron.fields.grid import GridField, GridFieldConfig, threaded_read
+from ultron.parallel import torch_threads
 
 
 @pytest.fixture
 def two_threads():
-    before = torch.get_num_threads()
-    torch.set_num_threads(2)
-    yield
-    torch.set_num_threads(before)
+    with torch_threads(2):
+        yield
 
 
 def _plain(values: torch.Tensor, where: torch.Tensor) -> torch.Tensor:

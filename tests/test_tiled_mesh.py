@@ -47,11 +47,6 @@ def rational_blobs(points: torch.Tensor) -> torch.Tensor:
 
 
 @pytest.fixture(scope="module")
-def grid() -> GridSpec:
-    return GridSpec.from_bounds(np.array([[-9.0, -11.0, -7.0], [10.0, 8.0, 11.0]]), 0.35)
-
-
-@pytest.fixture(scope="module")
 def sweep():
     """A probe and 50 poses: a transverse pass and a crossing sagittal one over the blobs."""
     probe = ProbeGeometry(width_mm=14.0, depth_mm=16.0, height_px=16, width_px=12)

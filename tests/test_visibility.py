@@ -25,6 +25,7 @@ from ultron.fields import FieldConfig, GridFieldConfig
 from ultron.methods import ultron_method
 from ultron.methods.ultron_method import UltronConfig, occupancy_training_data
 from ultron.models.fitted import TransmissionMaps
+from ultron.parallel import torch_threads
 from ultron.pipeline.model_io import load_network
 from ultron.pipeline.presets import preset_request
 from ultron.pipeline.run import ReconstructionRequest, reconstruct
@@ -92,8 +93,6 @@ def _true_transmission(dataset: SweepDataset) -> np.ndarray:
 @pytest.fixture(scope="module")
 def fitted_case(tmp_path_factory) -> dict:
     """A tiny labelled dataset on disk, its field (30 iterations) and a hand-made true T."""
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
     root = tmp_path_factory.mktemp("visibility")
     dataset = _dataset()
     dataset.save(root / "dataset")
@@ -102,9 +101,9 @@ def fitted_case(tmp_path_factory) -> dict:
         patch_width=16, holdout_every=0, check_every=100, checkpoint_every=100, log_every=10,
         train_scatterers="expected",
     )  # fmt: skip
-    fitted = fit_field(dataset, config, root / "field")
-    yield {"root": root, "dataset": dataset, "fitted": fitted}
-    torch.set_num_threads(previous)
+    with torch_threads(1):
+        fitted = fit_field(dataset, config, root / "field")
+        yield {"root": root, "dataset": dataset, "fitted": fitted}
 
 
 def test_training_data_reads_the_unsure_gap_above_a_band_as_background(fitted_case):

@@ -1,7 +1,7 @@
 """The ``ultron`` console script, also ``python -m ultron``.
 
 It imports only :mod:`sys` and :mod:`ultron.cli`'s constants before it can catch Ctrl-C, so
-that an interrupt while typer and the commands load (the first ≈ 0.2 s) is the same one line
+that an interrupt while typer and the commands load is the same one line
 and exit code as an interrupt later, not a traceback of the import machinery. (An interrupt
 during Python's own start-up, before this module runs, is beyond any program's reach.)
 """

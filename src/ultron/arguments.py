@@ -8,6 +8,7 @@ names the option of an error about a parameter."""
 from __future__ import annotations
 
 import math
+import numbers
 
 from ultron.errors import argument_error
 
@@ -57,6 +58,14 @@ def check_range(
         integer = isinstance(value, int) and not isinstance(value, bool)
         expected = _describe(integer, low, high, low_open, high_open)
         raise argument_error(option, f"expected {expected}, got {value!r}")
+
+
+def check_fraction(name: str, value: object) -> None:
+    """A one-line error naming ``name`` unless ``value`` is a real number (not a bool) in
+    (0, 1]: a share of frames or labels."""
+    number = isinstance(value, numbers.Real) and not isinstance(value, bool)
+    if not (number and 0.0 < float(value) <= 1.0):  # type: ignore[arg-type]
+        raise argument_error(name, f"expected a value in (0, 1], got {value!r}")
 
 
 #: The largest count any option takes (iterations, points, frames …): beyond it no run ends.

@@ -46,6 +46,7 @@ app = typer.Typer(
     name="ultron",
     help="Ultrasound Occupancy Networks: 3D bone surfaces from tracked 2D ultrasound sweeps.",
     no_args_is_help=True,
+    rich_markup_mode=None,  # click's plain help: readable at 80 columns, where rich's is not
     pretty_exceptions_enable=False,
     add_completion=False,
 )
@@ -73,11 +74,13 @@ def _root(
 
 def main() -> None:
     """Console-script entry point. An option value of the wrong type (``--frames ten``) is one
-    ``error:`` line naming the option, exit 2, like every other bad input; other usage errors
-    print click's usage message; Ctrl-C is one ``error: interrupted …`` line saying how to
-    resume, exit 130. Everything is written when the command returns, so the
-    objects then alive are frozen out of the garbage collector (:func:`gc.freeze`): the
-    interpreter's exit then skips collecting torch's ≈ 10⁵ objects, 0.3 s of every command."""
+    ``error:`` line naming the option, exit 2, like every other bad input, and so is every
+    other usage error (an unknown option or command, an option without its value); Ctrl-C is
+    one ``error: interrupted …`` line saying how to resume, exit 130. Everything is written
+    when the command returns, so the objects then alive are frozen out of the garbage
+    collector (:func:`gc.freeze`): the
+    interpreter's exit then skips collecting torch's objects (docs/decisions.md, "The command's
+    exit: live objects frozen out of the collector")."""
     try:
         return _run()
     except KeyboardInterrupt:  # while typer builds the commands, before it catches Ctrl-C
@@ -97,14 +100,36 @@ def _run() -> None:
         sys.exit(EXIT_BAD_INPUT)
     except typer.Abort:
         sys.exit(1)
-    except Exception as exc:  # click's other usage errors carry their own message and code
+    except Exception as exc:  # click's other errors carry their own message and code
         if not (hasattr(exc, "show") and hasattr(exc, "exit_code")):
             raise
-        exc.show()
+        if _kind(exc, "UsageError") and not _kind(exc, "NoArgsIsHelpError"):
+            # an unknown option or command, an option without its value: one line
+            where = _command_path(getattr(exc, "ctx", None))
+            message = exc.format_message().removesuffix(".")
+            line = f"error: {message[:1].lower()}{message[1:]} (usage: {where} --help)"
+            print(line, file=sys.stderr)
+            sys.exit(EXIT_BAD_INPUT)
+        exc.show()  # ``ultron`` alone: the help
         sys.exit(exc.exit_code)
     if code == EXIT_INTERRUPTED:  # typer's answer to Ctrl-C (a KeyboardInterrupt)
         interrupted()
     sys.exit(code if isinstance(code, int) else 0)
+
+
+def _command_path(ctx) -> str:
+    """``ultron`` and the names of the (sub)commands down to click's context ``ctx``."""
+    names = []
+    while ctx is not None and ctx.parent is not None:
+        names.append(ctx.info_name)
+        ctx = ctx.parent
+    return " ".join(["ultron", *reversed(names)])
+
+
+def _kind(exc: Exception, name: str) -> bool:
+    """Whether ``exc`` is click's exception class ``name`` (or a subclass): typer ships its own
+    copy of click, whose classes it does not export."""
+    return any(cls.__name__ == name for cls in type(exc).__mro__)
 
 
 def _missing(exc: typer.BadParameter) -> str:

@@ -268,7 +268,15 @@ class SweepDataset:
         root = Path(path)
         meta_path = root / "dataset.json"
         if not os.path.lexists(meta_path):
-            raise UltronInputError(meta_path, "dataset.json", "file is missing (not a dataset)")
+            made_by = "ultron simulate, import-plus and import-ultranerf write one"
+            if not root.is_dir():
+                found = "is not a directory" if root.exists() else "no such directory"
+                raise UltronInputError(
+                    root, "directory", f"{found}; expected a dataset's ({made_by})"
+                )
+            raise UltronInputError(
+                root, "dataset.json", f"missing: not an ultron dataset directory ({made_by})"
+            )
         input_file(meta_path, "dataset.json")
         meta = _read_json(meta_path)
         fmt = meta.get("format")

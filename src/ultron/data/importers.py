@@ -56,12 +56,12 @@ class ImportReport:
 
 
 def nearest_rotation(matrices: np.ndarray) -> np.ndarray:
-    """Nearest proper rotation (Frobenius norm) of each (..., 3, 3) matrix: R = U·diag(1,1,det)·Vᵀ."""
+    """Nearest proper rotation (Frobenius norm) of each (..., 3, 3) matrix M = U·Σ·Vᵀ:
+    R = U·diag(1, 1, s)·Vᵀ, s = sign det(U·Vᵀ) = ±1 exactly (U's last column flipped where M
+    reflects)."""
     u, _, vt = np.linalg.svd(matrices)
-    det = np.linalg.det(u @ vt)
-    fix = np.ones(matrices.shape[:-1])
-    fix[..., -1] = det
-    return (u * fix[..., None, :]) @ vt
+    u[..., :, 2] *= np.where(np.linalg.det(u) * np.linalg.det(vt) < 0, -1.0, 1.0)[..., None]
+    return u @ vt
 
 
 def check_orthonormalize_tolerance(tolerance: float) -> None:

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ultron.arguments import check_integer
+from ultron.arguments import check_fraction, check_integer
 from ultron.data.auto_label_dataset import auto_label_records
 from ultron.data.dataset import SweepDataset
 from ultron.data.geometry import apply_pose, probe_points_mm
@@ -59,8 +59,7 @@ def select_label_frames(
     Raises a clear error, naming ``where`` (the dataset directory), when the dataset has no
     annotated frame, or ``fraction`` is not in (0, 1].
     """
-    if isinstance(fraction, bool) or not (0.0 < float(fraction) <= 1.0):
-        raise argument_error("label_fraction", f"expected a value in (0, 1], got {fraction!r}")
+    check_fraction("label_fraction", fraction)
     available = {s.name: s.labelled_frames for s in dataset.sweeps if len(s.labelled_frames)}
     total = sum(len(v) for v in available.values())
     if total == 0:

@@ -8,8 +8,8 @@ of the t_i and d_i = |t_i − m|, frame i is an outlier when
 
     d_i > :data:`OUTLIER_FACTOR` · median(d) + :data:`OUTLIER_FLOOR_MM`
 
-(10 × the median distance + 50 mm). On the shared Ultra-NeRF l2 sample and the simulated
-phantoms the farthest frame lies at 2–3 × the median distance.
+(10 × the median distance + 50 mm; the distances of real and simulated sweeps: docs/data.md,
+"outlier poses").
 """
 
 from __future__ import annotations

@@ -13,8 +13,8 @@ How each format is read:
   numpy / zlib for the payload: the header is plain ``Key = Value`` text up to
   ``ElementDataFile``, the payload raw bytes or one zlib stream (``CompressedData = True``).
   SimpleITK 2.5 would also return the per-frame fields (as metadata strings), but it is not a
-  dependency of ultron (≈ 260 MB installed) and reports a truncated payload as "No such file
-  or directory".
+  dependency of ultron (a large install; docs/data.md) and reports a truncated payload as "No
+  such file or directory".
 - **NRRD** (``.nrrd``/``.nhdr``) with pynrrd, which returns the per-frame ``key:=value`` fields
   as strings and decodes raw and gzip payloads (also detached data files), in
   :mod:`ultron.data.plus_nrrd`; the frame layout, per-frame fields and orientation of both by

@@ -30,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ultron.data.importers import nearest_rotation
 from ultron.data.plus import STATUS_OK, parse_matrix, read_metaimage_header
 from ultron.data.sequence_frames import FRAME_FIELD, SequenceFile
 from ultron.data.validation import input_file
@@ -178,9 +179,7 @@ def _polar(blocks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     S = Rᵀ·B. A rigid transform's S is the identity up to the tracker's rounding; an Image → X
     transform's S holds the calibration's scale and shear, the same in every sample, so the
     interpolated transform keeps it."""
-    u, _, vt = np.linalg.svd(blocks)
-    u[..., :, 2] *= np.where(np.linalg.det(u) * np.linalg.det(vt) < 0, -1.0, 1.0)[..., None]
-    turns = u @ vt
+    turns = nearest_rotation(blocks)
     return turns, np.swapaxes(turns, -1, -2) @ blocks
 
 

@@ -49,7 +49,7 @@ def nearest_distance_mm(
 
     The tree is scipy's sliding-midpoint one (``balanced_tree=False``), queried on the torch
     threads' count (:func:`~ultron.parallel.default_workers`): the same distances as the
-    balanced tree's, found 3× sooner on a surface's vertices against labelled echoes, which
+    balanced tree's, found sooner on a surface's vertices against labelled echoes, which
     cluster (docs/decisions.md, "Nearest labelled points: an early stop and the unbalanced
     tree")."""
     from scipy.spatial import cKDTree
@@ -91,6 +91,20 @@ class SurfaceEvidence:
             raise argument_error("observed", "expected a (V,) boolean array")
         if np.shape(self.label_distance_mm) != observed.shape:
             raise argument_error("label_distance_mm", f"expected shape {observed.shape}")
+
+    def merged(self, new_index: np.ndarray, n_vertices: int) -> SurfaceEvidence:
+        """The evidence of a mesh whose vertex ``new_index[i]`` replaces vertex i (−1: gone;
+        :func:`~ultron.mesh.extract.weld_coincident`): a merged vertex is observed when any of
+        its copies is, at the least of their label distances (copies share a position)."""
+        new_index = np.asarray(new_index, dtype=np.int64)
+        if new_index.shape != self.observed.shape:
+            raise argument_error("new_index", f"expected shape {self.observed.shape}")
+        there = new_index >= 0
+        observed = np.zeros(n_vertices, dtype=bool)
+        np.logical_or.at(observed, new_index[there], self.observed[there])
+        distance = np.full(n_vertices, np.inf)
+        np.minimum.at(distance, new_index[there], np.asarray(self.label_distance_mm)[there])
+        return SurfaceEvidence(observed, distance)
 
     def vertex_attributes(self) -> dict[str, np.ndarray]:
         """The PLY vertex properties (:data:`VERTEX_PROPERTIES`)."""

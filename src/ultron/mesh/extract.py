@@ -17,6 +17,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -183,3 +184,57 @@ def keep_large_components(mesh, min_fraction: float):
     areas = np.array([p.area for p in parts])
     keep = [p for p, a in zip(parts, areas, strict=True) if a >= min_fraction * areas.max()]
     return trimesh.util.concatenate(keep)
+
+
+def weld_coincident(mesh) -> tuple[Any, np.ndarray]:
+    """``mesh`` with its coincident vertices merged and the faces without area dropped, and
+    (V,) int64: the new index of each old vertex (−1 for one no face uses any more).
+
+    Marching cubes puts a vertex exactly on a grid node wherever the constrained smoothing
+    clipped the node's value to the level: once for every crossed edge that ends there, so
+    one point has several copies, and the faces between copies have no area (docs/decisions.md,
+    "Meshes as written"). Vertices are merged when their coordinates are equal to the bit,
+    keeping the order of their first copy; the faces keep their order and winding. A face
+    whose corners merge, or whose area is exactly 0 (collinear corners), is dropped: it is a
+    segment or a point, not surface. The area and every positive-area face are unchanged.
+    """
+    import trimesh
+
+    vertices = np.asarray(mesh.vertices, dtype=np.float64)
+    faces = np.asarray(mesh.faces, dtype=np.int64).reshape(-1, 3)
+    if len(vertices) == 0:
+        return trimesh.Trimesh(vertices, faces, process=False), np.zeros(0, dtype=np.int64)
+    first, inverse = _equal_rows(vertices)
+    order = np.argsort(first, kind="stable")  # merged points in the order of their first copy
+    rank = np.empty_like(order)
+    rank[order] = np.arange(len(order))
+    merged = rank[inverse]
+    corners = merged[faces]
+    distinct = (
+        (corners[:, 0] != corners[:, 1])
+        & (corners[:, 1] != corners[:, 2])
+        & (corners[:, 0] != corners[:, 2])
+    )
+    points = vertices[first[order]]
+    edges = points[corners[:, 1:]] - points[corners[:, :1]]
+    keep = distinct & np.cross(edges[:, 0], edges[:, 1]).any(axis=1)
+    used = np.zeros(len(points), dtype=bool)
+    used[corners[keep].reshape(-1)] = True
+    renumber = np.cumsum(used) - 1
+    new_index = np.where(used[merged], renumber[merged], -1).astype(np.int64)
+    welded = trimesh.Trimesh(points[used], renumber[corners[keep]], process=False)
+    return welded, new_index
+
+
+def _equal_rows(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For the (N, 3) ``points``: each group of equal rows' first index (in the groups' sorted
+    order) and each row's group, as ``np.unique(points, axis=0, return_index=True,
+    return_inverse=True)`` gives them, by one lexicographic sort of the columns (twice as fast
+    on a mesh's vertices)."""
+    order = np.lexsort(points.T[::-1])
+    ordered = points[order]
+    starts = np.ones(len(points), dtype=bool)
+    np.any(ordered[1:] != ordered[:-1], axis=1, out=starts[1:])
+    inverse = np.empty(len(points), dtype=np.int64)
+    inverse[order] = np.cumsum(starts) - 1
+    return np.minimum.reduceat(order, np.flatnonzero(starts)), inverse

@@ -1,8 +1,8 @@
 """Label support between labelled frames, where their labelled cross-sections agree.
 
 Label support (:mod:`ultron.mesh.observed`) counts a reconstructed surface as observed near the
-labelled surface of the frames a method trained on. Those frames are a few millimetres apart at
-sparse labels (6–7 mm at 10 % on the real fibula), so the surface between them has only the
+labelled surface of the frames a method trained on. Those frames are millimetres apart at
+sparse labels (every tenth frame at 10 %), so the surface between them has only the
 field's transmission and the echoes to stand on, and deep walls fail both.
 
 Where two consecutive labelled frames A and B of a sweep show the *same* labelled cross-section,

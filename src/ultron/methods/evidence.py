@@ -11,16 +11,23 @@ then adds each vertex's distance to the labelled bone (:mod:`ultron.mesh.evidenc
 
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from typing import Any
 
 from ultron.data.dataset import SweepDataset
 from ultron.data.labels import bone_points_mm
 from ultron.mesh.evidence import SurfaceEvidence, surface_evidence
+from ultron.mesh.extract import weld_coincident
 from ultron.mesh.observed import NO_TRANSMISSION, ObservedSurfaceConfig, faced_observation
 from ultron.methods.ultron_method import Reconstruction
 
-__all__ = ["NO_TRANSMISSION", "faced_observation", "reconstruction_evidence", "with_observation"]
+__all__ = [
+    "NO_TRANSMISSION",
+    "EvidencedSurface",
+    "faced_observation",
+    "reconstruction_evidence",
+    "with_observation",
+]
 
 
 def with_observation(
@@ -36,13 +43,23 @@ def with_observation(
     return replace(result, observation=observation)
 
 
+@dataclass(frozen=True)
+class EvidencedSurface:
+    """A mesh as it is written (:func:`~ultron.mesh.extract.weld_coincident`) and the
+    evidence of each of its vertices."""
+
+    mesh: Any
+    evidence: SurfaceEvidence
+
+
 def reconstruction_evidence(
     result: Reconstruction, dataset: SweepDataset, observed: ObservedSurfaceConfig | None = None
-) -> tuple[Reconstruction, dict[str, SurfaceEvidence]]:
+) -> tuple[Reconstruction, dict[str, EvidencedSurface]]:
     """``result`` with its observation (:func:`with_observation`; :func:`ultron.pipeline.run.
-    run_method` already adds it, with the default criterion) and
-    the evidence of its mesh (``"mesh"``) and, when the observed crop dropped faces, of the
-    whole extracted surface (``"extracted"``)."""
+    run_method` already adds it, with the default criterion) and the surfaces to write with
+    their evidence: its mesh (``"mesh"``) and, when the observed crop dropped faces, the whole
+    extracted surface (``"extracted"``), each with its coincident vertices merged and its
+    faces without area dropped (:func:`~ultron.mesh.extract.weld_coincident`)."""
     result = with_observation(result, dataset, observed)
     observation = result.observation
     bone = bone_points_mm(dataset, result.selection)
@@ -51,12 +68,17 @@ def reconstruction_evidence(
         extracted.observed[observation.kept_vertices],
         extracted.label_distance_mm[observation.kept_vertices],
     )
-    evidence = {"mesh": kept}
+    surfaces = {"mesh": _welded(result.mesh, kept)}
     if observation.cropped:
-        evidence["extracted"] = extracted
-    return result, evidence
+        surfaces["extracted"] = _welded(observation.extracted, extracted)
+    return result, surfaces
 
 
-def evidence_summary(evidence: dict[str, SurfaceEvidence]) -> dict[str, Any]:
+def _welded(mesh, evidence: SurfaceEvidence) -> EvidencedSurface:
+    welded, new_index = weld_coincident(mesh)
+    return EvidencedSurface(welded, evidence.merged(new_index, len(welded.vertices)))
+
+
+def evidence_summary(surfaces: dict[str, EvidencedSurface]) -> dict[str, Any]:
     """run.json's ``surface_evidence``: per mesh, :meth:`SurfaceEvidence.summary`."""
-    return {name: item.summary() for name, item in evidence.items()}
+    return {name: item.evidence.summary() for name, item in surfaces.items()}

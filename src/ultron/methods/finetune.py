@@ -39,7 +39,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from ultron.arguments import check_count, check_integer, check_seed
+from ultron.arguments import check_count, check_fraction, check_integer, check_seed
 from ultron.data.dataset import SweepDataset
 from ultron.data.labels import LabelledPixels, select_label_frames
 from ultron.device import module_device, resolve_device
@@ -119,10 +119,7 @@ class FinetuneConfig:
     def __post_init__(self) -> None:
         check_mesh_coordinates(self.mesh_coordinates, "mesh_coordinates")
         resolve_device(self.device, "device")
-        if isinstance(self.label_fraction, bool) or not 0 < self.label_fraction <= 1:
-            raise argument_error(
-                "label_fraction", f"expected a value in (0, 1], got {self.label_fraction!r}"
-            )
+        check_fraction("label_fraction", self.label_fraction)
         check_count("iters", self.iters, 0)
         check_integer("frozen_layers", self.frozen_layers)
         check_seed("seed", self.seed)

@@ -12,7 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
-from ultron.arguments import check_seed
+from ultron.arguments import check_fraction, check_seed
 from ultron.device import resolve_device
 from ultron.errors import argument_error
 from ultron.mesh.export import check_mesh_coordinates
@@ -45,10 +45,7 @@ class ReconstructionRequest:
                 f" {type(self.method_config).__name__}",
             )
         check_seed("seed", self.seed)
-        if not 0 < self.label_fraction <= 1:
-            raise argument_error(
-                "label_fraction", f"expected a value in (0, 1], got {self.label_fraction}"
-            )
+        check_fraction("label_fraction", self.label_fraction)
         check_mesh_coordinates(self.mesh_coordinates, "mesh_coordinates")
         resolve_device(self.device, "device")
 

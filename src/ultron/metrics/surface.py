@@ -2,8 +2,11 @@
 
 Both surfaces are sampled uniformly by area (``n_points`` each, seeded) and every sample's
 exact point-to-surface distance to the other mesh is computed (:mod:`ultron.metrics.distance`:
-the exact minimum of the point-to-triangle distances over all triangles, libigl's AABB tree),
-once per repeat in each direction, then reduced:
+the exact minimum of the point-to-triangle distances over all triangles of positive area,
+libigl's AABB tree), once per repeat in each direction, then reduced. A triangle without area
+(coincident or collinear corners: a segment or a point, which marching cubes leaves where the
+surface passes through a grid node) is not surface: no sample lies on it, and no distance ends
+on it.
 
 * accuracy, reconstruction → reference distances d_acc: MAD = mean d_acc,
   RMSE = sqrt(mean d_acc²), HD = max d_acc, HD95 = 95th percentile of d_acc. HD and HD95 are
@@ -175,8 +178,10 @@ def sample_surface(mesh, n_points: int, seed: int) -> tuple[np.ndarray, np.ndarr
 
 
 def distance_index(mesh) -> MeshDistanceIndex:
-    """The exact-distance search structure of a (non-empty) trimesh mesh, reusable."""
-    return build_distance_index(np.asarray(mesh.triangles, dtype=np.float64))
+    """The exact-distance search structure of the triangles of positive area of a trimesh
+    mesh that has some (module doc), reusable."""
+    triangles = np.asarray(mesh.triangles, dtype=np.float64)
+    return build_distance_index(triangles[np.asarray(mesh.area_faces) > 0])
 
 
 def point_to_surface_distances(
@@ -186,8 +191,8 @@ def point_to_surface_distances(
     min over its triangles T of min_{q ∈ T} |p − q| (:mod:`ultron.metrics.distance`).
     ``index`` (from :func:`distance_index` of the same mesh) saves rebuilding the search."""
     if index is None:
-        if target_mesh is None or len(target_mesh.faces) == 0:
-            raise argument_error("target_mesh", "mesh is empty (no triangles)")
+        if target_mesh is None or len(target_mesh.faces) == 0 or target_mesh.area <= 0:
+            raise argument_error("target_mesh", "mesh is empty (no triangle of positive area)")
         index = distance_index(target_mesh)
     return mesh_distances(points, index)
 

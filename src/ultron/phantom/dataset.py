@@ -30,12 +30,11 @@ element-wise on modest tensors; a second OpenMP thread mostly spins).
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import io
 import math
 import tempfile
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -49,6 +48,7 @@ from ultron.data.dataset import ProbeGeometry, Sweep, SweepDataset
 from ultron.data.geometry import field_of_view_bounds_mm
 from ultron.errors import argument_error
 from ultron.memory import check_fits_in_memory
+from ultron.parallel import torch_threads
 from ultron.phantom.annotation import AnnotationConfig, annotate
 from ultron.phantom.protocols import (
     DEFAULT_SWEEPS,
@@ -192,16 +192,6 @@ def _streams(seed: int) -> dict[str, torch.Generator]:
     }
 
 
-@contextlib.contextmanager
-def _torch_threads(n: int) -> Iterator[None]:
-    previous = torch.get_num_threads()
-    torch.set_num_threads(n)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(previous)
-
-
 def simulate_dataset(
     config: SimulationConfig, out: Path | str | None = None, progress: Progress | None = None
 ) -> SweepDataset:
@@ -215,7 +205,7 @@ def simulate_dataset(
     """
     if not isinstance(config, SimulationConfig):
         raise argument_error("config", f"expected a SimulationConfig, got {type(config).__name__}")
-    with _torch_threads(1):
+    with torch_threads(1):
         return _simulate(config, out, progress)
 
 

@@ -137,10 +137,12 @@ def write_outputs(
     (:func:`~ultron.pipeline.rundir.staged_run_dir`; ``out_dir`` must be new, empty or a run of
     ``identity["command"]``); return the summary. run.json therefore marks a finished run.
 
-    Mesh files are written in ``mesh_coordinates`` (:mod:`ultron.mesh.export`); mesh.ply
-    holds each vertex's evidence (:mod:`ultron.mesh.evidence`: ``observed``,
-    ``label_distance_mm``) and, when the observed crop dropped faces, ``surface_extracted.ply``
-    the whole iso-surface with its own.
+    Mesh files are written in ``mesh_coordinates`` (:mod:`ultron.mesh.export`), their
+    coincident vertices merged and their faces without area dropped
+    (:func:`~ultron.mesh.extract.weld_coincident`; metrics.json and run.json describe the
+    meshes so written); mesh.ply holds each vertex's evidence (:mod:`ultron.mesh.evidence`:
+    ``observed``, ``label_distance_mm``) and, when the observed crop dropped faces,
+    ``surface_extracted.ply`` the whole iso-surface with its own.
 
     ``identity`` (command, method, label_fraction, seed, …) heads run.json and tags
     metrics.json; ``references`` are :func:`load_references`'s meshes (read here if None).
@@ -151,15 +153,17 @@ def write_outputs(
     out = Path(out_dir)
     identity = {"command": "reconstruct", **identity}
     reference, visible = load_references(dataset) if references is None else references
-    result, evidence = reconstruction_evidence(result, dataset)
+    result, surfaces = reconstruction_evidence(result, dataset)
+    mesh = surfaces["mesh"].mesh  # as written: what metrics.json and run.json describe
     with staged_run_dir(out, identity["command"]) as staging:
         with timer.stage("write"):
             for suffix in (".ply", ".stl", ".obj"):
-                attributes = evidence["mesh"].vertex_attributes() if suffix == ".ply" else None
-                save_mesh(result.mesh, staging / f"mesh{suffix}", mesh_coordinates, attributes)
-            if "extracted" in evidence:
-                save_mesh(result.observation.extracted, staging / EXTRACTED_MESH,
-                          mesh_coordinates, evidence["extracted"].vertex_attributes())  # fmt: skip
+                ply = suffix == ".ply"
+                attributes = surfaces["mesh"].evidence.vertex_attributes() if ply else None
+                save_mesh(mesh, staging / f"mesh{suffix}", mesh_coordinates, attributes)
+            if "extracted" in surfaces:
+                save_mesh(surfaces["extracted"].mesh, staging / EXTRACTED_MESH,
+                          mesh_coordinates, surfaces["extracted"].evidence.vertex_attributes())  # fmt: skip
             save_volume_nifti(result.volume, result.grid, staging / "occupancy.nii.gz")
             if result.model is not None:
                 meta = {"method": identity["method"], **result.model.meta}
@@ -168,16 +172,16 @@ def write_outputs(
         if reference is not None:
             with timer.stage("metrics"):
                 metrics = evaluate_meshes(
-                    result.mesh, reference, metrics_config, reference_visible=visible
+                    mesh, reference, metrics_config, reference_visible=visible
                 )
             metrics["method"] = identity["method"]
             metrics["label_fraction"] = identity.get("label_fraction")
             atomic.write_json(staging / "metrics.json", metrics)
         payload = {
             **identity,
-            "mesh": {"vertices": len(result.mesh.vertices), "faces": len(result.mesh.faces),
-                     "area_mm2": float(result.mesh.area), "coordinates": mesh_coordinates},
-            "surface_evidence": evidence_summary(evidence),
+            "mesh": {"vertices": len(mesh.vertices), "faces": len(mesh.faces),
+                     "area_mm2": float(mesh.area), "coordinates": mesh_coordinates},
+            "surface_evidence": evidence_summary(surfaces),
             **result.info,
             **(extra or {}),
         }  # fmt: skip

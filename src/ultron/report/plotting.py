@@ -32,7 +32,7 @@ def place_grid(
     """Lay out ``fig``'s grid of subplots with fixed margins (left, right, bottom, top) and
     gaps (between columns, between rows) in inches, the grid ending at ``right_fraction`` of
     the width before the right margin (room for a colour bar). A fixed layout, not
-    ``tight_layout``: measuring every tick label cost 4 of a report's 16 s (docs/decisions.md,
+    ``tight_layout``, which measures every tick label of every figure (its cost: docs/decisions.md,
     "Report figures: a fixed layout")."""
     width, height = (float(v) for v in fig.get_size_inches())
     left, right, bottom, top = margins_in

@@ -47,7 +47,7 @@ candidates give the same density without duplicates.) Option ``candidates="box"`
 preset) draws the candidates uniformly in a given box instead (the data's bounding box grown by
 a margin): inside [−0.5, 0.5]³ the grids' candidate density is uniform too, so this only skips
 space where f_csg is far from 0 (the data's neighbourhood holds the whole zero level unless a
-view's field has spurious surfaces far from its points) and needs ≈ 3× fewer candidates.
+view's field has spurious surfaces far from its points) and needs fewer candidates.
 Targets are f_csg at every sample.
 
 Stage 3 (:func:`fit_refined_sdf`): a fresh network regresses f_csg,
