@@ -137,7 +137,7 @@ def _print_summary(summaries: dict) -> None:
         console.print(metrics_table(with_metrics, title, (*names, "cd", "hd95", "mad")))
     for name, summary in summaries.items():
         timings = ", ".join(f"{k} {v:.1f} s" for k, v in summary["timings_s"].items())
-        console.print(f"{name}: {timings}")
+        console.print(f"{name}: {timings}", highlight=False, soft_wrap=True)
 
 
 @command()
