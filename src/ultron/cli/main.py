@@ -78,9 +78,9 @@ def main() -> None:
     other usage error (an unknown option or command, an option without its value); Ctrl-C is
     one ``error: interrupted …`` line saying how to resume, exit 130. Everything is written
     when the command returns, so the objects then alive are frozen out of the garbage
-    collector (:func:`gc.freeze`): the
-    interpreter's exit then skips collecting torch's objects (docs/decisions.md, "The command's
-    exit: live objects frozen out of the collector")."""
+    collector (:func:`gc.freeze`): the interpreter's exit then skips collecting torch's
+    objects (docs/decisions.md, "The command's exit: live objects frozen out of the
+    collector")."""
     try:
         return _run()
     except KeyboardInterrupt:  # while typer builds the commands, before it catches Ctrl-C

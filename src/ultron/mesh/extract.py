@@ -210,14 +210,10 @@ def weld_coincident(mesh) -> tuple[Any, np.ndarray]:
     rank[order] = np.arange(len(order))
     merged = rank[inverse]
     corners = merged[faces]
-    distinct = (
-        (corners[:, 0] != corners[:, 1])
-        & (corners[:, 1] != corners[:, 2])
-        & (corners[:, 0] != corners[:, 2])
-    )
     points = vertices[first[order]]
     edges = points[corners[:, 1:]] - points[corners[:, :1]]
-    keep = distinct & np.cross(edges[:, 0], edges[:, 1]).any(axis=1)
+    # merged corners give a zero edge, or two equal ones: a cross product of exactly 0
+    keep = np.cross(edges[:, 0], edges[:, 1]).any(axis=1)
     used = np.zeros(len(points), dtype=bool)
     used[corners[keep].reshape(-1)] = True
     renumber = np.cumsum(used) - 1

@@ -130,8 +130,8 @@ def projected_jacobi(
 
     The step is one sparse product with J = (1 − w)·I − w·D⁻¹(Q − D), assembled once (the
     same non-zeros as Q), so an iteration reads the matrix once and allocates nothing; the
-    result equals the step written out to rounding (docs/decisions.md, "Constrained smoothing"). The
-    product runs on torch's threads (a CSR tensor with 32-bit indices; scipy's is
+    result equals the step written out to rounding (docs/decisions.md, "Constrained
+    smoothing"). The product runs on torch's threads (a CSR tensor with 32-bit indices; scipy's is
     single-threaded), in float64. The energy ½ xᵀQx checked every ``check_each`` steps reuses
     that step's product y = Jx, since Qx = D(x − y)/w: no second product. ``advance``, when
     given, is told (iterations done, ``max_iters``) at every energy check. ``overwrite_q``:

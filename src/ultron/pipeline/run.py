@@ -162,8 +162,9 @@ def write_outputs(
                 attributes = surfaces["mesh"].evidence.vertex_attributes() if ply else None
                 save_mesh(mesh, staging / f"mesh{suffix}", mesh_coordinates, attributes)
             if "extracted" in surfaces:
-                save_mesh(surfaces["extracted"].mesh, staging / EXTRACTED_MESH,
-                          mesh_coordinates, surfaces["extracted"].evidence.vertex_attributes())  # fmt: skip
+                whole = surfaces["extracted"]
+                save_mesh(whole.mesh, staging / EXTRACTED_MESH, mesh_coordinates,
+                          whole.evidence.vertex_attributes())  # fmt: skip
             save_volume_nifti(result.volume, result.grid, staging / "occupancy.nii.gz")
             if result.model is not None:
                 meta = {"method": identity["method"], **result.model.meta}
